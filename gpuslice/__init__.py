@@ -1,0 +1,40 @@
+"""gpuslice: slice triangle meshes into closed, nested layer contours on any OpenCL device.
+
+Importing the package is cheap: pyopencl, trimesh and moderngl are imported only when a function needs them.
+"""
+
+from .errors import (
+    DeviceError,
+    EmptyMeshError,
+    GpusliceError,
+    InvalidGeometryError,
+    MeshFileError,
+    ParameterError,
+)
+from .mesh import Mesh, load_mesh, mesh_from_arrays, mesh_from_triangles
+from .result import LayerView, SliceResult
+from .schedule import Schedule, from_z, uniform
+from .slicer import SliceParams, slice_mesh
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "DeviceError",
+    "EmptyMeshError",
+    "GpusliceError",
+    "InvalidGeometryError",
+    "LayerView",
+    "Mesh",
+    "MeshFileError",
+    "ParameterError",
+    "Schedule",
+    "SliceParams",
+    "SliceResult",
+    "__version__",
+    "from_z",
+    "load_mesh",
+    "mesh_from_arrays",
+    "mesh_from_triangles",
+    "slice_mesh",
+    "uniform",
+]

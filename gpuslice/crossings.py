@@ -1,0 +1,171 @@
+"""Stage 3: facet–plane crossings of all layers at once, into one flat segment buffer.
+
+The rule for vertices, edges and facets lying exactly on a plane is stated once, at the top of
+``kernels/crossings.cl``: a vertex with ``z >= plane`` counts as above (half-open), so the section at a plane is the
+limit of the sections just below it. :func:`crossings_numpy` is the numpy twin of the kernel with the same
+semantics, used as the test oracle and as ``backend="numpy"``.
+
+Segments are ordered by facet, then by layer. Segment s lies in layer ``layer[s]``, runs from ``points[s, :2]`` on
+mesh edge ``edges[s, 0]`` to ``points[s, 2:]`` on mesh edge ``edges[s, 1]`` (mm), with material on its left for an
+outward-wound mesh.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .mesh import Mesh
+
+__all__ = ["Segments", "crossings_numpy", "CrossingsKernel", "compute_crossings"]
+
+
+@dataclass
+class Segments:
+    """The segment buffer: ``layer`` (S,) int32, ``edges`` (S, 2) int32, ``points`` (S, 4) float32 (x0, y0, x1, y1)."""
+
+    layer: np.ndarray
+    edges: np.ndarray
+    points: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.layer.shape[0])
+
+
+def _planes32(z: np.ndarray) -> np.ndarray:
+    zs = np.ascontiguousarray(z, dtype=np.float32)
+    if zs.size > 1 and not np.all(np.diff(zs) > 0):
+        from .errors import ParameterError
+
+        raise ParameterError("layers closer than float32 resolution: cutting planes coincide")
+    return zs
+
+
+def facet_layer_ranges(mesh: Mesh, zs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(first layer, count) of the layers each facet crosses: layers k with zmin < zs[k] <= zmax."""
+    fz = mesh.vertices[:, 2][mesh.faces]
+    zmin = np.minimum(np.minimum(fz[:, 0], fz[:, 1]), fz[:, 2])
+    zmax = np.maximum(np.maximum(fz[:, 0], fz[:, 1]), fz[:, 2])
+    lo = np.searchsorted(zs, zmin, side="right").astype(np.int32)
+    hi = np.searchsorted(zs, zmax, side="right").astype(np.int32)
+    return lo, hi - lo
+
+
+def _edge_points(verts: np.ndarray, a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray:
+    u, w = np.minimum(a, b), np.maximum(a, b)
+    vu, vw = verts[u], verts[w]
+    zu, zw = vu[:, 2], vw[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (p - zu) / (zw - zu)
+    x = vu[:, 0] + t * (vw[:, 0] - vu[:, 0])
+    y = vu[:, 1] + t * (vw[:, 1] - vu[:, 1])
+    at_w, at_u = zw == p, zu == p
+    x = np.where(at_w, vw[:, 0], np.where(at_u, vu[:, 0], x))
+    y = np.where(at_w, vw[:, 1], np.where(at_u, vu[:, 1], y))
+    return np.stack([x, y], axis=1).astype(np.float32)
+
+
+def crossings_numpy(mesh: Mesh, z: np.ndarray) -> Segments:
+    """The numpy reference of ``kernels/crossings.cl``: the same segments, in the same order."""
+    zs = _planes32(z)
+    lo, count = facet_layer_ranges(mesh, zs)
+    total = int(count.sum(dtype=np.int64))
+    facet = np.repeat(np.arange(mesh.n_faces, dtype=np.int64), count)
+    start = np.cumsum(count, dtype=np.int64) - count
+    layer = (lo[facet] + (np.arange(total, dtype=np.int64) - start[facet])).astype(np.int32)
+    p = zs[layer]
+    v = mesh.faces[facet]
+    below = mesh.vertices[:, 2][v] < p[:, None]
+    nxt = np.roll(below, -1, axis=1)
+    down = np.argmax(~below & nxt, axis=1)
+    up = np.argmax(below & ~nxt, axis=1)
+    rows = np.arange(total)
+    va, vb = v[rows, down], v[rows, (down + 1) % 3]
+    wa, wb = v[rows, up], v[rows, (up + 1) % 3]
+    pts = np.empty((total, 4), dtype=np.float32)
+    pts[:, :2] = _edge_points(mesh.vertices, va, vb, p)
+    pts[:, 2:] = _edge_points(mesh.vertices, wa, wb, p)
+    fe = mesh.face_edges[facet]
+    edges = np.stack([fe[rows, down], fe[rows, up]], axis=1).astype(np.int32)
+    return Segments(layer, edges, pts)
+
+
+class CrossingsKernel:
+    """Driver of ``kernels/crossings.cl`` on one device: builds once, keeps the kernels and reuses buffers."""
+
+    def __init__(self, device) -> None:
+        self.device = device
+        prg = device.program("crossings.cl")
+        self._count = prg.count_crossings
+        self._emit = prg.emit_segments
+        self._buffers: dict[str, tuple[object, int]] = {}
+
+    def _buffer(self, name: str, nbytes: int):
+        import pyopencl as cl
+
+        buf, size = self._buffers.get(name, (None, 0))
+        if size < nbytes:
+            size = max(nbytes, int(size * 1.5), 64)
+            buf = cl.Buffer(self.device.context, cl.mem_flags.READ_WRITE, size)
+            self._buffers[name] = (buf, size)
+        return buf
+
+    def _upload(self, name: str, array: np.ndarray):
+        import pyopencl as cl
+
+        buf = self._buffer(name, max(array.nbytes, 4))
+        if array.nbytes:
+            cl.enqueue_copy(self.device.queue, buf, np.ascontiguousarray(array), is_blocking=False)
+        return buf
+
+    def __call__(self, mesh: Mesh, z: np.ndarray) -> Segments:
+        import pyopencl as cl
+
+        q = self.device.queue
+        ls = self.device.local_size
+        zs = _planes32(z)
+        n_f, n_l = mesh.n_faces, int(zs.size)
+        gs = ((n_f + ls - 1) // ls) * ls
+        d_verts = self._upload("verts", mesh.vertices)
+        d_faces = self._upload("faces", mesh.faces)
+        d_edges = self._upload("face_edges", mesh.face_edges)
+        d_zs = self._upload("zs", zs)
+        d_first = self._buffer("first", 4 * n_f)
+        d_count = self._buffer("count", 4 * n_f)
+        self._count(q, (gs,), (ls,), d_verts, d_faces, np.int32(n_f), d_zs, np.int32(n_l), d_first, d_count)
+        count = np.empty(n_f, dtype=np.int32)
+        cl.enqueue_copy(q, count, d_count)
+        offsets = np.cumsum(count, dtype=np.int64)
+        total = int(offsets[-1]) if n_f else 0
+        offsets -= count
+        seg = Segments(
+            np.empty(total, dtype=np.int32), np.empty((total, 2), dtype=np.int32), np.empty((total, 4), np.float32)
+        )
+        if total == 0:
+            return seg
+        d_off = self._upload("offsets", offsets)
+        d_layer = self._buffer("seg_layer", 4 * total)
+        d_sedges = self._buffer("seg_edges", 8 * total)
+        d_spts = self._buffer("seg_points", 16 * total)
+        self._emit(
+            q, (gs,), (ls,), d_verts, d_faces, d_edges, np.int32(n_f), d_zs, d_first, d_count, d_off,
+            d_layer, d_sedges, d_spts,
+        )
+        cl.enqueue_copy(q, seg.layer, d_layer, is_blocking=False)
+        cl.enqueue_copy(q, seg.edges, d_sedges, is_blocking=False)
+        cl.enqueue_copy(q, seg.points, d_spts, is_blocking=True)
+        return seg
+
+
+_KERNELS: dict[int, CrossingsKernel] = {}
+
+
+def compute_crossings(mesh: Mesh, z: np.ndarray, device=None) -> Segments:
+    """All segments of ``mesh`` cut at the planes ``z`` (mm, increasing): on ``device``, or numpy when None."""
+    if device is None:
+        return crossings_numpy(mesh, z)
+    key = id(device)
+    if key not in _KERNELS:
+        _KERNELS[key] = CrossingsKernel(device)
+    return _KERNELS[key](mesh, z)

@@ -1,0 +1,151 @@
+"""OpenCL devices: which one is used, and kernel programs built once per context.
+
+The default device is the first GPU of any platform, else the first CPU device of a PoCL platform, else any
+device. ``--device`` or the ``GPUSLICE_DEVICE`` environment variable override it with PyOpenCL's ``PYOPENCL_CTX``
+syntax: ``"P"`` or ``"P:D"`` (platform and device indices as ``gpuslice devices`` lists them), or a case-insensitive
+piece of the device or platform name (``"pocl"``, ``"nvidia"``). Nothing here prompts.
+
+Programs are built from ``kernels/*.cl`` (shipped inside the package as ``gpuslice.kernels``) with
+``-D LOCAL_SIZE=…`` and memoised per (context, file, options); PyOpenCL's on-disk binary cache makes later
+processes skip the compiler.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from functools import lru_cache
+from importlib import resources
+
+from .errors import DeviceError
+
+__all__ = ["Device", "get_device", "list_devices", "ENV_VAR"]
+
+ENV_VAR = "GPUSLICE_DEVICE"
+
+
+@dataclass(eq=False)
+class Device:
+    """A chosen OpenCL device with its context and an in-order queue."""
+
+    context: object
+    queue: object
+    device: object
+    platform_index: int
+    device_index: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.device.platform.name.strip()} / {self.device.name.strip()}"
+
+    @property
+    def is_gpu(self) -> bool:
+        import pyopencl as cl
+
+        return bool(self.device.type & cl.device_type.GPU)
+
+    @property
+    def local_size(self) -> int:
+        """The work-group size used by every kernel: 64 (a multiple of the warp/wavefront, good for PoCL too)."""
+        return int(min(64, self.device.max_work_group_size))
+
+    def program(self, filename: str):
+        """The built program of ``kernels/<filename>``, memoised for this context."""
+        return _build(self, filename, self.local_size)
+
+
+@lru_cache(maxsize=None)
+def _build(dev: Device, filename: str, local_size: int):
+    import pyopencl as cl
+
+    source = resources.files("gpuslice.kernels").joinpath(filename).read_text()
+    try:
+        return cl.Program(dev.context, source).build(options=[f"-DLOCAL_SIZE={local_size}", "-cl-std=CL1.2"])
+    except cl.RuntimeError as exc:  # pragma: no cover - a broken kernel or driver
+        raise DeviceError(f"{filename}: OpenCL build failed on {dev.name}: {str(exc).splitlines()[0]}") from None
+
+
+def _platforms():
+    try:
+        import pyopencl as cl
+    except ImportError as exc:  # pragma: no cover
+        raise DeviceError(f"pyopencl is not installed ({exc})") from None
+    try:
+        return cl.get_platforms()
+    except cl.Error as exc:
+        raise DeviceError(f"no OpenCL platform found ({exc}); pip install pocl-binary-distribution") from None
+
+
+def list_devices() -> list[dict]:
+    """Every OpenCL device: platform and device index, names, type, compute units, memory (MiB)."""
+    import pyopencl as cl
+
+    out = []
+    for pi, p in enumerate(_platforms()):
+        try:
+            devices = p.get_devices()
+        except cl.Error:
+            continue
+        for di, d in enumerate(devices):
+            out.append(
+                {
+                    "id": f"{pi}:{di}",
+                    "platform": p.name.strip(),
+                    "platform_version": p.version.strip(),
+                    "device": d.name.strip(),
+                    "type": cl.device_type.to_string(d.type),
+                    "compute_units": int(d.max_compute_units),
+                    "global_mem_mib": int(d.global_mem_size // 2**20),
+                    "driver": d.driver_version.strip(),
+                }
+            )
+    return out
+
+
+def _default_choice(devices: list[dict]) -> dict:
+    gpus = [d for d in devices if "GPU" in d["type"]]
+    if gpus:
+        return gpus[0]
+    pocl = [d for d in devices if "portable computing language" in d["platform"].lower() and "CPU" in d["type"]]
+    if pocl:
+        return pocl[0]
+    return devices[0]
+
+
+def resolve(spec: str | None) -> dict:
+    """The device entry (from :func:`list_devices`) that ``spec`` (or the environment, or the default) names."""
+    devices = list_devices()
+    if not devices:
+        raise DeviceError("no OpenCL device found; pip install pocl-binary-distribution for the PoCL CPU device")
+    spec = spec if spec not in (None, "") else os.environ.get(ENV_VAR) or None
+    if spec is None:
+        return _default_choice(devices)
+    parts = spec.split(":")
+    if all(x.isdigit() for x in parts) and 1 <= len(parts) <= 2:
+        want = f"{parts[0]}:{parts[1] if len(parts) == 2 else 0}"
+        for d in devices:
+            if d["id"] == want:
+                return d
+        raise DeviceError(f"device '{spec}' not found (see gpuslice devices)")
+    needle = spec.lower()
+    for d in devices:
+        if needle in d["device"].lower() or needle in d["platform"].lower():
+            return d
+    raise DeviceError(f"device '{spec}' not found (see gpuslice devices)")
+
+
+_DEVICES: dict[str, Device] = {}
+
+
+def get_device(spec: str | None = None) -> Device:
+    """The :class:`Device` named by ``spec`` (see the module docstring); contexts are created once per process."""
+    import pyopencl as cl
+
+    entry = resolve(spec)
+    key = entry["id"]
+    if key not in _DEVICES:
+        pi, di = (int(x) for x in key.split(":"))
+        dev = _platforms()[pi].get_devices()[di]
+        ctx = cl.Context([dev])
+        _DEVICES[key] = Device(ctx, cl.CommandQueue(ctx), dev, pi, di)
+    return _DEVICES[key]

@@ -1,0 +1,41 @@
+"""The project's own exception classes.
+
+Every error a user can cause (a bad path, a broken file, an option out of range) is raised as a
+:class:`GpusliceError` subclass whose message is one line naming the file and the problem; the command line
+prints that line on stderr and exits with status 2.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "GpusliceError",
+    "MeshFileError",
+    "EmptyMeshError",
+    "InvalidGeometryError",
+    "ParameterError",
+    "DeviceError",
+]
+
+
+class GpusliceError(Exception):
+    """Base class of every error gpuslice raises on purpose."""
+
+
+class MeshFileError(GpusliceError):
+    """A mesh file cannot be read: missing, a directory, truncated, not an STL, garbage text."""
+
+
+class EmptyMeshError(MeshFileError):
+    """The file is well formed but holds no facets."""
+
+
+class InvalidGeometryError(MeshFileError):
+    """Coordinates that cannot be sliced: NaN, infinite, or so large that float32 arithmetic overflows."""
+
+
+class ParameterError(GpusliceError):
+    """An option out of range: a non-positive thickness, unsorted z values, an unknown fill rule."""
+
+
+class DeviceError(GpusliceError):
+    """No usable OpenCL device, or the one asked for does not exist."""
