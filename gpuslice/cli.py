@@ -1,0 +1,212 @@
+"""The ``gpuslice`` command line: ``info``, ``slice``, ``devices``.
+
+Results go to stdout (or files), progress and errors to stderr. A user error (bad file, bad option) prints one line
+``gpuslice: error: <file>: <problem>`` and exits with status 2; Ctrl-C exits with 130. Outputs are written under a
+temporary name and renamed when complete, so an interrupted run leaves no partial file. ``--debug`` shows
+tracebacks.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import click
+
+from . import __version__
+from .errors import GpusliceError
+
+__all__ = ["main", "cli"]
+
+EXIT_USAGE = 2
+
+
+def _fail(message: str, code: int = EXIT_USAGE) -> None:
+    click.echo(f"gpuslice: error: {message}", err=True)
+    raise SystemExit(code)
+
+
+def _load(path: str, scale: float | None, fit: float | None):
+    from .mesh import mesh_from_triangles
+    from .stl import read_mesh_file
+
+    t0 = time.perf_counter()
+    raw = read_mesh_file(path)
+    t1 = time.perf_counter()
+    mesh = mesh_from_triangles(
+        raw.triangles, raw.normals, scale=scale, fit=fit, name=str(path), source_format=raw.source_format,
+        solids=raw.solids,
+    )
+    t2 = time.perf_counter()
+    return mesh, {"load": t1 - t0, "topology": t2 - t1}
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, message=f"gpuslice %(version)s (Python {sys.version.split()[0]})")
+@click.option("--debug", is_flag=True, help="Show tracebacks on errors.")
+@click.pass_context
+def cli(ctx: click.Context, debug: bool) -> None:
+    """Slice triangle meshes (STL) into closed, nested layer contours on any OpenCL device."""
+    ctx.obj = {"debug": debug}
+
+
+_mesh_options = [
+    click.option("--scale", type=float, default=None, help="Multiply coordinates by this factor (to mm)."),
+    click.option("--fit", type=float, default=None, help="Scale so the longest side is this many mm."),
+]
+
+
+def _with(options):
+    def deco(f):
+        for opt in reversed(options):
+            f = opt(f)
+        return f
+
+    return deco
+
+
+@cli.command()
+@click.argument("model", type=click.Path(dir_okay=True, path_type=str))
+@_with(_mesh_options)
+@click.option("--json", "as_json", is_flag=True, help="Print JSON instead of text.")
+def info(model: str, scale: float | None, fit: float | None, as_json: bool) -> None:
+    """Facets, unique vertices, distinct normals, bbox, watertight, bodies and volume of MODEL (after scaling)."""
+    mesh, _ = _load(model, scale, fit)
+    data = mesh.info()
+    if as_json:
+        click.echo(json.dumps(data, indent=1))
+        return
+    for key, value in data.items():
+        if isinstance(value, float):
+            value = f"{value:.6g}"
+        elif isinstance(value, list):
+            value = " ".join(f"{v:.6g}" for v in value)
+        click.echo(f"{key:24s} {value}")
+
+
+@cli.command(name="slice")
+@click.argument("model", type=click.Path(dir_okay=True, path_type=str))
+@click.option("-t", "--thickness", type=float, default=0.1, show_default=True, help="Layer thickness, mm.")
+@click.option("--first-layer", type=float, default=None, help="First layer thickness, mm (default: -t).")
+@click.option("--z-mode", type=click.Choice(["mid", "paper"]), default="mid", show_default=True,
+              help="mid: cut at the middle of each layer, z=(i+0.5)h; paper: Z_i = i*h.")
+@_with(_mesh_options)
+@click.option("--fill-rule", type=click.Choice(["nonzero", "evenodd", "positive"]), default="nonzero",
+              show_default=True)
+@click.option("--max-gap", type=float, default=2.0, show_default=True,
+              help="Join open chain ends closer than this, mm (0: never).")
+@click.option("--backend", type=click.Choice(["opencl", "numpy"]), default="opencl", show_default=True)
+@click.option("--device", default=None, help="OpenCL device: 'P:D' index or a name piece (env GPUSLICE_DEVICE).")
+@click.option("-o", "--output", type=click.Path(path_type=str), default=None,
+              help="Write the layers: .npz, .svg or .cli.")
+@click.option("--report", type=click.Path(path_type=str), default=None, help="Write the run report as JSON.")
+@click.option("-q", "--quiet", is_flag=True, help="No summary on stdout.")
+def slice_cmd(model, thickness, first_layer, z_mode, scale, fit, fill_rule, max_gap, backend, device, output,
+              report, quiet) -> None:
+    """Slice MODEL into layers of closed, nested contours."""
+    from .export import export, write_report
+    from .slicer import SliceParams, slice_mesh
+
+    if output is not None and Path(output).suffix.lower() not in (".npz", ".svg", ".cli"):
+        _fail(f"{output}: unknown output format '{Path(output).suffix}' (use .npz, .svg or .cli)")
+    params = SliceParams(thickness=thickness, first_layer=first_layer, z_mode=z_mode, fill_rule=fill_rule,
+                         max_gap=max_gap, backend=backend, device=device)
+    mesh, load_times = _load(model, scale, fit)
+    result = slice_mesh(mesh, params)
+    timings = {**load_times, **result.meta["timings_s"]}
+    if output is not None:
+        t = time.perf_counter()
+        export(result, output)
+        timings["export"] = time.perf_counter() - t
+    result.meta["timings_s"] = timings
+    meta = result.meta
+    if report is not None:
+        write_report(build_report(result), report)
+    if not quiet:
+        click.echo(
+            f"{Path(model).name}: {meta['facets']} facets, {meta['layers']} layers, {meta['segments']} segments, "
+            f"{meta['loops']} loops, {meta['points']} points, {meta['open_chains']} open chains"
+        )
+        repairs = {k: v for k, v in meta["repairs"].items() if v}
+        click.echo("repairs: " + (", ".join(f"{k} {v}" for k, v in repairs.items()) if repairs else "none"))
+        click.echo("times (ms): " + ", ".join(f"{k} {1000 * v:.1f}" for k, v in timings.items()))
+        click.echo(f"device: {meta['device']}")
+        if output:
+            click.echo(f"wrote {output}")
+
+
+def build_report(result) -> dict:
+    """The ``--report`` JSON: per-layer arrays and the run's figures (see README for the keys)."""
+    meta = result.meta
+    return {
+        **{k: v for k, v in meta.items() if k not in ("params",)},
+        "params": meta.get("params", {}),
+        "z": result.z.tolist(),
+        "thickness": result.thickness.tolist(),
+        "area_mm2": result.area.tolist(),
+        "points": result.points_per_layer.tolist(),
+        "loops_per_layer": result.loops_per_layer.tolist(),
+        "open_chains_per_layer": result.open_chains_per_layer.tolist(),
+        "repairs_per_layer": {k: v.tolist() for k, v in result.repairs.items()},
+        "volume_mm3": result.volume,
+    }
+
+
+@cli.command()
+@click.option("--json", "as_json", is_flag=True, help="Print JSON instead of text.")
+@click.option("--device", default=None, help="Show which device this spec selects.")
+def devices(as_json: bool, device: str | None) -> None:
+    """List OpenCL platforms and devices, and which one gpuslice uses."""
+    from .device import list_devices, resolve
+
+    found = list_devices()
+    chosen = resolve(device)["id"] if found else None
+    if as_json:
+        click.echo(json.dumps({"devices": found, "selected": chosen}, indent=1))
+        return
+    for d in found:
+        mark = "*" if d["id"] == chosen else " "
+        click.echo(f"{mark} {d['id']}  {d['platform']} | {d['device']} | {d['type']} | {d['compute_units']} CU | "
+                   f"{d['global_mem_mib']} MiB | {d['platform_version']}")
+    if not found:
+        _fail("no OpenCL device found (pip install pocl-binary-distribution)")
+    click.echo("(* = used by default; override with --device or GPUSLICE_DEVICE)")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; returns the exit code (0 ok, 2 user error, 130 interrupted)."""
+    args = sys.argv[1:] if argv is None else list(argv)
+    debug = "--debug" in args
+    try:
+        cli.main(args=args, prog_name="gpuslice", standalone_mode=False)
+    except click.exceptions.Abort:
+        click.echo("gpuslice: interrupted", err=True)
+        return 130
+    except click.ClickException as exc:
+        click.echo(f"gpuslice: error: {exc.format_message()}", err=True)
+        return EXIT_USAGE
+    except GpusliceError as exc:
+        if debug:
+            raise
+        click.echo(f"gpuslice: error: {exc}", err=True)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        click.echo("gpuslice: interrupted", err=True)
+        return 130
+    except SystemExit as exc:
+        return int(exc.code or 0) if not isinstance(exc.code, str) else 1
+    except MemoryError:
+        click.echo("gpuslice: error: out of memory", err=True)
+        return 1
+    except Exception as exc:  # never a traceback for users; --debug shows it
+        if debug:
+            raise
+        click.echo(f"gpuslice: internal error: {type(exc).__name__}: {exc} (run with --debug)", err=True)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
