@@ -60,7 +60,7 @@ def _build(dev: Device, filename: str, local_size: int):
 
     source = resources.files("gpuslice.kernels").joinpath(filename).read_text()
     try:
-        return cl.Program(dev.context, source).build(options=[f"-DLOCAL_SIZE={local_size}", "-cl-std=CL1.2"])
+        return cl.Program(dev.context, source).build(options=[f"-DLOCAL_SIZE={local_size}", "-cl-std=CL1.2", "-cl-fp32-correctly-rounded-divide-sqrt"])
     except cl.RuntimeError as exc:  # pragma: no cover - a broken kernel or driver
         raise DeviceError(f"{filename}: OpenCL build failed on {dev.name}: {str(exc).splitlines()[0]}") from None
 

@@ -147,7 +147,7 @@ def icosphere(radius: float = 20.0, subdivisions: int = 4) -> np.ndarray:
     import trimesh
 
     m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
-    tri = np.asarray(m.triangles, dtype=np.float64)
+    tri = np.array(m.triangles, dtype=np.float64)
     tri[..., 2] += radius
     return orient_outward(tri)
 

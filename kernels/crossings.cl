@@ -18,6 +18,10 @@
 // A crossing of edge (u, w) is computed from the endpoint with the smaller vertex id, so the two facets sharing an
 // edge compute bit-identical points; an endpoint lying on the plane is returned exactly.
 
+// No fused multiply-add and correctly rounded division (build option), so every device and the numpy
+// reference compute bit-identical points.
+#pragma OPENCL FP_CONTRACT OFF
+
 #ifndef LOCAL_SIZE
 #define LOCAL_SIZE 64
 #endif

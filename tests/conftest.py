@@ -1,0 +1,48 @@
+"""Shared fixtures: the backend (numpy reference and OpenCL), the shared mesh folder, the device header."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_MESHES = REPO.parent / "shared" / "meshes"
+
+
+def _opencl_device():
+    try:
+        from gpuslice.device import get_device
+
+        return get_device()
+    except Exception as exc:  # no pyopencl, no platform
+        return exc
+
+
+def pytest_report_header(config):
+    dev = _opencl_device()
+    name = dev.name if not isinstance(dev, Exception) else f"none ({dev})"
+    return [f"gpuslice OpenCL device: {name}", f"shared meshes: {SHARED_MESHES if SHARED_MESHES.is_dir() else 'absent'}"]
+
+
+@pytest.fixture(scope="session")
+def device():
+    dev = _opencl_device()
+    if isinstance(dev, Exception):
+        pytest.skip(f"no OpenCL device: {dev}")
+    return dev
+
+
+@pytest.fixture(params=["numpy", "opencl"])
+def backend(request):
+    """Both implementations of every stage: the numpy reference and the OpenCL kernels."""
+    if request.param == "opencl":
+        request.getfixturevalue("device")
+    return request.param
+
+
+@pytest.fixture(scope="session")
+def shared_meshes() -> Path:
+    if not SHARED_MESHES.is_dir():
+        pytest.skip("../shared/meshes not found: real-mesh tests need the shared data folder beside the repo")
+    return SHARED_MESHES

@@ -1,0 +1,312 @@
+"""The slicing core on solids with exactly known sections, and each case of the paper's Fig. 3.
+
+Expected areas come from geometry computed here independently of gpuslice: regular n-gon formulas for revolved
+solids (their sections are n-gons whose circumradius is linear between rings) and convex hulls of plane–edge
+intersection points.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import ConvexHull
+
+from gpuslice import mesh_from_arrays, mesh_from_triangles, slice_mesh
+from gpuslice import shapes as S
+from gpuslice.chain import link_segments, order_chains
+from gpuslice.crossings import compute_crossings, crossings_numpy
+from gpuslice.nest import signed_areas
+from gpuslice.schedule import uniform
+
+F32 = 2e-6  # relative error of float32 coordinates in areas (a few ulps of each coordinate)
+
+
+def revolved_area(profile, n, z):
+    """Section area at each z of a profile revolved with n segments; the plane counts as just above the solid
+    below it (the half-open rule): a profile edge counts for z in (z_low, z_high]."""
+    prof = np.asarray(profile, float)
+    out = []
+    for zz in np.atleast_1d(z):
+        radii = []
+        for i in range(len(prof)):
+            (r0, z0), (r1, z1) = prof[i], prof[(i + 1) % len(prof)]
+            if z0 == z1 or not (min(z0, z1) < zz <= max(z0, z1)):
+                continue
+            radii.append(r0 + (zz - z0) / (z1 - z0) * (r1 - r0))
+        radii = sorted(radii, reverse=True)
+        out.append(sum((-1) ** k * S.ngon_area(n, r) for k, r in enumerate(radii)))
+    return np.array(out)
+
+
+def uv_profile(radius, n_lat):
+    phi = np.pi * np.arange(n_lat + 1) / n_lat
+    prof = np.stack([radius * np.sin(phi), radius * (1 - np.cos(phi))], axis=1)
+    prof[0, 0] = prof[-1, 0] = 0.0
+    # close it along the axis (zero-radius edges add nothing)
+    return prof
+
+
+def torus_profile(major, minor, n_minor):
+    phi = 2 * np.pi * np.arange(n_minor) / n_minor - np.pi / 2
+    return np.stack([major + minor * np.cos(phi), minor + minor * np.sin(phi)], axis=1)
+
+
+def run(tri, backend, **kw):
+    return slice_mesh(mesh_from_triangles(tri), backend=backend, **kw)
+
+
+def assert_clean(r):
+    assert r.meta["open_chains"] == 0, r.meta["repairs"]
+    assert r.loop_closed.all()
+    assert r.meta["repairs"]["joined_by_id"] == 0 and r.meta["repairs"]["gap_closed"] == 0
+
+
+# ---- solids with analytic sections ------------------------------------------------------------------------
+
+
+def test_cube_area_and_volume(backend):
+    r = run(S.box(hi=(20, 20, 20)), backend, thickness=0.2)
+    assert_clean(r)
+    assert r.n_layers == 100
+    np.testing.assert_allclose(r.area, 400.0, rtol=F32)
+    assert r.volume == pytest.approx(8000.0, rel=1e-9)
+
+
+def test_cylinder_is_a_regular_ngon(backend):
+    r = run(S.cylinder(radius=10, height=20, n=64), backend, thickness=0.1)
+    assert_clean(r)
+    np.testing.assert_allclose(r.area, S.ngon_area(64, 10.0), rtol=F32)
+    assert r.volume == pytest.approx(S.ngon_area(64, 10.0) * 20, rel=1e-6)
+    # each side quad is two triangles: the plane crosses 64 vertical edges and 64 diagonals (collinear points)
+    assert np.all(r.loops_per_layer == 1) and np.all(r.points_per_layer == 128)
+
+
+def test_sphere_sections(backend):
+    r = run(S.uv_sphere(radius=10, n_lat=16, n_lon=32), backend, thickness=0.05)
+    assert_clean(r)
+    expected = revolved_area(uv_profile(10, 16), 32, r.z)
+    np.testing.assert_allclose(r.area, expected, rtol=1e-5, atol=1e-4)
+    vol = mesh_from_triangles(S.uv_sphere(10, 16, 32)).info()["volume"]
+    assert r.volume == pytest.approx(vol, rel=2e-4)  # midpoint rule on a piecewise-quadratic area
+
+
+def test_torus_annulus(backend):
+    r = run(S.torus(15, 5, 48, 24), backend, thickness=0.05)
+    assert_clean(r)
+    expected = revolved_area(torus_profile(15, 5, 24), 48, r.z)
+    # float32 coordinates (~2e-6 mm at 20 mm) times ~190 mm of perimeter: ~5e-4 mm^2 on the thin pole layers
+    np.testing.assert_allclose(r.area, expected, rtol=1e-5, atol=1e-3)
+    # every layer is an outer ring with one hole
+    assert np.all(r.loops_per_layer == 2)
+    assert r.loop_is_hole.sum() == r.n_layers
+    vol = mesh_from_triangles(S.torus(15, 5, 48, 24)).info()["volume"]
+    assert r.volume == pytest.approx(vol, rel=2e-3)
+
+
+def test_hollow_box_holes_are_holes(backend):
+    r = run(S.hollow_box(20, 10), backend, thickness=0.5)
+    assert_clean(r)
+    inside = (r.z > 5) & (r.z <= 15)
+    np.testing.assert_allclose(r.area[inside], 300.0, rtol=F32)
+    np.testing.assert_allclose(r.area[~inside], 400.0, rtol=F32)
+    assert r.volume == pytest.approx(7000.0, rel=1e-9)
+    for i in np.flatnonzero(inside):
+        lay = r.layer(i)
+        (outer, holes), = lay.polygons()
+        assert len(holes) == 1
+        a_out = signed_areas(outer, np.array([0, len(outer)]))[0]
+        a_hole = signed_areas(holes[0], np.array([0, len(holes[0])]))[0]
+        assert a_out == pytest.approx(400.0) and a_hole == pytest.approx(-100.0)  # CCW outer, CW hole
+
+
+def test_box_inside_a_box(backend):
+    r = run(S.hollow_box(20, 10, core=6), backend, thickness=0.5)
+    assert_clean(r)
+    cavity = (r.z > 5) & (r.z <= 15)
+    core = (r.z > 7) & (r.z <= 13)
+    expected = np.where(cavity, 300.0, 400.0) + np.where(core, 36.0, 0.0)
+    np.testing.assert_allclose(r.area, expected, rtol=F32)
+    # the island inside the hole is an outer contour of its own polygon
+    i = int(np.flatnonzero(core)[0])
+    polys = r.layer(i).polygons()
+    assert sorted(len(h) for _, h in polys) == [0, 1]
+    assert r.volume == pytest.approx(8000 - 1000 + 216, rel=1e-9)
+
+
+def test_icosphere_volume(backend):
+    tri = S.icosphere(radius=20, subdivisions=4)
+    r = run(tri, backend, thickness=0.05)
+    assert_clean(r)
+    vol = mesh_from_triangles(tri).info()["volume"]
+    assert r.volume == pytest.approx(vol, rel=1e-4)
+
+
+# ---- the paper's Fig. 3: planes exactly through vertices, edges and facets ---------------------------------
+
+
+def hull_area(tri, z):
+    """Independent reference for convex solids: the area of the convex hull of the plane–edge crossings."""
+    edges = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
+    a, b = edges[:, 0], edges[:, 1]
+    pts = [v[:2] for v in tri.reshape(-1, 3) if v[2] == z]
+    cross = (a[:, 2] - z) * (b[:, 2] - z) < 0
+    t = (z - a[cross, 2]) / (b[cross, 2] - a[cross, 2])
+    pts += list(a[cross, :2] + t[:, None] * (b[cross, :2] - a[cross, :2]))
+    pts = np.unique(np.round(np.array(pts), 9), axis=0)
+    return ConvexHull(pts).volume if len(pts) >= 3 else 0.0
+
+
+TETRA = np.array([[0, 0, 0], [10, 0, 2], [3, 9, 5], [4, 3, 10]], float)
+TETRA_FACES = [[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]]
+
+
+def test_fig3a_vertex_on_plane_others_on_one_side(backend):
+    # pyramid cut exactly at its apex: every facet has its apex vertex on the plane and the others below
+    tri = S.cone(radius=10, height=10, n=4)
+    r = run(tri, backend, z=np.array([5.0, 10.0]))
+    assert_clean(r)
+    assert r.area[0] == pytest.approx(S.ngon_area(4, 5.0), rel=F32)
+    assert r.area[1] == 0.0 and r.loops_per_layer[1] == 0
+    assert r.repairs["degenerate_loops"][1] == 1  # the zero-length loop at the apex is dropped, not left open
+    # the tetrahedron's bottom vertex: a plane at z = 0 has all four vertices on or above it
+    r0 = slice_mesh(mesh_from_arrays(TETRA, TETRA_FACES), z=np.array([0.0]), backend=backend)
+    assert r0.area[0] == 0.0 and r0.n_loops == 0
+
+
+def test_fig3b_edge_on_plane(backend):
+    # a UV sphere cut exactly at its ring heights: ring edges lie in the plane, ring vertices too
+    prof = uv_profile(10, 8)
+    z = np.unique(prof[1:-1, 1])
+    r = run(S.uv_sphere(10, 8, 16), backend, z=z)
+    assert_clean(r)
+    np.testing.assert_allclose(r.area, S.ngon_area(16, np.interp(z, prof[:, 1], prof[:, 0])), rtol=F32)
+    assert np.all(r.points_per_layer == 16)  # no duplicate points from zero-length segments
+
+
+def test_fig3c_plane_through_vertex_and_opposite_edge(backend):
+    mesh = mesh_from_arrays(TETRA, TETRA_FACES)
+    for z in (2.0, 5.0):  # the heights of the two middle vertices
+        r = slice_mesh(mesh, z=np.array([z]), backend=backend)
+        assert_clean(r)
+        assert r.n_loops == 1 and r.points_per_layer[0] == 3
+        assert r.area[0] == pytest.approx(hull_area(mesh.triangles.astype(float), z), rel=1e-6)
+
+
+def test_fig3d_facet_in_plane(backend):
+    # cube faces and the hollow box's cavity floor and ceiling: the section is the limit from below
+    r = run(S.box(hi=(20, 20, 20)), backend, z=np.array([0.0, 20.0]))
+    assert r.area.tolist() == [0.0, pytest.approx(400.0)]
+    assert_clean(r)
+    r = run(S.hollow_box(20, 10), backend, z=np.array([5.0, 15.0]))
+    assert_clean(r)
+    np.testing.assert_allclose(r.area, [400.0, 300.0], rtol=F32)
+    # a stair cut at every step height
+    steps, rise, run_, width = 4, 2.0, 3.0, 10.0
+    z = rise * np.arange(1, steps + 1)
+    rs = run(S.stair(steps, rise, run_, width), backend, z=z)
+    assert_clean(rs)
+    np.testing.assert_allclose(rs.area, [(steps - k) * run_ * width for k in range(steps)], rtol=F32)
+
+
+def test_fig3e_plane_through_two_edges(backend):
+    mesh = mesh_from_arrays(TETRA, TETRA_FACES)
+    z = np.array([1.0, 3.5, 7.25])
+    r = slice_mesh(mesh, z=z, backend=backend)
+    assert_clean(r)
+    np.testing.assert_allclose(r.area, [hull_area(mesh.triangles.astype(float), v) for v in z], rtol=1e-6)
+
+
+# ---- kernels against their numpy references ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["sphere", "torus", "box-in-box", "stair", "pyramid"])
+def test_kernel_equals_numpy_reference(device, name):
+    mesh = mesh_from_triangles(S.SHAPES[name]())
+    zs = uniform(mesh.height, 0.05).z
+    # add planes exactly through vertices to exercise the on-plane rule
+    zs = np.unique(np.concatenate([zs, mesh.vertices[:, 2].astype(np.float64)]))
+    zs = zs[(zs > 0) & (zs <= mesh.height)]
+    ref = crossings_numpy(mesh, zs)
+    got = compute_crossings(mesh, zs, device)
+    assert len(ref) == len(got) > 0
+    np.testing.assert_array_equal(got.layer, ref.layer)
+    np.testing.assert_array_equal(got.edges, ref.edges)
+    np.testing.assert_allclose(got.points, ref.points, atol=1e-5, rtol=0)
+    from gpuslice.walk import walk_chains
+
+    z32 = zs.astype(np.float32)
+    nxt, _, _ = link_segments(ref, mesh, z32)
+    for a, b in zip(order_chains(nxt, ref.layer), walk_chains(nxt, ref.layer, zs.size, device)):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_backends_give_identical_results(device):
+    mesh = mesh_from_triangles(S.torus())
+    a = slice_mesh(mesh, thickness=0.1, backend="numpy")
+    b = slice_mesh(mesh, thickness=0.1, backend="opencl")
+    for name in ("loop_offsets", "layer_offsets", "loop_is_hole", "loop_parent", "loop_closed"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    np.testing.assert_allclose(a.points, b.points, atol=1e-5)
+    np.testing.assert_allclose(a.area, b.area, rtol=1e-6)
+
+
+# ---- chaining on broken meshes -------------------------------------------------------------------------------
+
+
+def test_nonmanifold_edge_pairs_half_edges(backend):
+    # two cubes sharing one vertical edge: that edge has four facets
+    tri = np.concatenate([S.box((0, 0, 0), (10, 10, 10)), S.box((10, 10, 0), (20, 20, 10))])
+    mesh = mesh_from_triangles(tri)
+    assert mesh.info()["nonmanifold_edges"] >= 1
+    r = slice_mesh(mesh, thickness=1.0, backend=backend)
+    assert_clean(r)
+    np.testing.assert_allclose(r.area, 200.0, rtol=F32)
+
+
+def test_flipped_facet_is_joined_by_id(backend):
+    tri = S.box(hi=(20, 20, 20)).copy()
+    side = int(np.flatnonzero(np.ptp(tri[:, :, 2], axis=1) > 0)[0])  # a side facet
+    tri[side] = tri[side, ::-1]
+    r = run(tri, backend, thickness=1.0)
+    assert r.meta["open_chains"] == 0
+    assert r.repairs["joined_by_id"].sum() > 0 and r.repairs["reversed"].sum() > 0
+    np.testing.assert_allclose(r.area, 400.0, rtol=F32)
+
+
+def test_missing_facet_gap_closed_within_max_gap(backend):
+    tri = S.box(hi=(20, 20, 20))
+    side = int(np.flatnonzero(np.ptp(tri[:, :, 2], axis=1) > 0)[0])
+    missing = tri[side]
+    tri = np.delete(tri, side, axis=0)
+    kept = run(tri, backend, thickness=1.0, max_gap=2.0)
+    # the gap is the missing triangle's section: left open where it is wider than max_gap, closed elsewhere
+    z = kept.z
+    lo, hi = missing[:, 2].min(), missing[:, 2].max()
+    width = np.array([hull_width(missing, v) for v in z])
+    assert lo == 0 and hi == 20
+    np.testing.assert_array_equal(kept.open_chains_per_layer, (width > 2.0).astype(int))
+    np.testing.assert_array_equal(kept.repairs["gap_closed"], (width <= 2.0).astype(int))
+    closed = run(tri, backend, thickness=1.0, max_gap=30.0)
+    assert closed.meta["open_chains"] == 0 and closed.repairs["gap_closed"].sum() == closed.n_layers
+    np.testing.assert_allclose(closed.area, 400.0, rtol=F32)
+
+
+def hull_width(triangle, z):
+    """Length of a single triangle's section at height z."""
+    pts = []
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        p, q = triangle[a], triangle[b]
+        if (p[2] - z) * (q[2] - z) < 0:
+            pts.append(p[:2] + (z - p[2]) / (q[2] - p[2]) * (q[:2] - p[:2]))
+    return float(np.linalg.norm(pts[0] - pts[1]))
+
+
+def test_fill_rules_on_nested_shells(backend):
+    # an inner cube wound outward inside an outer cube: a second shell, not a cavity
+    tri = np.concatenate([S.box((0, 0, 0), (20, 20, 20)), S.box((5, 5, 5), (15, 15, 15))])
+    nonzero = run(tri, backend, thickness=1.0)
+    evenodd = run(tri, backend, thickness=1.0, fill_rule="evenodd")
+    mid = (nonzero.z > 5) & (nonzero.z <= 15)
+    np.testing.assert_allclose(nonzero.area, 400.0, rtol=F32)  # the inner shell bounds nothing
+    assert nonzero.repairs["unfilled_loops"][mid].tolist() == [1] * int(mid.sum())
+    np.testing.assert_allclose(evenodd.area[mid], 300.0, rtol=F32)  # even-odd makes it a hole
