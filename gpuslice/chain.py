@@ -10,9 +10,11 @@ open end.
 
 Loops are then put in a canonical order: per layer, open chains from their head (the segment without
 predecessor) by increasing head, then closed loops from their smallest segment index, increasing; so the output
-does not depend on how the walk ran (numpy pointer jumping or the OpenCL walk of ``kernels/walk.cl``). Each loop's points are the start points of its segments (and the end point of the last one for open
-chains); consecutive duplicate points (zero-length segments through vertices lying on the plane) are dropped, and
-closed loops left with fewer than three points are dropped as degenerate.
+does not depend on how the walk ran (numpy pointer jumping or the OpenCL walk of ``kernels/walk.cl``). Each
+loop's points are the start points of its segments (plus the end point of the last one for open chains). A
+zero-length segment (the plane through a vertex, Fig. 3a) starts where its successor starts, so its point is
+skipped: no loop holds consecutive duplicate points. Closed loops left with fewer than three points are dropped
+as degenerate (``degenerate_loops``).
 
 Repairs of open chains, per layer, in this order (counted by kind):
 ``joined_by_id``: two free ends on the same slot (e.g. a facet wound the wrong way) are joined, reversing a chain;

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache
 from importlib import resources
 
 from .errors import DeviceError
@@ -54,13 +54,14 @@ class Device:
         return _build(self, filename, self.local_size)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _build(dev: Device, filename: str, local_size: int):
     import pyopencl as cl
 
     source = resources.files("gpuslice.kernels").joinpath(filename).read_text()
     try:
-        return cl.Program(dev.context, source).build(options=[f"-DLOCAL_SIZE={local_size}", "-cl-std=CL1.2", "-cl-fp32-correctly-rounded-divide-sqrt"])
+        options = [f"-DLOCAL_SIZE={local_size}", "-cl-std=CL1.2", "-cl-fp32-correctly-rounded-divide-sqrt"]
+        return cl.Program(dev.context, source).build(options=options)
     except cl.RuntimeError as exc:  # pragma: no cover - a broken kernel or driver
         raise DeviceError(f"{filename}: OpenCL build failed on {dev.name}: {str(exc).splitlines()[0]}") from None
 

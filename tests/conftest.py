@@ -22,7 +22,8 @@ def _opencl_device():
 def pytest_report_header(config):
     dev = _opencl_device()
     name = dev.name if not isinstance(dev, Exception) else f"none ({dev})"
-    return [f"gpuslice OpenCL device: {name}", f"shared meshes: {SHARED_MESHES if SHARED_MESHES.is_dir() else 'absent'}"]
+    shared = SHARED_MESHES if SHARED_MESHES.is_dir() else "absent"
+    return [f"gpuslice OpenCL device: {name}", f"shared meshes: {shared}"]
 
 
 @pytest.fixture(scope="session")

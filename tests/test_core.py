@@ -236,7 +236,7 @@ def test_kernel_equals_numpy_reference(device, name):
 
     z32 = zs.astype(np.float32)
     nxt, _, _ = link_segments(ref, mesh, z32)
-    for a, b in zip(order_chains(nxt, ref.layer), walk_chains(nxt, ref.layer, zs.size, device)):
+    for a, b in zip(order_chains(nxt, ref.layer), walk_chains(nxt, ref.layer, zs.size, device), strict=True):
         np.testing.assert_array_equal(a, b)
 
 
