@@ -1,4 +1,4 @@
-"""The ``gpuslice`` command line: ``info``, ``slice``, ``devices``.
+"""The ``gpuslice`` command line: ``info``, ``slice``, ``devices``, ``shape``.
 
 Results go to stdout (or files), progress and errors to stderr. A user error (bad file, bad option) prints one line
 ``gpuslice: error: <file>: <problem>`` and exits with status 2; Ctrl-C exits with 130. Outputs are written under a
@@ -152,6 +152,18 @@ def build_report(result) -> dict:
         "repairs_per_layer": {k: v.tolist() for k, v in result.repairs.items()},
         "volume_mm3": result.volume,
     }
+
+
+@cli.command()
+@click.argument("name", type=click.Choice(sorted(__import__("gpuslice.shapes").shapes.SHAPES)))
+@click.option("-o", "--output", type=click.Path(path_type=str), required=True, help="Binary STL to write.")
+def shape(name: str, output: str) -> None:
+    """Write a built-in test solid NAME (mm, closed, outward-wound) as a binary STL, e.g. for a first run."""
+    from .shapes import SHAPES, write_stl
+
+    tri = SHAPES[name]()
+    write_stl(tri, output, header=f"gpuslice shape {name}".encode())
+    click.echo(f"wrote {output}: {name}, {len(tri)} facets")
 
 
 @cli.command()

@@ -1,0 +1,22 @@
+#!/usr/bin/env bash
+# Installs the Debian packages gpuslice needs at run time, skipping those already present:
+#   binutils libgcc-12-dev libc6-dev  PoCL (pip's pocl-binary-distribution) links every kernel with the system ld;
+#                                     without them the process aborts on the first kernel build.
+#   libegl1 libegl-mesa0 libgl1 libgl1-mesa-dri   headless OpenGL (EGL + Mesa llvmpipe) for the moderngl rasteriser.
+# Needs root (or sudo). Idempotent; prints what it installed.
+set -euo pipefail
+pkgs="binutils libgcc-12-dev libc6-dev libegl1 libegl-mesa0 libgl1 libgl1-mesa-dri"
+need=""
+for p in $pkgs; do
+  dpkg -s "$p" >/dev/null 2>&1 || need="$need $p"
+done
+if [ -z "$need" ]; then
+  echo "setup-system: all present ($pkgs)"
+  exit 0
+fi
+SUDO=""
+[ "$(id -u)" -eq 0 ] || SUDO="sudo"
+echo "setup-system: installing$need"
+$SUDO apt-get update -qq
+DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends $need >/dev/null
+echo "setup-system: done"
