@@ -2,12 +2,12 @@
 
 Loading (``stl.py`` reads the file) is followed by, in this order:
 
-1. **Transform** in float64: ``scale`` (a factor) or ``fit`` (scale so the longest bounding-box side is ``fit``
-   mm), then a translation so the lowest point is at z = 0 (the bed). X and Y are kept. Coordinates are then
-   rounded to float32, the precision of STL.
-2. **Weld**: corners with bit-identical float32 coordinates (after turning -0.0 into 0.0) become one vertex. No
-   tolerance is used: nearby but distinct vertices stay distinct, so cracks stay visible as open chains.
+1. **Weld**: corners with bit-identical float32 coordinates as stored (after turning -0.0 into 0.0) become one
+   vertex. No tolerance is used: nearby but distinct vertices stay distinct, so cracks stay visible as open chains.
    Vertex ids are numbered by first occurrence, so the same file always gives the same ids.
+2. **Transform** the unique vertices in float64: ``scale`` (a factor) or ``fit`` (scale so the longest
+   bounding-box side is ``fit`` mm), then a translation so the lowest point is at z = 0 (the bed); X and Y are
+   kept. Coordinates are then rounded to float32.
 3. **Degenerate facets**, whose corners weld to fewer than three distinct vertices, are dropped and counted.
 4. **Edges**: side k of facet f runs from corner k to corner (k + 1) % 3; each undirected vertex pair gets one edge
    id (numbered by first occurrence), stored in ``face_edges`` (F, 3).
@@ -144,7 +144,7 @@ def stored_normal_mismatch(stored: np.ndarray, computed: np.ndarray) -> np.ndarr
 
 
 def _directed_edges_paired(mesh: Mesh) -> bool:
-    """True when every edge is used once in each direction (consistent winding on a closed manifold)."""
+    """True when every edge shared by exactly two facets is used once in each direction (consistent winding)."""
     f = mesh.faces
     a = f.reshape(-1)
     b = np.roll(f, -1, axis=1).reshape(-1)
@@ -153,7 +153,8 @@ def _directed_edges_paired(mesh: Mesh) -> bool:
     n_e = mesh.edge_vertices.shape[0]
     fw = np.bincount(e, weights=forward, minlength=n_e)
     total = np.bincount(e, minlength=n_e)
-    return bool(np.all(2 * fw == total))
+    two = total == 2
+    return bool(np.all(fw[two] == 1))
 
 
 def count_bodies(mesh: Mesh) -> int:
@@ -235,11 +236,19 @@ def mesh_from_triangles(
         raise EmptyMeshError(f"{name}: no facets")
     if scale is not None and fit is not None:
         raise ParameterError("give --scale or --fit, not both")
-    t64 = tri.reshape(-1, 3).astype(np.float64)
-    if not np.all(np.isfinite(t64)):
+    # float32 is the precision of STL; + 0.0 turns -0.0 into 0.0 so both weld together
+    corners = np.ascontiguousarray(tri.reshape(-1, 3), dtype=np.float32) + np.float32(0.0)
+    if not np.all(np.isfinite(corners)):
         raise InvalidGeometryError(f"{name}: NaN or infinite vertex coordinates")
-    lo = np.array([t64[:, k].min() for k in range(3)])
-    hi = np.array([t64[:, k].max() for k in range(3)])
+    return _from_corners(
+        corners, normals, name=name, source_format=source_format, scale=scale, fit=fit, solids=solids
+    )
+
+
+def _placement(verts: np.ndarray, name: str, scale: float | None, fit: float | None):
+    """The scale factor and the offset that put the (scaled) mesh on the bed."""
+    lo = np.array([verts[:, k].min() for k in range(3)], dtype=np.float64)
+    hi = np.array([verts[:, k].max() for k in range(3)], dtype=np.float64)
     factor = 1.0
     if fit is not None:
         if not (np.isfinite(fit) and fit > 0):
@@ -252,18 +261,18 @@ def mesh_from_triangles(
         if not (np.isfinite(scale) and scale > 0):
             raise ParameterError(f"--scale must be a positive factor, got {scale}")
         factor = float(scale)
-    if np.abs(np.concatenate([lo, hi])).max() * factor > 1e18:
-        raise InvalidGeometryError(f"{name}: coordinates up to {np.abs(t64).max():.3g} overflow float32 arithmetic")
-    offset = np.array([0.0, 0.0, -lo[2] * factor])
-    corners = (t64 * factor + offset).astype(np.float32) + np.float32(0.0)  # + 0.0 turns -0.0 into 0.0
-    return _from_corners(
-        corners, normals, name=name, source_format=source_format, scale=factor, offset=offset, solids=solids
-    )
+    extreme = float(np.abs(np.concatenate([lo, hi])).max())
+    if extreme * factor > 1e18:
+        raise InvalidGeometryError(f"{name}: coordinates up to {extreme * factor:.3g} overflow float32 arithmetic")
+    return factor, np.array([0.0, 0.0, -lo[2] * factor])
 
 
-def _from_corners(corners, normals, *, name, source_format, scale, offset, solids) -> Mesh:
+def _from_corners(corners, normals, *, name, source_format, scale, fit, solids) -> Mesh:
     n_faces = corners.shape[0] // 3
-    vid, verts = _weld(corners)
+    vid, verts = _weld(corners)  # bit-identical as stored, before any transform
+    factor, offset = _placement(verts, name, scale, fit)
+    if factor != 1.0 or offset[2] != 0.0:
+        verts = (verts.astype(np.float64) * factor + offset).astype(np.float32) + np.float32(0.0)
     faces = vid.reshape(n_faces, 3)
     good = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])
     dropped = int(n_faces - good.sum())
@@ -286,7 +295,7 @@ def _from_corners(corners, normals, *, name, source_format, scale, offset, solid
         stored_normals=None if normals is None else np.asarray(normals, dtype=np.float32),
         name=name,
         source_format=source_format,
-        scale=float(scale),
+        scale=float(factor),
         offset=tuple(float(x) for x in offset),
         dropped_degenerate=dropped,
         solids=solids,

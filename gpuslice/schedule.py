@@ -122,9 +122,10 @@ def from_z(z: np.ndarray, thickness: np.ndarray | float | None = None) -> Schedu
         if z.size == 0:
             t = np.zeros(0)
         else:
-            edges = np.concatenate(([0.0], (z[1:] + z[:-1]) / 2, [z[-1] + (z[-1] - (z[-2] if z.size > 1 else 0))]))
-            if z.size == 1:
-                edges = np.array([0.0, 2 * z[0]]) if z[0] > 0 else np.array([z[0], z[0] + 1.0])
+            edges = np.concatenate(([min(0.0, z[0])], (z[1:] + z[:-1]) / 2, [0.0]))
+            if z[0] <= 0:  # a plane at or below the bed: give it the spacing above it (or 1 mm alone)
+                edges[0] = z[0] - ((edges[1] - z[0]) if z.size > 1 else 0.5)
+            edges[-1] = z[-1] + (z[-1] - edges[-2])
             t = np.diff(edges)
     else:
         t = np.broadcast_to(np.asarray(thickness, dtype=np.float64), z.shape)

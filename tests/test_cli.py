@@ -1,0 +1,94 @@
+"""The command line: outputs, the report, one-line errors with exit status 2 and no partial files."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from gpuslice import SliceResult
+from gpuslice.cli import main
+from gpuslice.export import read_cli
+
+REPORT_KEYS = {"z", "thickness", "area_mm2", "points", "loops", "open_chains", "repairs", "timings_s", "device"}
+
+
+@pytest.fixture(scope="module")
+def torus(tmp_path_factory):
+    path = tmp_path_factory.mktemp("cli") / "torus.stl"
+    assert main(["shape", "torus", "-o", str(path)]) == 0
+    return path
+
+
+def test_slice_writes_npz_svg_cli_and_report(torus, tmp_path, capsys):
+    out, rep = tmp_path / "t.npz", tmp_path / "run.json"
+    assert main(["slice", str(torus), "-t", "0.25", "-o", str(out), "--report", str(rep)]) == 0
+    summary = capsys.readouterr().out
+    assert "40 layers" in summary and "0 open chains" in summary and "device:" in summary
+    res = SliceResult.load(out)
+    report = json.loads(rep.read_text())
+    assert REPORT_KEYS <= set(report)
+    assert {"load", "crossings", "chaining", "nesting", "export"} <= set(report["timings_s"])
+    assert len(report["z"]) == len(report["thickness"]) == len(report["area_mm2"]) == len(report["points"]) == 40
+    np.testing.assert_allclose(report["area_mm2"], res.area)
+    assert report["points"] == res.points_per_layer.tolist()
+    assert report["open_chains"] == 0 and report["loops"] == res.n_loops == 80
+    for suffix in (".svg", ".cli"):
+        assert main(["slice", str(torus), "-t", "0.25", "-o", str(tmp_path / f"t{suffix}"), "-q"]) == 0
+    layers = read_cli(tmp_path / "t.cli")
+    assert len(layers) == 40 and all(len(loops) == 2 for _, loops in layers)
+    assert (tmp_path / "t.svg").read_text().count("<g ") >= 40
+
+
+def test_numpy_backend_and_options(torus, tmp_path):
+    out = tmp_path / "p.npz"
+    args = ["slice", str(torus), "-t", "0.5", "--z-mode", "paper", "--backend", "numpy", "--fill-rule", "evenodd"]
+    assert main([*args, "-o", str(out), "-q"]) == 0
+    res = SliceResult.load(out)
+    np.testing.assert_allclose(res.z, 0.5 * np.arange(1, 20))
+    assert res.meta["backend"] == "numpy"
+
+
+def test_info_and_devices(torus, capsys):
+    assert main(["info", str(torus), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["facets"] == 2304 and info["watertight"] and info["bodies"] == 1
+    assert info["volume"] > 7000
+    assert main(["devices"]) == 0
+    assert "*" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "make, args, message",
+    [
+        (None, ["slice", "{missing}"], "no such file"),
+        ("dir", ["slice", "{dir}"], "is a directory"),
+        ("text", ["slice", "{text}"], "not an STL file"),
+        ("torus", ["slice", "{torus}", "-t", "-1"], "thickness"),
+        ("torus", ["slice", "{torus}", "--fit", "0"], "--fit"),
+        ("torus", ["slice", "{torus}", "-o", "{out_png}"], "unknown output format"),
+        ("torus", ["slice", "{torus}", "--device", "no-such-device"], "device"),
+    ],
+)
+def test_user_errors_are_one_line_exit_2_and_write_nothing(torus, tmp_path, capsys, make, args, message):
+    paths = {"missing": tmp_path / "missing.stl", "dir": tmp_path, "text": tmp_path / "notes.stl",
+             "torus": torus, "out_png": tmp_path / "x.png"}
+    (tmp_path / "notes.stl").write_text("these are my notes, not a mesh\n")
+    out = tmp_path / "out.npz"
+    argv = [a.format(**paths) for a in args] + ["-o", str(out)] * ("-o" not in args)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("gpuslice: error: ") and message in err
+    assert not out.exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary files left behind
+
+
+def test_console_script_prints_no_traceback(tmp_path):
+    bad = tmp_path / "bad.stl"
+    bad.write_bytes(b"\x00" * 84 + b"\x01\x02")
+    proc = subprocess.run([sys.executable, "-m", "gpuslice.cli", "slice", str(bad)], capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr and proc.stderr.count("\n") == 1 and str(bad) in proc.stderr

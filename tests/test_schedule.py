@@ -1,0 +1,53 @@
+"""Layer schedules: where layers are cut and how they tile the object."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gpuslice import ParameterError, from_z, uniform
+
+
+def test_uniform_mid_layer_planes_below_the_top():
+    s = uniform(20.0, 0.3)
+    # Slic3r and CuraEngine: z_i = (i + 0.5) h, kept while below the top: 67 layers for 20 mm at 0.3 mm
+    assert len(s) == 67
+    np.testing.assert_allclose(s.z, (np.arange(67) + 0.5) * 0.3)
+    assert s.z[-1] < 20.0 < s.z[-1] + 0.3
+    np.testing.assert_allclose(s.bottom, np.arange(67) * 0.3, atol=1e-12)
+    np.testing.assert_allclose(s.top - s.bottom, s.thickness)
+
+
+def test_first_layer_and_tiling():
+    s = uniform(2.0, 0.2, first_layer=0.3)
+    assert s.thickness[0] == 0.3 and np.all(s.thickness[1:] == 0.2)
+    assert s.z[0] == pytest.approx(0.15) and s.z[1] == pytest.approx(0.4)
+    np.testing.assert_allclose(s.bottom[1:], 0.3 + 0.2 * np.arange(len(s) - 1))
+    # every plane lies inside its own slab
+    assert np.all((s.z > s.bottom) & (s.z < s.top))
+
+
+def test_paper_planes():
+    s = uniform(1.0, 0.25, z_mode="paper")
+    np.testing.assert_allclose(s.z, [0.25, 0.5, 0.75])
+    np.testing.assert_allclose(s.top, s.z)  # cut at the top of each layer
+
+
+def test_custom_z_thicknesses():
+    s = from_z([0.1, 0.3, 0.4])
+    np.testing.assert_allclose(s.thickness, [0.2, 0.15, 0.1])
+    s = from_z([0.05, 0.15], 0.1)
+    np.testing.assert_allclose(s.thickness, [0.1, 0.1])
+
+
+@pytest.mark.parametrize("z, t", [([0.2, 0.1], None), ([0.1, 0.1], None), ([0.1, np.nan], None), ([0.1], [-1.0])])
+def test_bad_schedules_raise(z, t):
+    with pytest.raises(ParameterError):
+        from_z(z, t)
+
+
+@pytest.mark.parametrize("kw", [dict(thickness=0), dict(thickness=-0.1), dict(thickness=0.1, z_mode="x"),
+                                dict(thickness=0.1, first_layer=0)])
+def test_bad_uniform_raise(kw):
+    with pytest.raises(ParameterError):
+        uniform(10.0, **kw)
