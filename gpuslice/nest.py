@@ -44,41 +44,47 @@ class Nested:
     unfilled_loops: np.ndarray
 
 
-def signed_areas(points: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """(R,) float64 shoelace area of each loop, mm^2, positive for counter-clockwise (coordinates taken relative
-    to each loop's first point, in float64)."""
+def _as_complex(points: np.ndarray) -> np.ndarray:
+    """(P,) complex128 view-copy x + iy of (P, 2) float32 points (1-D gathers are fast, 2-D fancy indexing is not)."""
+    return np.ascontiguousarray(points, dtype=np.float32).view(np.complex64).reshape(-1).astype(np.complex128)
+
+
+def signed_areas(points: np.ndarray, offsets: np.ndarray, pc: np.ndarray | None = None) -> np.ndarray:
+    """(R,) float64 shoelace area of each loop, mm^2, positive for counter-clockwise.
+
+    Products of float32 coordinates are exact in float64, so the sum is accurate to ~1e-16 of the coordinates'
+    squared magnitude per point (1e-10 mm^2 for a 100 mm part with a million points).
+    """
     n = offsets.size - 1
-    counts = np.diff(offsets)
-    if points.shape[0] == 0:
+    if points.shape[0] == 0 or n == 0:
         return np.zeros(n)
-    loop_of = np.repeat(np.arange(n), counts)
-    p = points.astype(np.float64) - points[np.repeat(offsets[:-1], counts)].astype(np.float64)
-    nxt = np.arange(points.shape[0]) + 1
-    last = offsets[1:][counts > 0] - 1
-    nxt[last] = offsets[:-1][counts > 0]
-    cross = p[:, 0] * p[nxt, 1] - p[nxt, 0] * p[:, 1]
-    return np.bincount(loop_of, weights=cross, minlength=n) / 2.0
+    pc = _as_complex(points) if pc is None else pc
+    nxt = np.empty_like(pc)
+    nxt[:-1] = pc[1:]
+    first, last = offsets[:-1], offsets[1:] - 1
+    nxt[last] = pc[first]
+    cross = (pc.conj() * nxt).imag
+    return np.add.reduceat(cross, first) / 2.0
 
 
-def _winding_numbers(points, offsets, pairs_i, pairs_j, qx, qy) -> np.ndarray:
-    """Winding number of query point (qx[i], qy[i]) around loop j for every pair (i, j)."""
+def _winding_numbers(pc, offsets, pairs_i, pairs_j, q) -> np.ndarray:
+    """Winding number of query point q[i] (complex) around loop j for every pair (i, j)."""
     counts = np.diff(offsets)
     lens = counts[pairs_j]
     pair_of = np.repeat(np.arange(pairs_i.size), lens)
+    start = offsets[pairs_j]
     local = np.arange(pair_of.size) - np.repeat(np.cumsum(lens) - lens, lens)
-    a = offsets[pairs_j][pair_of] + local
-    b = np.where(local == lens[pair_of] - 1, offsets[pairs_j][pair_of], a + 1)
-    px, py = qx[pairs_i][pair_of], qy[pairs_i][pair_of]
-    ax, ay = points[a, 0].astype(np.float64), points[a, 1].astype(np.float64)
-    bx, by = points[b, 0].astype(np.float64), points[b, 1].astype(np.float64)
-    left = (bx - ax) * (py - ay) - (px - ax) * (by - ay)
-    up = (ay <= py) & (by > py) & (left > 0)
-    down = (by <= py) & (ay > py) & (left < 0)
-    contrib = up.astype(np.int64) - down.astype(np.int64)
+    a = np.repeat(start, lens) + local
+    b = np.where(local == np.repeat(lens, lens) - 1, np.repeat(start, lens), a + 1)
+    p = np.repeat(q[pairs_i], lens)
+    pa, pb = pc[a] - p, pc[b] - p
+    left = (pa.conj() * pb).imag  # > 0: the point is left of the edge a -> b
+    ay, by = pa.imag, pb.imag
+    contrib = ((ay <= 0) & (by > 0) & (left > 0)).astype(np.int64) - ((by <= 0) & (ay > 0) & (left < 0))
     return np.bincount(pair_of, weights=contrib, minlength=pairs_i.size).astype(np.int64)
 
 
-def _containment_pairs(points, offsets, layer, closed, qx, qy):
+def _containment_pairs(points, pc, offsets, layer, closed, q):
     """Pairs (i, j), i != j, both closed and in the same layer, where loop j contains loop i's query point."""
     import shapely
 
@@ -94,12 +100,12 @@ def _containment_pairs(points, offsets, layer, closed, qx, qy):
     shift = layer.astype(np.float64) * span * 2.0
     boxes = shapely.box(lo[idx, 0], lo[idx, 1] + shift[idx], hi[idx, 0], hi[idx, 1] + shift[idx])
     tree = shapely.STRtree(boxes)
-    qpts = shapely.points(qx[idx], qy[idx] + shift[idx])
+    qpts = shapely.points(q.real[idx], q.imag[idx] + shift[idx])
     qi, tj = tree.query(qpts, predicate="intersects")
     pi, pj = idx[qi], idx[tj]
     keep = pi != pj
     pi, pj = pi[keep], pj[keep]
-    w = _winding_numbers(points, offsets, pi, pj, qx, qy)
+    w = _winding_numbers(pc, offsets, pi, pj, q)
     inside = w != 0
     return pi[inside], pj[inside]
 
@@ -111,21 +117,15 @@ def nest_loops(loops: Loops, n_layers: int, fill_rule: str = "nonzero") -> Neste
     points, offsets, layer, closed = loops.points, loops.offsets, loops.layer, loops.closed
     n = layer.size
     counts = np.diff(offsets)
-    area = signed_areas(points, offsets)
-    area = np.where(closed, area, 0.0)
+    pc = _as_complex(points)
+    area = np.where(closed, signed_areas(points, offsets, pc), 0.0)
     s = np.sign(area).astype(np.int64)
     # query point: the midpoint of each loop's first edge
-    has2 = counts >= 2
-    first = offsets[:-1]
-    second = np.where(has2, first + 1, first)
-    qx = np.zeros(n)
-    qy = np.zeros(n)
+    q = np.zeros(n, dtype=np.complex128)
     if n and points.size:
-        f = np.minimum(first, points.shape[0] - 1)
-        sc = np.minimum(second, points.shape[0] - 1)
-        qx = (points[f, 0].astype(np.float64) + points[sc, 0]) / 2
-        qy = (points[f, 1].astype(np.float64) + points[sc, 1]) / 2
-    ci, cj = _containment_pairs(points, offsets, layer, closed & (s != 0), qx, qy)
+        first = offsets[:-1]
+        q = (pc[first] + pc[np.where(counts >= 2, first + 1, first)]) / 2
+    ci, cj = _containment_pairs(points, pc, offsets, layer, closed & (s != 0), q)
     w_out = np.bincount(ci, weights=s[cj], minlength=n).astype(np.int64)
     depth = np.bincount(ci, minlength=n)
     if fill_rule == "nonzero":
@@ -167,7 +167,7 @@ def nest_loops(loops: Loops, n_layers: int, fill_rule: str = "nonzero") -> Neste
     src_start = np.repeat(offsets[:-1][order], new_counts)
     rev = np.repeat(flip[order], new_counts)
     src = np.where(rev, src_start + np.repeat(new_counts, new_counts) - 1 - local, src_start + local)
-    out_points = points[src]
+    out_points = np.take(points.view(np.complex64).reshape(-1), src).view(np.float32).reshape(-1, 2)
     out_layer = layer[order].astype(np.int32)
     out_parent = np.where(parent[order] >= 0, new_index[np.maximum(parent[order], 0)], -1).astype(np.int32)
     layer_offsets = np.zeros(n_layers + 1, dtype=np.int64)
