@@ -135,29 +135,45 @@ def order_chains(nxt: np.ndarray, layer: np.ndarray) -> tuple[np.ndarray, np.nda
     return order, offsets, closed
 
 
-def chain_segments(
-    seg: Segments, mesh: Mesh, zs: np.ndarray, n_layers: int, *, max_gap: float = 2.0, device=None
-) -> Loops:
-    """Chain the segment buffer into loops (see the module docstring). ``device``: walk on OpenCL if given."""
-    nxt, start_slot, end_slot = link_segments(seg, mesh, zs)
-    if device is not None:
-        from .walk import walk_chains
+def chain_segments(seg, mesh: Mesh, zs: np.ndarray, n_layers: int, *, max_gap: float = 2.0, device=None) -> Loops:
+    """Chain the segment buffer into loops (see the module docstring).
 
-        order, coff, cclosed = walk_chains(nxt, seg.layer, n_layers, device)
-    else:
-        order, coff, cclosed = order_chains(nxt, seg.layer)
+    ``seg``: :class:`~gpuslice.crossings.Segments` on the host, or ``DeviceSegments`` left on ``device`` by the
+    crossings kernel, which are then chained on the device when the mesh allows (no slot shared by several
+    segment ends, no open chain), and fetched and chained on the host otherwise.
+    """
+    chain_layer = None
+    if not isinstance(seg, Segments):
+        from .walk import chain_kernels
+
+        done = chain_kernels(device).chain_on_device(seg, mesh, zs, n_layers)
+        if done is not None:
+            order, coff, cclosed, chain_layer = done
+            seg_points = seg.fetch_points()
+        else:
+            seg = seg.fetch()
+    if chain_layer is None:
+        seg_points = seg.points
+        nxt, start_slot, end_slot = link_segments(seg, mesh, zs)
+        if device is not None:
+            from .walk import walk_chains
+
+            order, coff, cclosed = walk_chains(nxt, seg.layer, n_layers, device)
+        else:
+            order, coff, cclosed = order_chains(nxt, seg.layer)
+        chain_layer = seg.layer[order[coff[:-1]]] if coff.size > 1 else np.zeros(0, np.int32)
     lengths = np.diff(coff)
     n_chains = lengths.size
-    chain_layer = seg.layer[order[coff[:-1]]] if n_chains else np.zeros(0, np.int32)
     # points: the start of every segment, plus the end of the last segment of open chains. A zero-length segment
     # (through a vertex on the plane) starts where its successor starts: its start point is skipped, which
     # removes every consecutive duplicate.
     # each point viewed as one complex64 (x + iy): 1-D gathers are much faster than 2-D fancy indexing
-    ends = seg.points.view(np.complex64)
+    ends = seg_points.view(np.complex64)
     first_pt, last_pt = ends[:, 0], ends[:, 1]
-    keep_seg = first_pt[order] != last_pt[order]
+    zero_length = first_pt == last_pt
     open_idx = np.flatnonzero(~cclosed)
-    if keep_seg.all():
+    keep_seg = None if not zero_length.any() else ~zero_length[order]
+    if keep_seg is None:
         kept = lengths
         points_of = order
     else:

@@ -18,7 +18,7 @@ import numpy as np
 
 from .mesh import Mesh
 
-__all__ = ["Segments", "crossings_numpy", "CrossingsKernel", "compute_crossings"]
+__all__ = ["Segments", "DeviceSegments", "crossings_numpy", "CrossingsKernel", "compute_crossings"]
 
 
 @dataclass
@@ -31,6 +31,39 @@ class Segments:
 
     def __len__(self) -> int:
         return int(self.layer.shape[0])
+
+
+@dataclass
+class DeviceSegments:
+    """The segment buffer left on the device (valid until the kernel's next call); :meth:`fetch` reads it back."""
+
+    n: int
+    layer: object
+    edges: object
+    points: object
+    kernel: CrossingsKernel
+
+    def __len__(self) -> int:
+        return self.n
+
+    def fetch_points(self) -> np.ndarray:
+        import pyopencl as cl
+
+        out = np.empty((self.n, 4), dtype=np.float32)
+        if self.n:
+            cl.enqueue_copy(self.kernel.device.queue, out, self.points)
+        return out
+
+    def fetch(self) -> Segments:
+        import pyopencl as cl
+
+        q = self.kernel.device.queue
+        seg = Segments(np.empty(self.n, np.int32), np.empty((self.n, 2), np.int32), np.empty((self.n, 4), np.float32))
+        if self.n:
+            cl.enqueue_copy(q, seg.layer, self.layer, is_blocking=False)
+            cl.enqueue_copy(q, seg.edges, self.edges, is_blocking=False)
+            cl.enqueue_copy(q, seg.points, self.points, is_blocking=True)
+        return seg
 
 
 def _planes32(z: np.ndarray) -> np.ndarray:
@@ -111,6 +144,10 @@ class CrossingsKernel:
             self._buffers[name] = (buf, size)
         return buf
 
+    def buffer(self, name: str):
+        """A device buffer of the last call (``verts``, ``zs``, ...), for the chaining kernels."""
+        return self._buffers[name][0]
+
     def _upload(self, name: str, array: np.ndarray):
         import pyopencl as cl
 
@@ -119,7 +156,7 @@ class CrossingsKernel:
             cl.enqueue_copy(self.device.queue, buf, np.ascontiguousarray(array), is_blocking=False)
         return buf
 
-    def __call__(self, mesh: Mesh, z: np.ndarray) -> Segments:
+    def __call__(self, mesh: Mesh, z: np.ndarray, *, read_back: bool = True) -> Segments | DeviceSegments:
         import pyopencl as cl
 
         q = self.device.queue
@@ -139,11 +176,9 @@ class CrossingsKernel:
         offsets = np.cumsum(count, dtype=np.int64)
         total = int(offsets[-1]) if n_f else 0
         offsets -= count
-        seg = Segments(
-            np.empty(total, dtype=np.int32), np.empty((total, 2), dtype=np.int32), np.empty((total, 4), np.float32)
-        )
         if total == 0:
-            return seg
+            empty = Segments(np.empty(0, np.int32), np.empty((0, 2), np.int32), np.empty((0, 4), np.float32))
+            return empty if read_back else DeviceSegments(0, None, None, None, self)
         d_off = self._upload("offsets", offsets)
         d_layer = self._buffer("seg_layer", 4 * total)
         d_sedges = self._buffer("seg_edges", 8 * total)
@@ -152,20 +187,21 @@ class CrossingsKernel:
             q, (gs,), (ls,), d_verts, d_faces, d_edges, np.int32(n_f), d_zs, d_first, d_count, d_off,
             d_layer, d_sedges, d_spts,
         )
-        cl.enqueue_copy(q, seg.layer, d_layer, is_blocking=False)
-        cl.enqueue_copy(q, seg.edges, d_sedges, is_blocking=False)
-        cl.enqueue_copy(q, seg.points, d_spts, is_blocking=True)
-        return seg
+        dseg = DeviceSegments(total, d_layer, d_sedges, d_spts, self)
+        return dseg.fetch() if read_back else dseg
 
 
 _KERNELS: dict[int, CrossingsKernel] = {}
 
 
-def compute_crossings(mesh: Mesh, z: np.ndarray, device=None) -> Segments:
-    """All segments of ``mesh`` cut at the planes ``z`` (mm, increasing): on ``device``, or numpy when None."""
+def compute_crossings(mesh: Mesh, z: np.ndarray, device=None, *, read_back: bool = True):
+    """All segments of ``mesh`` cut at the planes ``z`` (mm, increasing): on ``device``, or numpy when None.
+
+    With ``read_back=False`` (device only) the segments stay on the device as :class:`DeviceSegments`.
+    """
     if device is None:
         return crossings_numpy(mesh, z)
     key = id(device)
     if key not in _KERNELS:
         _KERNELS[key] = CrossingsKernel(device)
-    return _KERNELS[key](mesh, z)
+    return _KERNELS[key](mesh, z, read_back=read_back)

@@ -144,7 +144,7 @@ def slice_mesh(
     batches = _batches(mesh, zs, params.max_segments_per_batch) if n_layers else []
     for a, b in batches:
         t = time.perf_counter()
-        seg = compute_crossings(mesh, zs[a:b], device)
+        seg = compute_crossings(mesh, zs[a:b], device, read_back=False) if device else compute_crossings(mesh, zs[a:b])
         timings["crossings"] += time.perf_counter() - t
         n_segments += len(seg)
         t = time.perf_counter()
