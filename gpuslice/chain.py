@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .crossings import Segments
+from .crossings import Segments, vertex_layers
 from .mesh import Mesh
 
 __all__ = ["Loops", "link_segments", "order_chains", "chain_segments", "REPAIR_KINDS"]
@@ -50,10 +50,9 @@ class Loops:
 
 def edge_slots(mesh: Mesh, zs: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     """Per edge: its first crossed layer ``k0`` and slot offset; and the total number of slots."""
-    ez = mesh.vertices[:, 2][mesh.edge_vertices]
-    k0 = np.searchsorted(zs, np.minimum(ez[:, 0], ez[:, 1]), side="right").astype(np.int32)
-    k1 = np.searchsorted(zs, np.maximum(ez[:, 0], ez[:, 1]), side="right").astype(np.int32)
-    count = (k1 - k0).astype(np.int64)
+    ev = vertex_layers(mesh, zs)[mesh.edge_vertices]
+    k0 = ev.min(axis=1)
+    count = (ev.max(axis=1) - k0).astype(np.int64)
     off = np.cumsum(count) - count
     return k0, off, int(count.sum())
 

@@ -75,14 +75,16 @@ def _planes32(z: np.ndarray) -> np.ndarray:
     return zs
 
 
+def vertex_layers(mesh: Mesh, zs: np.ndarray) -> np.ndarray:
+    """(V,) int32: for each vertex the first layer whose plane is above it (``upper_bound`` of its z)."""
+    return np.searchsorted(zs, mesh.vertices[:, 2], side="right").astype(np.int32)
+
+
 def facet_layer_ranges(mesh: Mesh, zs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(first layer, count) of the layers each facet crosses: layers k with zmin < zs[k] <= zmax."""
-    fz = mesh.vertices[:, 2][mesh.faces]
-    zmin = np.minimum(np.minimum(fz[:, 0], fz[:, 1]), fz[:, 2])
-    zmax = np.maximum(np.maximum(fz[:, 0], fz[:, 1]), fz[:, 2])
-    lo = np.searchsorted(zs, zmin, side="right").astype(np.int32)
-    hi = np.searchsorted(zs, zmax, side="right").astype(np.int32)
-    return lo, hi - lo
+    fv = vertex_layers(mesh, zs)[mesh.faces]
+    lo = fv.min(axis=1)
+    return lo, fv.max(axis=1) - lo
 
 
 def _edge_points(verts: np.ndarray, a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -130,6 +132,7 @@ class CrossingsKernel:
     def __init__(self, device) -> None:
         self.device = device
         prg = device.program("crossings.cl")
+        self._vertex = prg.vertex_layers
         self._count = prg.count_crossings
         self._emit = prg.emit_segments
         self._buffers: dict[str, tuple[object, int]] = {}
@@ -168,9 +171,13 @@ class CrossingsKernel:
         d_faces = self._upload("faces", mesh.faces)
         d_edges = self._upload("face_edges", mesh.face_edges)
         d_zs = self._upload("zs", zs)
+        n_v = int(mesh.vertices.shape[0])
+        d_vub = self._buffer("vub", 4 * n_v)
+        gv = ((n_v + ls - 1) // ls) * ls
+        self._vertex(q, (gv,), (ls,), d_verts, np.int32(n_v), d_zs, np.int32(n_l), d_vub)
         d_first = self._buffer("first", 4 * n_f)
         d_count = self._buffer("count", 4 * n_f)
-        self._count(q, (gs,), (ls,), d_verts, d_faces, np.int32(n_f), d_zs, np.int32(n_l), d_first, d_count)
+        self._count(q, (gs,), (ls,), d_vub, d_faces, np.int32(n_f), d_first, d_count)
         count = np.empty(n_f, dtype=np.int32)
         cl.enqueue_copy(q, count, d_count)
         offsets = np.cumsum(count, dtype=np.int64)

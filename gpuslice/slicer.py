@@ -144,7 +144,11 @@ def slice_mesh(
     batches = _batches(mesh, zs, params.max_segments_per_batch) if n_layers else []
     for a, b in batches:
         t = time.perf_counter()
-        seg = compute_crossings(mesh, zs[a:b], device, read_back=False) if device else compute_crossings(mesh, zs[a:b])
+        if device is not None:
+            seg = compute_crossings(mesh, zs[a:b], device, read_back=False)
+            device.queue.finish()  # so the kernels' time counts here, not in the next stage
+        else:
+            seg = compute_crossings(mesh, zs[a:b])
         timings["crossings"] += time.perf_counter() - t
         n_segments += len(seg)
         t = time.perf_counter()

@@ -121,13 +121,11 @@ class ChainKernels:
         q = self.device.queue
         n = dseg.n
         n_edges = int(mesh.edge_vertices.shape[0])
-        d_verts = dseg.kernel.buffer("verts")
-        d_zs = dseg.kernel.buffer("zs")
+        d_vub = dseg.kernel.buffer("vub")
         d_ev = self._put("edge_vertices", mesh.edge_vertices)
         d_k0 = self._buffer("k0", 4 * n_edges)
         d_count = self._buffer("edge_count", 4 * n_edges)
-        self._edge_ranges(q, *self._grid(n_edges), d_verts, d_ev, np.int32(n_edges), d_zs, np.int32(n_layers),
-                          d_k0, d_count)
+        self._edge_ranges(q, *self._grid(n_edges), d_vub, d_ev, np.int32(n_edges), d_k0, d_count)
         count = np.empty(n_edges, dtype=np.int32)
         cl.enqueue_copy(q, count, d_count)
         off = np.cumsum(count, dtype=np.int64)

@@ -47,21 +47,26 @@ inline float2 edge_point(__global const float *verts, int a, int b, const float 
     return (float2)(pu.x + t * (pw.x - pu.x), pu.y + t * (pw.y - pu.y));
 }
 
-// Per facet: the first layer it crosses and how many.
+// Per vertex: the first layer whose plane is above it (upper_bound of its z). upper_bound is monotone, so the
+// layers a facet or an edge crosses follow from its vertices' values by min and max, with no further search.
 __kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
-void count_crossings(__global const float *verts, __global const int *faces, const int n_faces,
-                     __global const float *zs, const int n_layers,
+void vertex_layers(__global const float *verts, const int n_verts, __global const float *zs, const int n_layers,
+                   __global int *vub) {
+    const int v = get_global_id(0);
+    if (v >= n_verts) return;
+    vub[v] = upper_bound(zs, n_layers, verts[3 * v + 2]);
+}
+
+// Per facet: the first layer it crosses and how many (layers k with zmin < zs[k] <= zmax).
+__kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
+void count_crossings(__global const int *vub, __global const int *faces, const int n_faces,
                      __global int *first_layer, __global int *count) {
     const int f = get_global_id(0);
     if (f >= n_faces) return;
-    const float za = verts[3 * faces[3 * f] + 2];
-    const float zb = verts[3 * faces[3 * f + 1] + 2];
-    const float zc = verts[3 * faces[3 * f + 2] + 2];
-    const float zmin = fmin(za, fmin(zb, zc)), zmax = fmax(za, fmax(zb, zc));
-    const int lo = upper_bound(zs, n_layers, zmin);
-    const int hi = upper_bound(zs, n_layers, zmax);
+    const int a = vub[faces[3 * f]], b = vub[faces[3 * f + 1]], c = vub[faces[3 * f + 2]];
+    const int lo = min(a, min(b, c));
     first_layer[f] = lo;
-    count[f] = hi - lo;
+    count[f] = max(a, max(b, c)) - lo;
 }
 
 // Per facet: one segment per crossed layer, written at offsets[f] + j (offsets: exclusive scan of count).

@@ -10,25 +10,15 @@
 #define LOCAL_SIZE 64
 #endif
 
-inline int upper_bound(__global const float *zs, const int n, const float value) {
-    int lo = 0, hi = n;
-    while (lo < hi) {
-        const int mid = (lo + hi) >> 1;
-        if (zs[mid] > value) hi = mid; else lo = mid + 1;
-    }
-    return lo;
-}
-
-// Per mesh edge: the first layer it crosses and how many (layers k with zmin < zs[k] <= zmax).
+// Per mesh edge: the first layer it crosses and how many (from the per-vertex upper bounds ``vub``).
 __kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
-void edge_ranges(__global const float *verts, __global const int *edge_vertices, const int n_edges,
-                 __global const float *zs, const int n_layers, __global int *k0, __global int *count) {
+void edge_ranges(__global const int *vub, __global const int *edge_vertices, const int n_edges,
+                 __global int *k0, __global int *count) {
     const int e = get_global_id(0);
     if (e >= n_edges) return;
-    const float za = verts[3 * edge_vertices[2 * e] + 2], zb = verts[3 * edge_vertices[2 * e + 1] + 2];
-    const int lo = upper_bound(zs, n_layers, fmin(za, zb));
-    k0[e] = lo;
-    count[e] = upper_bound(zs, n_layers, fmax(za, zb)) - lo;
+    const int a = vub[edge_vertices[2 * e]], b = vub[edge_vertices[2 * e + 1]];
+    k0[e] = min(a, b);
+    count[e] = max(a, b) - min(a, b);
 }
 
 // Per segment: its start and end slot; record the segment starting at each slot and count the segments ending
