@@ -60,7 +60,7 @@ class Device:
         return _build(self, self.local_size)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _build(dev: Device, local_size: int):
     import pyopencl as cl
 
@@ -71,7 +71,8 @@ def _build(dev: Device, local_size: int):
         return cl.Program(dev.context, source).build(options=options)
     except cl.RuntimeError as exc:  # pragma: no cover - a broken kernel or driver
         first = str(exc).splitlines()[0]
-        raise DeviceError(f"kernels ({', '.join(p.name for p in files)}): OpenCL build failed on {dev.name}: {first}") from None
+        names = ", ".join(p.name for p in files)
+        raise DeviceError(f"kernels ({names}): OpenCL build failed on {dev.name}: {first}") from None
 
 
 def _platforms():
