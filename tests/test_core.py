@@ -310,3 +310,13 @@ def test_fill_rules_on_nested_shells(backend):
     np.testing.assert_allclose(nonzero.area, 400.0, rtol=F32)  # the inner shell bounds nothing
     assert nonzero.repairs["unfilled_loops"][mid].tolist() == [1] * int(mid.sum())
     np.testing.assert_allclose(evenodd.area[mid], 300.0, rtol=F32)  # even-odd makes it a hole
+
+
+def test_layer_batches_give_the_same_result(backend):
+    # memory is bounded by slicing in batches of layers: the result must not depend on the batch size
+    mesh = mesh_from_triangles(S.hollow_box(20, 10, core=6))
+    whole = slice_mesh(mesh, thickness=0.25, backend=backend)
+    parts = slice_mesh(mesh, thickness=0.25, backend=backend, max_segments_per_batch=100)
+    assert parts.meta["batches"] > 5 and whole.meta["batches"] == 1
+    for name in ("points", "loop_offsets", "layer_offsets", "loop_layer", "loop_is_hole", "loop_parent", "area"):
+        np.testing.assert_array_equal(getattr(parts, name), getattr(whole, name))

@@ -79,3 +79,21 @@ def test_signed_zero_welds(shared_meshes):
     # the capsule's seam has -0.0 and +0.0 coordinates: welded, the capsule (less its 200 degenerate facets) is closed
     info = load_mesh(shared_meshes / "p_capsule_degenerate.stl").info()
     assert info["degenerate_dropped"] == 200 and info["vertices"] == 5002 and info["watertight"]
+
+
+@pytest.mark.parametrize("ext", ["obj", "ply", "off", "3mf"])
+def test_other_formats_through_trimesh(tmp_path, ext):
+    trimesh = pytest.importorskip("trimesh")
+    path = tmp_path / f"box.{ext}"
+    trimesh.creation.box(extents=(10, 20, 30)).export(path)
+    m = load_mesh(path)
+    assert m.source_format == ext and m.n_faces == 12
+    info = m.info()
+    assert info["watertight"] and info["volume"] == pytest.approx(6000.0)
+
+
+def test_kernels_are_package_data():
+    from importlib import resources
+
+    names = {p.name for p in resources.files("gpuslice.kernels").iterdir()}
+    assert {"crossings.cl", "walk.cl"} <= names
