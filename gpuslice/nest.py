@@ -42,6 +42,7 @@ class Nested:
     loop_closed: np.ndarray
     area: np.ndarray
     unfilled_loops: np.ndarray
+    overlaps_resolved: np.ndarray
 
 
 def _as_complex(points: np.ndarray) -> np.ndarray:
@@ -90,7 +91,7 @@ def _containment_pairs(points, pc, offsets, layer, closed, q):
 
     idx = np.flatnonzero(closed)
     if idx.size < 2:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), (None, np.zeros(0, np.int64))
     # every loop has at least one point, so reduceat over the loop starts gives per-loop extremes
     starts = offsets[:-1]
     lo = np.stack([np.minimum.reduceat(points[:, k], starts) for k in (0, 1)], axis=1).astype(np.float64)
@@ -105,9 +106,28 @@ def _containment_pairs(points, pc, offsets, layer, closed, q):
     pi, pj = idx[qi], idx[tj]
     keep = pi != pj
     pi, pj = pi[keep], pj[keep]
-    w = _winding_numbers(pc, offsets, pi, pj, q)
-    inside = w != 0
-    return pi[inside], pj[inside]
+    # pairs whose boxes overlap without one holding the other: loops that may cross (overlapping bodies)
+    bi, bj = tree.query(boxes, predicate="intersects")
+    bi, bj = idx[bi], idx[bj]
+    up = bi < bj
+    bi, bj = bi[up], bj[up]
+    holds = lambda a, b: np.all((lo[a] <= lo[b]) & (hi[b] <= hi[a]), axis=1)  # noqa: E731
+    partial = ~holds(bi, bj) & ~holds(bj, bi)
+    bi, bj = bi[partial], bj[partial]
+    # shapely rings of just the loops these tests need, built once
+    involved = np.unique(np.concatenate([pj, bi, bj]))
+    counts = np.diff(offsets)[involved]
+    sel = np.repeat(offsets[:-1][involved], counts) + (
+        np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
+    )
+    rings = shapely.linearrings(points[sel].astype(np.float64), indices=np.repeat(np.arange(involved.size), counts))
+    # containment: the query point of loop i strictly inside loop j (GEOS point-in-polygon, in C)
+    polys = shapely.polygons(rings)
+    inside = shapely.contains_xy(polys[np.searchsorted(involved, pj)], q.real[pi], q.imag[pi])
+    if bi.size:  # exact test on the partial pairs: do their boundaries meet?
+        meet = shapely.intersects(rings[np.searchsorted(involved, bi)], rings[np.searchsorted(involved, bj)])
+        bi = bi[meet]
+    return pi[inside], pj[inside], np.unique(layer[bi]), (rings, involved)
 
 
 def nest_loops(loops: Loops, n_layers: int, fill_rule: str = "nonzero") -> Nested:
@@ -125,7 +145,7 @@ def nest_loops(loops: Loops, n_layers: int, fill_rule: str = "nonzero") -> Neste
     if n and points.size:
         first = offsets[:-1]
         q = (pc[first] + pc[np.where(counts >= 2, first + 1, first)]) / 2
-    ci, cj = _containment_pairs(points, pc, offsets, layer, closed & (s != 0), q)
+    ci, cj, crossing_layers, (rings, involved) = _containment_pairs(points, pc, offsets, layer, closed & (s != 0), q)
     w_out = np.bincount(ci, weights=s[cj], minlength=n).astype(np.int64)
     depth = np.bincount(ci, minlength=n)
     if fill_rule == "nonzero":
@@ -176,7 +196,7 @@ def nest_loops(loops: Loops, n_layers: int, fill_rule: str = "nonzero") -> Neste
     layer_area = np.bincount(layer[is_outer], weights=abs_area[is_outer], minlength=n_layers) - np.bincount(
         layer[is_hole], weights=abs_area[is_hole], minlength=n_layers
     )
-    return Nested(
+    nested = Nested(
         points=out_points,
         loop_offsets=new_offsets,
         layer_offsets=layer_offsets,
@@ -186,4 +206,123 @@ def nest_loops(loops: Loops, n_layers: int, fill_rule: str = "nonzero") -> Neste
         loop_closed=closed[order],
         area=layer_area,
         unfilled_loops=np.bincount(layer[unfilled], minlength=n_layers).astype(np.int32),
+        overlaps_resolved=np.zeros(n_layers, dtype=np.int32),
     )
+    # layers where loops cross: two loops whose boxes overlap partially and whose boundaries meet, or an unfilled
+    # loop (a sign of misclassification) whose boundary meets one of the loops containing it
+    suspect = crossing_layers
+    m = unfilled[ci]
+    if m.any():
+        import shapely
+
+        u, c = ci[m], cj[m]
+        cnt = np.diff(offsets)[u]
+        sel = np.repeat(offsets[:-1][u], cnt) + (np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt))
+        u_rings = shapely.linearrings(points[sel].astype(np.float64), indices=np.repeat(np.arange(u.size), cnt))
+        meet = shapely.intersects(u_rings, rings[np.searchsorted(involved, c)])
+        suspect = np.union1d(suspect, layer[u[meet]])
+    if suspect.size:
+        nested = _resolve_overlaps(nested, points, offsets, layer, closed & (s != 0), suspect, fill_rule, n_layers)
+    return nested
+
+
+def _filled(w: np.ndarray, fill_rule: str) -> np.ndarray:
+    if fill_rule == "nonzero":
+        return w != 0
+    if fill_rule == "positive":
+        return w > 0
+    return w % 2 != 0
+
+
+def _resolve_overlaps(nested, points, offsets, layer, closed, layers, fill_rule, n_layers):
+    """Exact regions of layers whose loops cross, from the arrangement of all their loop boundaries.
+
+    The boundaries are noded (split at every crossing) and polygonized into faces; a face is filled when the
+    winding number of a point inside it passes the fill rule; the filled faces are unioned. Layers whose loops
+    turn out not to cross keep their fast result.
+    """
+    import shapely
+
+    pc = _as_complex(points)
+    new_loops: list[tuple[int, np.ndarray, bool, int]] = []  # (layer, points, is_hole, parent slot)
+    fixed = []
+    for lay in layers:
+        ids = np.flatnonzero((layer == lay) & closed)
+        if ids.size < 2:
+            continue
+        rings = [points[offsets[i] : offsets[i + 1]].astype(np.float64) for i in ids]
+        closed_rings = [np.vstack([r, r[:1]]) for r in rings]
+        which = np.repeat(np.arange(len(rings)), [len(r) for r in closed_rings])
+        lines = shapely.multilinestrings(shapely.linestrings(np.concatenate(closed_rings), indices=which))
+        noded = shapely.node(lines)
+        faces = shapely.get_parts(shapely.polygonize(shapely.get_parts(noded)))
+        if faces.size == 0:
+            continue
+        reps = shapely.point_on_surface(faces)
+        rx, ry = shapely.get_x(reps), shapely.get_y(reps)
+        q = rx + 1j * ry
+        pi = np.repeat(np.arange(faces.size), ids.size)
+        pj = np.tile(ids, faces.size)
+        w = np.bincount(pi, weights=_winding_numbers(pc, offsets, pi, pj, q), minlength=faces.size)
+        kept = faces[_filled(np.rint(w).astype(np.int64), fill_rule)]
+        region = shapely.union_all(kept) if kept.size else shapely.Polygon()
+        fixed.append(lay)
+        for poly in shapely.get_parts(shapely.normalize(region)):
+            if poly.is_empty or poly.area == 0:
+                continue
+            poly = shapely.geometry.polygon.orient(poly, 1.0)  # exterior counter-clockwise, holes clockwise
+            outer = np.asarray(poly.exterior.coords)[:-1]
+            slot = len(new_loops)
+            new_loops.append((int(lay), outer, False, -1))
+            for ring in poly.interiors:
+                new_loops.append((int(lay), np.asarray(ring.coords)[:-1], True, slot))
+    if not fixed:
+        return nested
+    fixed = np.array(fixed)
+    keep = ~np.isin(nested.loop_layer, fixed)
+    counts = np.diff(nested.loop_offsets)
+    old_index = np.flatnonzero(keep)
+    remap = np.full(keep.size, -1, dtype=np.int64)
+    n_old = old_index.size
+    all_layer = np.concatenate([nested.loop_layer[keep], [lay for lay, *_ in new_loops]]).astype(np.int32)
+    order = np.argsort(all_layer, kind="stable")
+    position = np.empty(order.size, dtype=np.int64)
+    position[order] = np.arange(order.size)
+    remap[old_index] = position[:n_old]
+    old_parent = nested.loop_parent[keep]
+    parents = np.concatenate([
+        np.where(old_parent >= 0, remap[np.maximum(old_parent, 0)], -1),
+        [position[n_old + p] if p >= 0 else -1 for *_, p in new_loops],
+    ])
+    pts = [nested.points[np.repeat(keep, counts)]] + [p.astype(np.float32) for _, p, _, _ in new_loops]
+    all_counts = np.concatenate([counts[keep], [len(p) for _, p, _, _ in new_loops]]).astype(np.int64)
+    all_points = np.concatenate(pts).reshape(-1, 2)
+    starts = np.concatenate([[0], np.cumsum(all_counts)])
+    new_offsets = np.zeros(order.size + 1, dtype=np.int64)
+    np.cumsum(all_counts[order], out=new_offsets[1:])
+    src = np.arange(int(new_offsets[-1])) + np.repeat(starts[order] - new_offsets[:-1], all_counts[order])
+    is_hole = np.concatenate([nested.loop_is_hole[keep], [h for _, _, h, _ in new_loops]]).astype(bool)[order]
+    closed_all = np.concatenate([nested.loop_closed[keep], np.ones(len(new_loops), bool)])[order]
+    layer_offsets = np.zeros(n_layers + 1, dtype=np.int64)
+    np.cumsum(np.bincount(all_layer, minlength=n_layers), out=layer_offsets[1:])
+    area = nested.area.copy()
+    resolved = nested.overlaps_resolved.copy()
+    unfilled = nested.unfilled_loops.copy()
+    for lay in fixed:
+        sel = [(p, h) for ly, p, h, _ in new_loops if ly == lay]
+        area[lay] = sum(abs(signed_areas(p, np.array([0, len(p)]))[0]) * (-1 if h else 1) for p, h in sel)
+        resolved[lay] = 1
+        unfilled[lay] = 0
+    return Nested(
+        points=np.ascontiguousarray(all_points[src], dtype=np.float32),
+        loop_offsets=new_offsets,
+        layer_offsets=layer_offsets,
+        loop_layer=all_layer[order],
+        loop_is_hole=is_hole,
+        loop_parent=parents[order].astype(np.int32),
+        loop_closed=closed_all,
+        area=area,
+        unfilled_loops=unfilled,
+        overlaps_resolved=resolved,
+    )
+

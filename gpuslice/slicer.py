@@ -190,12 +190,13 @@ def _assemble(parts, sched: Schedule, n_layers: int) -> SliceResult:
             layer_offsets=np.zeros(n_layers + 1, np.int64), loop_layer=np.zeros(0, np.int32),
             loop_is_hole=np.zeros(0, bool), loop_parent=np.zeros(0, np.int32), loop_closed=np.zeros(0, bool),
             z=sched.z, thickness=sched.thickness, area=np.zeros(n_layers),
-            repairs={k: np.zeros(n_layers, np.int32) for k in (*REPAIR_KINDS, "unfilled_loops")},
+            repairs={k: np.zeros(n_layers, np.int32) for k in (*REPAIR_KINDS, "unfilled_loops", "overlaps_resolved")},
         )
     if len(parts) == 1:
         _, nd, rep = parts[0]
         repairs = dict(rep)
         repairs["unfilled_loops"] = nd.unfilled_loops
+        repairs["overlaps_resolved"] = nd.overlaps_resolved
         return SliceResult(
             nd.points, nd.loop_offsets, nd.layer_offsets, nd.loop_layer, nd.loop_is_hole, nd.loop_parent,
             nd.loop_closed, sched.z, sched.thickness, nd.area, repairs,
@@ -211,7 +212,7 @@ def _assemble(parts, sched: Schedule, n_layers: int) -> SliceResult:
         par.append(np.where(nd.loop_parent >= 0, nd.loop_parent + r_base, -1))
         closed.append(nd.loop_closed)
         area.append(nd.area)
-        for k, v in {**rep, "unfilled_loops": nd.unfilled_loops}.items():
+        for k, v in {**rep, "unfilled_loops": nd.unfilled_loops, "overlaps_resolved": nd.overlaps_resolved}.items():
             repairs.setdefault(k, []).append(v)
         p_base += nd.points.shape[0]
         r_base += nd.loop_layer.size

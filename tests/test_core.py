@@ -320,3 +320,16 @@ def test_layer_batches_give_the_same_result(backend):
     assert parts.meta["batches"] > 5 and whole.meta["batches"] == 1
     for name in ("points", "loop_offsets", "layer_offsets", "loop_layer", "loop_is_hole", "loop_parent", "area"):
         np.testing.assert_array_equal(getattr(parts, name), getattr(whole, name))
+
+
+def test_overlapping_bodies_union(backend):
+    # two closed boxes that overlap: nonzero fills the union once, even-odd leaves the overlap empty
+    tri = np.concatenate([S.box((0, 0, 0), (20, 20, 20)), S.box((10, 5, 0), (30, 15, 20))])
+    nonzero = run(tri, backend, thickness=1.0)
+    evenodd = run(tri, backend, thickness=1.0, fill_rule="evenodd")
+    np.testing.assert_allclose(nonzero.area, 400 + 200 - 100, rtol=F32)
+    np.testing.assert_allclose(evenodd.area, 400 + 200 - 2 * 100, rtol=F32)
+    assert nonzero.repairs["overlaps_resolved"].sum() == nonzero.n_layers
+    lay = nonzero.layer(3)
+    (outer, holes), = lay.polygons()
+    assert not holes and signed_areas(outer, np.array([0, len(outer)]))[0] == pytest.approx(500.0)
