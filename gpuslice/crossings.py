@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .device import KernelDriver
 from .mesh import Mesh
 
 __all__ = ["Segments", "DeviceSegments", "crossings_numpy", "CrossingsKernel", "compute_crossings"]
@@ -126,58 +127,32 @@ def crossings_numpy(mesh: Mesh, z: np.ndarray) -> Segments:
     return Segments(layer, edges, pts)
 
 
-class CrossingsKernel:
+class CrossingsKernel(KernelDriver):
     """Driver of ``kernels/crossings.cl`` on one device: builds once, keeps the kernels and reuses buffers."""
 
     def __init__(self, device) -> None:
-        self.device = device
+        super().__init__(device)
         prg = device.program("crossings.cl")
         self._vertex = prg.vertex_layers
         self._count = prg.count_crossings
         self._emit = prg.emit_segments
-        self._buffers: dict[str, tuple[object, int]] = {}
-
-    def _buffer(self, name: str, nbytes: int):
-        import pyopencl as cl
-
-        buf, size = self._buffers.get(name, (None, 0))
-        if size < nbytes:
-            size = max(nbytes, int(size * 1.5), 64)
-            buf = cl.Buffer(self.device.context, cl.mem_flags.READ_WRITE, size)
-            self._buffers[name] = (buf, size)
-        return buf
-
-    def buffer(self, name: str):
-        """A device buffer of the last call (``verts``, ``zs``, ...), for the chaining kernels."""
-        return self._buffers[name][0]
-
-    def _upload(self, name: str, array: np.ndarray):
-        import pyopencl as cl
-
-        buf = self._buffer(name, max(array.nbytes, 4))
-        if array.nbytes:
-            cl.enqueue_copy(self.device.queue, buf, np.ascontiguousarray(array), is_blocking=False)
-        return buf
 
     def __call__(self, mesh: Mesh, z: np.ndarray, *, read_back: bool = True) -> Segments | DeviceSegments:
         import pyopencl as cl
 
         q = self.device.queue
-        ls = self.device.local_size
         zs = _planes32(z)
         n_f, n_l = mesh.n_faces, int(zs.size)
-        gs = ((n_f + ls - 1) // ls) * ls
-        d_verts = self._upload("verts", mesh.vertices)
-        d_faces = self._upload("faces", mesh.faces)
-        d_edges = self._upload("face_edges", mesh.face_edges)
-        d_zs = self._upload("zs", zs)
+        d_verts = self._put("verts", mesh.vertices)
+        d_faces = self._put("faces", mesh.faces)
+        d_edges = self._put("face_edges", mesh.face_edges)
+        d_zs = self._put("zs", zs)
         n_v = int(mesh.vertices.shape[0])
         d_vub = self._buffer("vub", 4 * n_v)
-        gv = ((n_v + ls - 1) // ls) * ls
-        self._vertex(q, (gv,), (ls,), d_verts, np.int32(n_v), d_zs, np.int32(n_l), d_vub)
+        self._vertex(q, *self._grid(n_v), d_verts, np.int32(n_v), d_zs, np.int32(n_l), d_vub)
         d_first = self._buffer("first", 4 * n_f)
         d_count = self._buffer("count", 4 * n_f)
-        self._count(q, (gs,), (ls,), d_vub, d_faces, np.int32(n_f), d_first, d_count)
+        self._count(q, *self._grid(n_f), d_vub, d_faces, np.int32(n_f), d_first, d_count)
         count = np.empty(n_f, dtype=np.int32)
         cl.enqueue_copy(q, count, d_count)
         offsets = np.cumsum(count, dtype=np.int64)
@@ -186,12 +161,12 @@ class CrossingsKernel:
         if total == 0:
             empty = Segments(np.empty(0, np.int32), np.empty((0, 2), np.int32), np.empty((0, 4), np.float32))
             return empty if read_back else DeviceSegments(0, None, None, None, self)
-        d_off = self._upload("offsets", offsets)
+        d_off = self._put("offsets", offsets)
         d_layer = self._buffer("seg_layer", 4 * total)
         d_sedges = self._buffer("seg_edges", 8 * total)
         d_spts = self._buffer("seg_points", 16 * total)
         self._emit(
-            q, (gs,), (ls,), d_verts, d_faces, d_edges, np.int32(n_f), d_zs, d_first, d_count, d_off,
+            q, *self._grid(n_f), d_verts, d_faces, d_edges, np.int32(n_f), d_zs, d_first, d_count, d_off,
             d_layer, d_sedges, d_spts,
         )
         dseg = DeviceSegments(total, d_layer, d_sedges, d_spts, self)

@@ -17,9 +17,11 @@ from dataclasses import dataclass
 from functools import cache
 from importlib import resources
 
+import numpy as np
+
 from .errors import DeviceError
 
-__all__ = ["Device", "get_device", "list_devices", "ENV_VAR"]
+__all__ = ["Device", "KernelDriver", "get_device", "list_devices", "ENV_VAR"]
 
 ENV_VAR = "GPUSLICE_DEVICE"
 
@@ -58,6 +60,52 @@ class Device:
         if not resources.files("gpuslice.kernels").joinpath(filename).is_file():
             raise DeviceError(f"{filename}: no such kernel file")
         return _build(self, self.local_size)
+
+
+class KernelDriver:
+    """Base of the thin drivers of ``kernels/*.cl``: named device buffers grown geometrically and reused across
+    calls, uploads, fills, and launch grids rounded up to the explicit local size."""
+
+    def __init__(self, device: Device) -> None:
+        self.device = device
+        self._buffers: dict[str, tuple[object, int]] = {}
+
+    def _buffer(self, name: str, nbytes: int):
+        """The buffer ``name`` with at least ``nbytes`` bytes (contents undefined when it had to grow)."""
+        import pyopencl as cl
+
+        buf, size = self._buffers.get(name, (None, 0))
+        if size < nbytes:
+            size = max(nbytes, int(size * 1.5), 64)
+            buf = cl.Buffer(self.device.context, cl.mem_flags.READ_WRITE, size)
+            self._buffers[name] = (buf, size)
+        return buf
+
+    def buffer(self, name: str):
+        """The buffer ``name`` as the last call left it (e.g. for a later stage's kernels)."""
+        return self._buffers[name][0]
+
+    def _put(self, name: str, array: np.ndarray):
+        """Upload ``array`` (asynchronously) into the buffer ``name``."""
+        import pyopencl as cl
+
+        buf = self._buffer(name, max(array.nbytes, 4))
+        if array.nbytes:
+            cl.enqueue_copy(self.device.queue, buf, np.ascontiguousarray(array), is_blocking=False)
+        return buf
+
+    def _fill(self, name: str, nbytes: int, value):
+        """The buffer ``name`` with its first ``nbytes`` bytes set to the repeated scalar ``value``."""
+        import pyopencl as cl
+
+        buf = self._buffer(name, max(nbytes, 4))
+        cl.enqueue_fill_buffer(self.device.queue, buf, value, 0, max(nbytes, 4))
+        return buf
+
+    def _grid(self, n: int) -> tuple[tuple[int], tuple[int]]:
+        """(global size, local size) covering ``n`` work-items with the device's explicit local size."""
+        ls = self.device.local_size
+        return (max(ls, ((n + ls - 1) // ls) * ls),), (ls,)
 
 
 @cache

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .device import KernelDriver
+
 __all__ = ["ChainKernels", "walk_chains", "chain_kernels", "canonical_chain_order"]
 
 
@@ -41,45 +43,16 @@ def canonical_chain_order(order: np.ndarray, flag: np.ndarray, layer_off: np.nda
     return order, offsets, kind[o] == 2, chain_layer[o]
 
 
-class ChainKernels:
+class ChainKernels(KernelDriver):
     """Builds ``walk.cl`` once per device, keeps its kernels and reuses grown buffers."""
 
     def __init__(self, device) -> None:
-        self.device = device
+        super().__init__(device)
         prg = device.program("walk.cl")
         self._edge_ranges = prg.edge_ranges
         self._place = prg.place_segments
         self._link = prg.link_segments
         self._walk = prg.walk_layers
-        self._buffers: dict[str, tuple[object, int]] = {}
-
-    def _buffer(self, name: str, nbytes: int):
-        import pyopencl as cl
-
-        buf, size = self._buffers.get(name, (None, 0))
-        if size < nbytes:
-            size = max(nbytes, int(size * 1.5), 64)
-            buf = cl.Buffer(self.device.context, cl.mem_flags.READ_WRITE, size)
-            self._buffers[name] = (buf, size)
-        return buf
-
-    def _put(self, name: str, array: np.ndarray):
-        import pyopencl as cl
-
-        buf = self._buffer(name, max(array.nbytes, 4))
-        cl.enqueue_copy(self.device.queue, buf, np.ascontiguousarray(array), is_blocking=False)
-        return buf
-
-    def _fill(self, name: str, nbytes: int, value):
-        import pyopencl as cl
-
-        buf = self._buffer(name, max(nbytes, 4))
-        cl.enqueue_fill_buffer(self.device.queue, buf, value, 0, max(nbytes, 4))
-        return buf
-
-    def _grid(self, n: int) -> tuple[tuple[int], tuple[int]]:
-        ls = self.device.local_size
-        return (max(ls, ((n + ls - 1) // ls) * ls),), (ls,)
 
     def _run_walk(self, d_next, d_has_prev, d_perm, d_off, n: int, n_layers: int):
         import pyopencl as cl
