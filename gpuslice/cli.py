@@ -28,7 +28,7 @@ def _fail(message: str, code: int = EXIT_USAGE) -> None:
     raise SystemExit(code)
 
 
-def _load(path: str, scale: float | None, fit: float | None):
+def _load(path: str, scale: float | None, fit: float | None, device=None):
     from .mesh import mesh_from_triangles
     from .stl import read_mesh_file
 
@@ -37,7 +37,7 @@ def _load(path: str, scale: float | None, fit: float | None):
     t1 = time.perf_counter()
     mesh = mesh_from_triangles(
         raw.triangles, raw.normals, scale=scale, fit=fit, name=str(path), source_format=raw.source_format,
-        solids=raw.solids,
+        solids=raw.solids, device=device,
     )
     t2 = time.perf_counter()
     return mesh, {"load": t1 - t0, "topology": t2 - t1}
@@ -113,9 +113,18 @@ def slice_cmd(model, thickness, first_layer, z_mode, scale, fit, fill_rule, max_
         _fail(f"{output}: unknown output format '{Path(output).suffix}' (use .npz, .svg or .cli)")
     params = SliceParams(thickness=thickness, first_layer=first_layer, z_mode=z_mode, fill_rule=fill_rule,
                          max_gap=max_gap, backend=backend, device=device)
-    mesh, load_times = _load(model, scale, fit)
+    dev, t_dev = None, 0.0
+    if backend == "opencl":  # the device first: the mesh is welded on it too
+        from .device import get_device
+
+        t = time.perf_counter()
+        dev = get_device(device)
+        dev.program("crossings.cl")
+        t_dev = time.perf_counter() - t
+    mesh, load_times = _load(model, scale, fit, dev)
     result = slice_mesh(mesh, params)
     timings = {**load_times, **result.meta["timings_s"]}
+    timings["device"] = timings.get("device", 0.0) + t_dev
     if output is not None:
         t = time.perf_counter()
         export(result, output)

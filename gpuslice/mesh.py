@@ -28,6 +28,9 @@ from .errors import EmptyMeshError, InvalidGeometryError, ParameterError
 
 __all__ = ["Mesh", "load_mesh", "mesh_from_triangles", "mesh_from_arrays", "first_occurrence_ids"]
 
+#: below this many facets the numpy weld is faster than a kernel launch round trip
+DEVICE_WELD_MIN_FACETS = 20_000
+
 
 @dataclass
 class Mesh:
@@ -223,11 +226,14 @@ def mesh_from_triangles(
     name: str = "<triangles>",
     source_format: str = "arrays",
     solids: int = 1,
+    device=None,
 ) -> Mesh:
     """Build a :class:`Mesh` from (F, 3, 3) corner coordinates (file units).
 
     ``scale`` multiplies every coordinate; ``fit`` scales so the longest bounding-box side is ``fit`` mm (give one
     or neither). The result always stands on the bed: its lowest point is moved to z = 0; X and Y are kept.
+    ``device`` (a :class:`gpuslice.device.Device`): weld and number edges with ``kernels/weld.cl`` (the same ids
+    as the numpy path) for meshes of more than :data:`DEVICE_WELD_MIN_FACETS` facets.
     """
     tri = np.asarray(triangles)
     if tri.ndim != 3 or tri.shape[1:] != (3, 3):
@@ -241,7 +247,8 @@ def mesh_from_triangles(
     if not np.all(np.isfinite(corners)):
         raise InvalidGeometryError(f"{name}: NaN or infinite vertex coordinates")
     return _from_corners(
-        corners, normals, name=name, source_format=source_format, scale=scale, fit=fit, solids=solids
+        corners, normals, name=name, source_format=source_format, scale=scale, fit=fit, solids=solids,
+        device=device if tri.shape[0] > DEVICE_WELD_MIN_FACETS else None,
     )
 
 
@@ -267,9 +274,15 @@ def _placement(verts: np.ndarray, name: str, scale: float | None, fit: float | N
     return factor, np.array([0.0, 0.0, -lo[2] * factor])
 
 
-def _from_corners(corners, normals, *, name, source_format, scale, fit, solids) -> Mesh:
+def _from_corners(corners, normals, *, name, source_format, scale, fit, solids, device=None) -> Mesh:
     n_faces = corners.shape[0] // 3
-    vid, verts = _weld(corners)  # bit-identical as stored, before any transform
+    if device is not None:
+        from .weld import weld_device
+
+        vid, first = weld_device(corners, device)
+        verts = corners[first]
+    else:
+        vid, verts = _weld(corners)  # bit-identical as stored, before any transform
     factor, offset = _placement(verts, name, scale, fit)
     if factor != 1.0 or offset[2] != 0.0:
         verts = (verts.astype(np.float64) * factor + offset).astype(np.float32) + np.float32(0.0)
@@ -282,11 +295,17 @@ def _from_corners(corners, normals, *, name, source_format, scale, fit, solids) 
             normals = np.asarray(normals)[good]
     if faces.shape[0] == 0:
         raise EmptyMeshError(f"{name}: every facet is degenerate")
-    a = faces.reshape(-1).astype(np.int64)
-    b = np.roll(faces, -1, axis=1).reshape(-1).astype(np.int64)
-    lo, hi = np.minimum(a, b), np.maximum(a, b)
-    eid, efirst = first_occurrence_ids(lo * np.int64(verts.shape[0]) + hi)
-    edge_vertices = np.stack([lo[efirst], hi[efirst]], axis=1).astype(np.int32)
+    if device is not None:
+        from .weld import edge_ids_device
+
+        face_edges, edge_vertices = edge_ids_device(np.ascontiguousarray(faces, dtype=np.int32), verts.shape[0], device)
+        eid = face_edges.reshape(-1)
+    else:
+        a = faces.reshape(-1).astype(np.int64)
+        b = np.roll(faces, -1, axis=1).reshape(-1).astype(np.int64)
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        eid, efirst = first_occurrence_ids(lo * np.int64(verts.shape[0]) + hi)
+        edge_vertices = np.stack([lo[efirst], hi[efirst]], axis=1).astype(np.int32)
     return Mesh(
         vertices=np.ascontiguousarray(verts),
         faces=np.ascontiguousarray(faces, dtype=np.int32),
@@ -316,7 +335,9 @@ def mesh_from_arrays(
     return mesh_from_triangles(v[f], scale=scale, fit=fit, name=name)
 
 
-def load_mesh(path: str | os.PathLike, *, scale: float | None = None, fit: float | None = None) -> Mesh:
+def load_mesh(
+    path: str | os.PathLike, *, scale: float | None = None, fit: float | None = None, device=None
+) -> Mesh:
     """Load STL (binary or ASCII), OBJ, PLY, OFF or 3MF, scale it and place it on the bed (lowest z = 0).
 
     Parameters
@@ -324,6 +345,7 @@ def load_mesh(path: str | os.PathLike, *, scale: float | None = None, fit: float
     path : path of the mesh file.
     scale : multiply every coordinate by this factor (file units to mm).
     fit : instead, scale so the longest bounding-box side is ``fit`` mm.
+    device : optional OpenCL :class:`~gpuslice.device.Device` to weld on (see :func:`mesh_from_triangles`).
 
     Raises
     ------
@@ -341,4 +363,5 @@ def load_mesh(path: str | os.PathLike, *, scale: float | None = None, fit: float
         name=str(Path(path)),
         source_format=raw.source_format,
         solids=raw.solids,
+        device=device,
     )

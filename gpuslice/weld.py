@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .device import KernelDriver
 from .mesh import first_occurrence_ids
 
 __all__ = ["WeldKernel", "weld_device", "edge_ids_device", "weld_numpy", "edge_ids_numpy"]
@@ -26,6 +27,15 @@ __all__ = ["WeldKernel", "weld_device", "edge_ids_device", "weld_numpy", "edge_i
 _CHUNK = 32
 # the largest item count: table slots (a power of two > items) must stay addressable by int32
 _MAX_ITEMS = 2**30 - 1
+_KERNEL_NAMES = (
+    "insert_corners",
+    "insert_sides",
+    "count_firsts",
+    "scan_counts",
+    "emit_corners",
+    "emit_sides",
+    "gather_ids",
+)
 
 
 def weld_numpy(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -60,8 +70,8 @@ def _table_size(n: int, factor: float) -> int:
     return 1 << (want - 1).bit_length()
 
 
-class WeldKernel:
-    """Driver of ``kernels/weld.cl`` on one device: builds once, keeps the kernels and reuses grown buffers.
+class WeldKernel(KernelDriver):
+    """Driver of ``kernels/weld.cl`` on one device: keeps its kernels and reuses grown buffers across calls.
 
     Parameters
     ----------
@@ -74,77 +84,54 @@ class WeldKernel:
     """
 
     def __init__(self, device, *, table_factor: float = 2.0, hash_bits: int = 32) -> None:
+        import pyopencl as cl
+
         if not table_factor >= 1.0:
             raise ValueError(f"table_factor must be at least 1, got {table_factor}")
         if not 0 <= hash_bits <= 32:
             raise ValueError(f"hash_bits must be in 0..32, got {hash_bits}")
-        self.device = device
+        super().__init__(device)
         self.table_factor = float(table_factor)
         self._hash_and = np.uint32((1 << hash_bits) - 1)
         prg = device.program("weld.cl")
-        self._insert_corners = prg.insert_corners
-        self._insert_sides = prg.insert_sides
-        self._count = prg.count_firsts
-        self._scan = prg.scan_counts
-        self._emit_corners = prg.emit_corners
-        self._emit_sides = prg.emit_sides
-        self._gather = prg.gather_ids
-        self._buffers: dict[str, tuple[object, int]] = {}
+        k = {name: cl.Kernel(prg, f"weld_{name}") for name in _KERNEL_NAMES}
+        self._insert = {"corners": k["insert_corners"], "sides": k["insert_sides"]}
+        self._emit = {"corners": k["emit_corners"], "sides": k["emit_sides"]}
+        self._count, self._scan, self._gather = k["count_firsts"], k["scan_counts"], k["gather_ids"]
 
-    def _buffer(self, name: str, nbytes: int):
+    def _number(self, kind: str, d_keys, n: int) -> tuple[int, object, object]:
+        """The passes on n > 0 items of ``kind`` ("corners" or "sides"): (number of ids, ids buffer, per-id buffer).
+
+        The per-id buffer holds ``first`` (int64) for corners and ``edge_vertices`` (2 x int32) for sides.
+        """
         import pyopencl as cl
 
-        buf, size = self._buffers.get(name, (None, 0))
-        if size < nbytes:
-            size = max(nbytes, int(size * 1.5), 64)
-            buf = cl.Buffer(self.device.context, cl.mem_flags.READ_WRITE, size)
-            self._buffers[name] = (buf, size)
-        return buf
-
-    def _upload(self, name: str, array: np.ndarray):
-        import pyopencl as cl
-
-        buf = self._buffer(name, max(array.nbytes, 4))
-        cl.enqueue_copy(self.device.queue, buf, array, is_blocking=False)
-        return buf
-
-    def _global(self, n: int) -> tuple[int]:
-        ls = self.device.local_size
-        return (((n + ls - 1) // ls) * ls,)
-
-    def _number(self, kind: str, d_keys, n: int):
-        """Run the passes on n items (kind "corners" or "sides"); return (number of ids, ids, per-id output)."""
-        import pyopencl as cl
-
-        q = self.device.queue
-        ls = (self.device.local_size,)
         if n > _MAX_ITEMS:
             raise ValueError(f"{n} items: more than the device weld handles ({_MAX_ITEMS})")
+        q = self.device.queue
         size = _table_size(n, self.table_factor)
+        if size > 2**31:
+            raise ValueError(f"{n} items: a table of {size} slots is more than int32 slot indices address")
         n_chunks = (n + _CHUNK - 1) // _CHUNK
-        d_slots = self._buffer("slots", 4 * size)
+        d_slots = self._fill("slots", 4 * size, np.int32(-1))
         d_slot_of = self._buffer("slot_of", 4 * n)
+        d_flags = self._buffer("is_first", n)
         d_counts = self._buffer("counts", 4 * n_chunks)
         d_offsets = self._buffer("offsets", 4 * n_chunks)
         d_total = self._buffer("total", 4)
         d_ids = self._buffer("ids", 4 * n)
-        d_out = self._buffer("per_id", 8 * n)  # first (int64) or edge_vertices (2 x int32)
-        cl.enqueue_fill_buffer(q, d_slots, np.int32(-1), 0, 4 * size)
+        d_per_id = self._buffer("per_id", 8 * n)
         n_, chunk, nc = np.int32(n), np.int32(_CHUNK), np.int32(n_chunks)
-        insert = self._insert_corners if kind == "corners" else self._insert_sides
-        insert(q, self._global(n), ls, d_keys, n_, d_slots, np.uint32(size - 1), self._hash_and, d_slot_of)
-        self._count(q, self._global(n_chunks), ls, d_slots, d_slot_of, n_, chunk, nc, d_counts)
-        self._scan(q, ls, ls, d_counts, nc, d_offsets, d_total)
-        if kind == "corners":
-            self._emit_corners(q, self._global(n_chunks), ls, d_slots, d_slot_of, n_, chunk, nc, d_offsets, d_out)
-        else:
-            self._emit_sides(
-                q, self._global(n_chunks), ls, d_slots, d_slot_of, n_, chunk, nc, d_offsets, d_keys, d_out
-            )
-        self._gather(q, self._global(n), ls, d_slots, d_slot_of, n_, d_ids)
+        items, chunks = self._grid(n), self._grid(n_chunks)
+        self._insert[kind](q, *items, d_keys, n_, d_slots, np.uint32(size - 1), self._hash_and, d_slot_of)
+        self._count(q, *chunks, d_slots, d_slot_of, n_, chunk, nc, d_flags, d_counts)
+        self._scan(q, *self._grid(1), d_counts, nc, d_offsets, d_total)
+        extra = (d_keys,) if kind == "sides" else ()
+        self._emit[kind](q, *chunks, d_slots, d_slot_of, n_, chunk, nc, d_flags, d_offsets, *extra, d_per_id)
+        self._gather(q, *items, d_slots, d_slot_of, n_, d_ids)
         total = np.empty(1, dtype=np.int32)
         cl.enqueue_copy(q, total, d_total, is_blocking=True)
-        return int(total[0]), d_ids, d_out
+        return int(total[0]), d_ids, d_per_id
 
     def weld(self, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(vid, first)`` of (N, 3) float32 corners: the same arrays as :func:`weld_numpy`."""
@@ -155,7 +142,7 @@ class WeldKernel:
         if n == 0:
             return np.zeros(0, np.int32), np.zeros(0, np.int64)
         q = self.device.queue
-        n_ids, d_ids, d_first = self._number("corners", self._upload("corners", corners), n)
+        n_ids, d_ids, d_first = self._number("corners", self._put("corners", corners), n)
         vid = np.empty(n, dtype=np.int32)
         first = np.empty(n_ids, dtype=np.int64)
         cl.enqueue_copy(q, vid, d_ids, is_blocking=False)
@@ -176,7 +163,7 @@ class WeldKernel:
         if n_vertices is not None and (faces.min() < 0 or faces.max() >= n_vertices):
             raise ValueError(f"face vertex ids outside [0, {n_vertices})")
         q = self.device.queue
-        n_ids, d_ids, d_ev = self._number("sides", self._upload("faces", faces), n)
+        n_ids, d_ids, d_ev = self._number("sides", self._put("faces", faces), n)
         face_edges = np.empty((n // 3, 3), dtype=np.int32)
         edge_vertices = np.empty((n_ids, 2), dtype=np.int32)
         cl.enqueue_copy(q, face_edges, d_ids, is_blocking=False)

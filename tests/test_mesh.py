@@ -97,3 +97,11 @@ def test_kernels_are_package_data():
 
     names = {p.name for p in resources.files("gpuslice.kernels").iterdir()}
     assert {"crossings.cl", "walk.cl"} <= names
+
+
+def test_device_weld_gives_the_same_mesh(device):
+    tri = S.icosphere(radius=20, subdivisions=5)  # 20,480 facets: above DEVICE_WELD_MIN_FACETS
+    a = mesh_from_triangles(tri, fit=50)
+    b = mesh_from_triangles(tri, fit=50, device=device)
+    for name in ("vertices", "faces", "face_edges", "edge_vertices"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
