@@ -173,9 +173,6 @@ class CrossingsKernel(KernelDriver):
         return dseg.fetch() if read_back else dseg
 
 
-_KERNELS: dict[int, CrossingsKernel] = {}
-
-
 def compute_crossings(mesh: Mesh, z: np.ndarray, device=None, *, read_back: bool = True):
     """All segments of ``mesh`` cut at the planes ``z`` (mm, increasing): on ``device``, or numpy when None.
 
@@ -183,7 +180,4 @@ def compute_crossings(mesh: Mesh, z: np.ndarray, device=None, *, read_back: bool
     """
     if device is None:
         return crossings_numpy(mesh, z)
-    key = id(device)
-    if key not in _KERNELS:
-        _KERNELS[key] = CrossingsKernel(device)
-    return _KERNELS[key](mesh, z, read_back=read_back)
+    return CrossingsKernel.of(device)(mesh, z, read_back=read_back)

@@ -66,9 +66,19 @@ class KernelDriver:
     """Base of the thin drivers of ``kernels/*.cl``: named device buffers grown geometrically and reused across
     calls, uploads, fills, and launch grids rounded up to the explicit local size."""
 
+    _instances: dict[tuple[type, int], KernelDriver] = {}
+
     def __init__(self, device: Device) -> None:
         self.device = device
         self._buffers: dict[str, tuple[object, int]] = {}
+
+    @classmethod
+    def of(cls, device: Device):
+        """The driver of this class for ``device``, made (and its kernels looked up) once per process."""
+        key = (cls, id(device))
+        if key not in KernelDriver._instances:
+            KernelDriver._instances[key] = cls(device)
+        return KernelDriver._instances[key]
 
     def _buffer(self, name: str, nbytes: int):
         """The buffer ``name`` with at least ``nbytes`` bytes (contents undefined when it had to grow)."""

@@ -135,15 +135,9 @@ class ChainKernels(KernelDriver):
         return canonical_chain_order(order, flag, layer_off)
 
 
-_KERNELS: dict[int, ChainKernels] = {}
-
-
 def chain_kernels(device) -> ChainKernels:
     """The :class:`ChainKernels` of ``device`` (built once per device)."""
-    key = id(device)
-    if key not in _KERNELS:
-        _KERNELS[key] = ChainKernels(device)
-    return _KERNELS[key]
+    return ChainKernels.of(device)
 
 
 def walk_chains(nxt: np.ndarray, layer: np.ndarray, n_layers: int, device):

@@ -171,21 +171,11 @@ class WeldKernel(KernelDriver):
         return face_edges, edge_vertices
 
 
-_KERNELS: dict[int, WeldKernel] = {}
-
-
-def _kernel(device) -> WeldKernel:
-    key = id(device)
-    if key not in _KERNELS:
-        _KERNELS[key] = WeldKernel(device)
-    return _KERNELS[key]
-
-
 def weld_device(corners: np.ndarray, device) -> tuple[np.ndarray, np.ndarray]:
     """Vertex ids (N,) int32 and first corners (V,) int64 of bit-identical corners, on ``device``."""
-    return _kernel(device).weld(corners)
+    return WeldKernel.of(device).weld(corners)
 
 
 def edge_ids_device(faces: np.ndarray, n_vertices: int, device) -> tuple[np.ndarray, np.ndarray]:
     """Edge ids (F, 3) int32 of the facet sides and each edge's (min, max) vertex ids (E, 2) int32, on ``device``."""
-    return _kernel(device).edge_ids(faces, n_vertices)
+    return WeldKernel.of(device).edge_ids(faces, n_vertices)
