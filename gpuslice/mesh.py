@@ -202,21 +202,6 @@ def first_occurrence_ids(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return ids, firsts[by_first]
 
 
-def _weld(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Weld (N, 3) float32 corners with bit-identical coordinates: (vertex ids (N,), unique vertices (V, 3))."""
-    bits = np.ascontiguousarray(corners).view(np.uint32).astype(np.uint64)
-    # a 64-bit mix of the three 32-bit patterns; equal patterns give equal keys, collisions are checked below
-    key = bits[:, 0] * np.uint64(0x9E3779B97F4A7C15)
-    key ^= (bits[:, 1] + np.uint64(0x632BE59BD9B4E019)) * np.uint64(0xBF58476D1CE4E5B9)
-    key ^= (bits[:, 2] + np.uint64(0x8CB92BA72F3D8DD7)) * np.uint64(0x94D049BB133111EB)
-    ids, first = first_occurrence_ids(key)
-    if not np.array_equal(corners[first][ids].view(np.uint32), np.ascontiguousarray(corners).view(np.uint32)):
-        # a hash collision (astronomically rare): fall back to an exact key
-        exact = np.ascontiguousarray(corners).view(np.dtype((np.void, 12))).reshape(-1)
-        ids, first = first_occurrence_ids(exact)
-    return ids, corners[first]
-
-
 def mesh_from_triangles(
     triangles: np.ndarray,
     normals: np.ndarray | None = None,
@@ -276,13 +261,11 @@ def _placement(verts: np.ndarray, name: str, scale: float | None, fit: float | N
 
 def _from_corners(corners, normals, *, name, source_format, scale, fit, solids, device=None) -> Mesh:
     n_faces = corners.shape[0] // 3
-    if device is not None:
-        from .weld import weld_device
+    from .weld import edge_ids_device, edge_ids_numpy, weld_device, weld_numpy
 
-        vid, first = weld_device(corners, device)
-        verts = corners[first]
-    else:
-        vid, verts = _weld(corners)  # bit-identical as stored, before any transform
+    # bit-identical as stored, before any transform
+    vid, first = weld_device(corners, device) if device is not None else weld_numpy(corners)
+    verts = corners[first]
     factor, offset = _placement(verts, name, scale, fit)
     if factor != 1.0 or offset[2] != 0.0:
         verts = (verts.astype(np.float64) * factor + offset).astype(np.float32) + np.float32(0.0)
@@ -295,21 +278,15 @@ def _from_corners(corners, normals, *, name, source_format, scale, fit, solids, 
             normals = np.asarray(normals)[good]
     if faces.shape[0] == 0:
         raise EmptyMeshError(f"{name}: every facet is degenerate")
+    faces = np.ascontiguousarray(faces, dtype=np.int32)
     if device is not None:
-        from .weld import edge_ids_device
-
-        face_edges, edge_vertices = edge_ids_device(np.ascontiguousarray(faces, dtype=np.int32), verts.shape[0], device)
-        eid = face_edges.reshape(-1)
+        face_edges, edge_vertices = edge_ids_device(faces, verts.shape[0], device)
     else:
-        a = faces.reshape(-1).astype(np.int64)
-        b = np.roll(faces, -1, axis=1).reshape(-1).astype(np.int64)
-        lo, hi = np.minimum(a, b), np.maximum(a, b)
-        eid, efirst = first_occurrence_ids(lo * np.int64(verts.shape[0]) + hi)
-        edge_vertices = np.stack([lo[efirst], hi[efirst]], axis=1).astype(np.int32)
+        face_edges, edge_vertices = edge_ids_numpy(faces, verts.shape[0])
     return Mesh(
         vertices=np.ascontiguousarray(verts),
         faces=np.ascontiguousarray(faces, dtype=np.int32),
-        face_edges=eid.reshape(-1, 3),
+        face_edges=face_edges,
         edge_vertices=edge_vertices,
         stored_normals=None if normals is None else np.asarray(normals, dtype=np.float32),
         name=name,

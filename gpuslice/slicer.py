@@ -67,10 +67,9 @@ def make_schedule(mesh: Mesh, params: SliceParams, z=None, thickness=None) -> Sc
 def _batches(mesh: Mesh, zs: np.ndarray, limit: int) -> list[tuple[int, int]]:
     """Contiguous layer ranges whose segment counts stay under ``limit`` (one range if the whole fits)."""
     lo, count = facet_layer_ranges(mesh, zs)
-    per_layer = np.zeros(zs.size + 1, dtype=np.int64)
-    np.add.at(per_layer, lo, 1)
-    np.add.at(per_layer, lo + count, -1)
-    per_layer = np.cumsum(per_layer)[:-1]
+    # a difference array: +1 at each facet's first layer, -1 after its last
+    n = zs.size + 1
+    per_layer = np.cumsum(np.bincount(lo, minlength=n) - np.bincount(lo + count, minlength=n))[:-1]
     if per_layer.sum() <= limit:
         return [(0, int(zs.size))]
     out, start, acc = [], 0, 0

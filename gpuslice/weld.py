@@ -39,10 +39,10 @@ _KERNEL_NAMES = (
 
 
 def weld_numpy(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Vertex ids (N,) int32 and first corners (V,) int64 of bit-identical corners: the host path of ``mesh._weld``."""
+    """Vertex ids (N,) int32 and first corners (V,) int64 of bit-identical corners (the host weld of ``mesh.py``)."""
     corners = np.ascontiguousarray(corners, dtype=np.float32).reshape(-1, 3)
     bits = corners.view(np.uint32).astype(np.uint64)
-    # the same 64-bit mix as mesh._weld; collisions are checked below
+    # a 64-bit mix of the three 32-bit patterns; equal patterns give equal keys, collisions are checked below
     key = bits[:, 0] * np.uint64(0x9E3779B97F4A7C15)
     key ^= (bits[:, 1] + np.uint64(0x632BE59BD9B4E019)) * np.uint64(0xBF58476D1CE4E5B9)
     key ^= (bits[:, 2] + np.uint64(0x8CB92BA72F3D8DD7)) * np.uint64(0x94D049BB133111EB)
@@ -54,14 +54,15 @@ def weld_numpy(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def edge_ids_numpy(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
-    """Edge id of each facet side (F, 3) int32 and each edge's (min, max) vertex ids (E, 2) int32: ``mesh.py``'s."""
+    """Edge id of each facet side (F, 3) int32 (side k joins corners k and k + 1) and each edge's (min, max) vertex
+    ids (E, 2) int32, numbered by first occurrence (the host path of ``mesh.py``)."""
     faces = np.asarray(faces).reshape(-1, 3)
     a = faces.reshape(-1).astype(np.int64)
     b = np.roll(faces, -1, axis=1).reshape(-1).astype(np.int64)
     lo, hi = np.minimum(a, b), np.maximum(a, b)
     eid, efirst = first_occurrence_ids(lo * np.int64(n_vertices) + hi)
     edge_vertices = np.stack([lo[efirst], hi[efirst]], axis=1).astype(np.int32)
-    return eid.reshape(-1, 3), edge_vertices
+    return eid.reshape(-1, 3).astype(np.int32), edge_vertices
 
 
 def _table_size(n: int, factor: float) -> int:
