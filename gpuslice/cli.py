@@ -1,4 +1,5 @@
-"""The ``gpuslice`` command line: ``info``, ``slice``, ``devices``, ``shape``.
+"""The ``gpuslice`` command line: ``info``, ``slice``, ``devices``, ``shape`` here; ``raster``, ``bench``, ``plot``,
+``batch`` and ``view`` in their own ``cli_*.py`` modules, imported only when that command runs (start-up stays short).
 
 Results go to stdout (or files), progress and errors to stderr. A user error (bad file, bad option) prints one line
 ``gpuslice: error: <file>: <problem>`` and exits with status 2; Ctrl-C exits with 130. Outputs are written under a
@@ -43,7 +44,39 @@ def _load(path: str, scale: float | None, fit: float | None, device=None):
     return mesh, {"load": t1 - t0, "topology": t2 - t1}
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+# command name -> "module:attribute", imported on first use
+LAZY_COMMANDS = {
+    "raster": "gpuslice.cli_raster:raster",
+    "bench": "gpuslice.cli_bench:bench",
+    "plot": "gpuslice.cli_bench:plot",
+    "batch": "gpuslice.cli_batch:batch",
+    "view": "gpuslice.cli_view:view",
+}
+
+
+class LazyGroup(click.Group):
+    """A click group whose heavier commands live in their own modules and are imported when used."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(set(super().list_commands(ctx)) | set(LAZY_COMMANDS))
+
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        if cmd_name in LAZY_COMMANDS and cmd_name not in self.commands:
+            import importlib
+
+            module, attr = LAZY_COMMANDS[cmd_name].split(":")
+            try:
+                mod = importlib.import_module(module)
+            except ModuleNotFoundError as exc:
+                if exc.name != module:  # a missing dependency inside the module: say so
+                    raise
+                return None
+            self.add_command(getattr(mod, attr), cmd_name)
+        return super().get_command(ctx, cmd_name)
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, message=f"gpuslice %(version)s (Python {sys.version.split()[0]})")
 @click.option("--debug", is_flag=True, help="Show tracebacks on errors.")
 @click.pass_context
@@ -58,6 +91,19 @@ _mesh_options = [
 ]
 
 
+def fail(message: str, code: int = EXIT_USAGE) -> None:
+    """Print ``gpuslice: error: <message>`` on stderr and exit with ``code`` (2: user error)."""
+    _fail(message, code)
+
+
+def load_model(path: str, scale: float | None, fit: float | None, device=None):
+    """Read and weld ``path`` (scaled, on the bed); returns ``(Mesh, {"load": s, "topology": s})``."""
+    return _load(path, scale, fit, device)
+
+
+mesh_options = _mesh_options
+
+
 def _with(options):
     def deco(f):
         for opt in reversed(options):
@@ -65,6 +111,9 @@ def _with(options):
         return f
 
     return deco
+
+
+with_options = _with
 
 
 @cli.command()

@@ -3,9 +3,10 @@
 #   binutils libgcc-12-dev libc6-dev  PoCL (pip's pocl-binary-distribution) links every kernel with the system ld;
 #                                     without them the process aborts on the first kernel build.
 #   libegl1 libegl-mesa0 libgl1 libgl1-mesa-dri   headless OpenGL (EGL + Mesa llvmpipe) for the moderngl rasteriser.
+#   chromium                          the headless browser the viewer's test drives (through playwright).
 # Needs root (or sudo). Idempotent; prints what it installed.
 set -euo pipefail
-pkgs="binutils libgcc-12-dev libc6-dev libegl1 libegl-mesa0 libgl1 libgl1-mesa-dri"
+pkgs="binutils libgcc-12-dev libc6-dev libegl1 libegl-mesa0 libgl1 libgl1-mesa-dri chromium"
 need=""
 for p in $pkgs; do
   dpkg -s "$p" >/dev/null 2>&1 || need="$need $p"
