@@ -35,6 +35,13 @@ class SliceParams:
     backend : ``"opencl"`` (default) or ``"numpy"`` (the reference implementation of every kernel).
     device : OpenCL device spec (see :mod:`gpuslice.device`); None for the default.
     max_segments_per_batch : layers are processed in batches of at most about this many segments.
+    adaptive : None (uniform), ``"roi"``, ``"cusp"`` or ``"area"``: an adaptive schedule (:mod:`gpuslice.adaptive`).
+    max_cusp : cusp mode: the largest cusp height t·|n_z|, mm. max_area : area mode: the largest staircase error
+        area per unit length, mm². min_height, max_height : cusp/area modes: thickness clamp, mm. smooth : cusp/area
+        modes: the thickness changes by at most this many mm per mm of height (0: no smoothing).
+    roi_ladder : roi mode: thicknesses, coarse to fine, mm. roi_threshold : roi mode: points per layer (one value,
+        or one per refinement step); None: the ``roi_quantile`` of each level's signal. roi_windows : windows kept per
+        level (0: all).
     """
 
     thickness: float = 0.1
@@ -45,8 +52,20 @@ class SliceParams:
     backend: str = "opencl"
     device: str | None = None
     max_segments_per_batch: int = 8_000_000
+    adaptive: str | None = None
+    max_cusp: float = 0.05
+    max_area: float = 0.0025
+    min_height: float = 0.05
+    max_height: float = 0.3
+    smooth: float = 0.0
+    roi_ladder: tuple[float, ...] = (1.0, 0.5, 0.1)
+    roi_threshold: tuple[float, ...] | None = None
+    roi_quantile: float = 0.75
+    roi_windows: int = 1
 
     def __post_init__(self) -> None:
+        if self.adaptive not in (None, "roi", "cusp", "area"):
+            raise ParameterError(f"unknown adaptive mode '{self.adaptive}' (use roi, cusp or area)")
         if self.fill_rule not in FILL_RULES:
             raise ParameterError(f"unknown fill rule '{self.fill_rule}' (use {', '.join(FILL_RULES)})")
         if self.backend not in ("opencl", "numpy"):
@@ -61,6 +80,10 @@ def make_schedule(mesh: Mesh, params: SliceParams, z=None, thickness=None) -> Sc
     """The schedule for ``mesh``: explicit ``z`` (with optional ``thickness``) or uniform from ``params``."""
     if z is not None:
         return from_z(z, thickness)
+    if params.adaptive is not None:
+        from .adaptive import adaptive_schedule
+
+        return adaptive_schedule(mesh, params)
     return uniform(mesh.height, params.thickness, first_layer=params.first_layer, z_mode=params.z_mode)
 
 
@@ -159,6 +182,8 @@ def slice_mesh(
         timings["nesting"] += time.perf_counter() - t
         parts.append((a, nested, loops.repairs))
     result = _assemble(parts, sched, n_layers)
+    if getattr(sched, "info", None):
+        result.meta["adaptive"] = sched.info
     result.meta.update(
         {
             "file": mesh.name,

@@ -1,0 +1,197 @@
+"""Schedule quality (gpuslice.quality), `gpuslice bench` (gpuslice.bench, cli_bench) and the plots (gpuslice.plots)."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+
+from gpuslice import mesh_from_triangles, slice_mesh
+from gpuslice.bench import parse_settings, run_bench
+from gpuslice.cli import main
+from gpuslice.errors import ParameterError
+from gpuslice.quality import cusp_heights, layer_geometries, mean_cusp, schedule_quality, volume_deviation
+from gpuslice.shapes import box, icosphere, write_stl
+
+R = 20.0
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    return mesh_from_triangles(icosphere(R))
+
+
+@pytest.fixture(scope="module")
+def sphere_ref(sphere):
+    return slice_mesh(sphere, thickness=0.01, backend="numpy")
+
+
+@pytest.fixture(scope="module")
+def sphere_stl(tmp_path_factory):
+    path = tmp_path_factory.mktemp("bench") / "sphere.stl"
+    write_stl(icosphere(R), path)
+    return path
+
+
+# ---- quality --------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("t", [0.1, 0.3])
+def test_cusp_of_uniform_layers_on_a_sphere(sphere, t):
+    res = slice_mesh(sphere, thickness=t, backend="numpy")
+    c = cusp_heights(sphere, res)
+    assert c.shape == (res.n_layers,)
+    assert c.max() <= t + 1e-9 and c.max() > 0.99 * t  # the poles are nearly flat
+    # on a sphere the area-weighted mean of |n_z| is 1/2, so the mean cusp is t/2
+    assert mean_cusp(sphere, res) == pytest.approx(t / 2, rel=0.02)
+
+
+def test_volume_deviation_of_a_sphere_matches_the_staircase_formula(sphere, sphere_ref):
+    # mid-plane sections of a sphere: per slab the XOR is |A'(z)|·|z - z_mid| integrated, t²/4·|A'|, in all
+    # t/4 · 2πR² (A(z) rises from 0 to πR² and falls back)
+    prev = 0.0
+    for t in (0.05, 0.1, 0.3):
+        res = slice_mesh(sphere, thickness=t, backend="numpy")
+        vd = volume_deviation(res, sphere_ref)
+        assert vd["volume_deviation_mm3"] == pytest.approx(t / 4 * 2 * np.pi * R**2, rel=0.1)
+        assert vd["volume_deviation_mm3"] > prev
+        prev = vd["volume_deviation_mm3"]
+    same = volume_deviation(sphere_ref, sphere_ref)
+    assert same["volume_deviation_mm3"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_volume_deviation_counts_missing_and_shifted_material():
+    cube = mesh_from_triangles(box((0, 0, 0), (10, 10, 10)))
+    ref = slice_mesh(cube, thickness=0.05, backend="numpy")
+    exact = slice_mesh(cube, thickness=0.5, backend="numpy")  # tiles [0, 10] exactly: no deviation
+    assert volume_deviation(exact, ref)["volume_deviation_mm3"] == pytest.approx(0.0, abs=1e-6)
+    short = slice_mesh(cube, z=np.array([0.5, 1.5]), layer_thickness=1.0, backend="numpy")  # only [0, 2] covered
+    vd = volume_deviation(short, ref)
+    assert vd["volume_deviation_mm3"] == pytest.approx(800.0, rel=1e-6)
+    assert vd["volume_deviation_pct"] == pytest.approx(80.0, rel=1e-6)
+
+
+def test_layer_geometries_keep_holes():
+    from gpuslice.shapes import torus
+
+    res = slice_mesh(mesh_from_triangles(torus()), thickness=1.0, backend="numpy")
+    g = layer_geometries(res)
+    assert len(g) == res.n_layers
+    np.testing.assert_allclose([x.area for x in g], res.area, rtol=1e-5)
+
+
+def test_schedule_quality_keys(sphere, sphere_ref):
+    res = slice_mesh(sphere, adaptive="cusp", backend="numpy")
+    q = schedule_quality(sphere, res, sphere_ref)
+    assert q["layers"] == res.n_layers
+    assert q["max_cusp_mm"] <= 0.05 + 1e-6
+    assert 0 < q["mean_cusp_mm"] < q["max_cusp_mm"]
+    uni = schedule_quality(sphere, slice_mesh(sphere, thickness=0.05, backend="numpy"), sphere_ref)
+    # the cusp schedule trades a little volume accuracy for about half the layers
+    assert q["layers"] < 0.6 * uni["layers"]
+    assert uni["volume_deviation_mm3"] < q["volume_deviation_mm3"] < 4 * uni["volume_deviation_mm3"]
+
+
+# ---- bench ----------------------------------------------------------------------------------------------------
+
+
+def test_parse_settings():
+    s = parse_settings("0.1, 0.2", "roi,cusp")
+    assert [x.label for x in s] == ["0.1 mm", "0.2 mm", "adaptive roi", "adaptive cusp"]
+    for bad in (("0", None), ("x", None), (None, "nope"), (None, None)):
+        with pytest.raises(ParameterError):
+            parse_settings(*bad)
+
+
+def test_run_bench_rows(sphere):
+    calls = []
+    res = run_bench(sphere, parse_settings("0.2,0.5", "cusp,roi"), repeat=2, ref_thickness=0.02,
+                    progress=lambda d, a=1: calls.append(d))
+    rows = {r["setting"]: r for r in res.rows}
+    assert list(rows) == ["0.2 mm", "0.5 mm", "adaptive cusp", "adaptive roi"]
+    for label, r in rows.items():
+        assert r["layers"] == res.results[label].n_layers
+        assert len(r["times_s"]) == 2 and r["total_s"] == pytest.approx(np.median(r["times_s"]))
+        assert r["total_s"] >= r["crossings_s"] + r["chaining_s"] + r["nesting_s"]
+        assert r["volume_deviation_pct"] > 0
+    assert rows["0.2 mm"]["layers"] > rows["0.5 mm"]["layers"]
+    assert rows["0.5 mm"]["volume_deviation_mm3"] > rows["0.2 mm"]["volume_deviation_mm3"]
+    assert rows["adaptive cusp"]["max_cusp_mm"] <= 0.05 + 1e-6
+    assert rows["adaptive roi"]["roi_windows"][0]["windows_mm"]
+    assert res.context["reference_thickness_mm"] == 0.02
+    assert calls.count("quality") == 4 and "warm-up" in calls
+
+
+def test_cli_bench_table_json_csv(sphere_stl, capsys):
+    args = ["bench", str(sphere_stl), "-t", "0.5,1", "--adaptive", "roi", "--repeat", "1", "--ref-thickness", "0.05"]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "0.5 mm" in out and "adaptive roi" in out and "level 0 (1 mm) window" in out
+    assert main([*args, "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert [r["setting"] for r in data["rows"]] == ["0.5 mm", "1 mm", "adaptive roi"]
+    assert data["load_s"] > 0 and data["facets"] == 5120
+    assert main([*args, "--csv", "--no-quality"]) == 0
+    rows = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))
+    assert [r["setting"] for r in rows] == ["0.5 mm", "1 mm", "adaptive roi"]
+    assert int(rows[0]["layers"]) == 80
+
+
+@pytest.mark.parametrize("args", [["-t", "0"], ["--adaptive", "x"], ["--repeat", "0"], ["--json", "--csv"],
+                                  ["--plots", "/nonexistent/dir"]])
+def test_cli_bench_bad_options(sphere_stl, capsys, args):
+    assert main(["bench", str(sphere_stl), "-t", "1", *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("gpuslice: error:")
+
+
+# ---- plots ----------------------------------------------------------------------------------------------------
+
+
+def _check_png(path):
+    from PIL import Image
+
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    assert 10_000 < len(data) < 300_000
+    with Image.open(path) as im:
+        w, h = im.size
+        assert w >= 300 and h >= 200
+        # not a blank canvas: several distinct colours
+        assert len(im.convert("RGB").getcolors(maxcolors=1 << 20) or []) > 8
+
+
+def _check_svg(path):
+    data = path.read_bytes()
+    assert 5_000 < len(data) < 300_000
+    root = ET.fromstring(data)
+    assert root.tag.endswith("svg")
+    assert sum(1 for _ in root.iter()) > 50
+
+
+def test_bench_plots(sphere_stl, tmp_path, capsys):
+    pytest.importorskip("matplotlib")
+    pytest.importorskip("PIL")
+    assert main(["bench", str(sphere_stl), "-t", "0.3,1", "--adaptive", "roi,cusp", "--repeat", "1",
+                 "--no-quality", "--plots", str(tmp_path)]) == 0
+    names = sorted(p.name for p in tmp_path.iterdir())
+    for stem in ("sphere_points", "sphere_schedule", "sphere_stack", "sphere_layers", "sphere_roi_levels"):
+        assert f"{stem}.png" in names and f"{stem}.svg" in names
+        _check_png(tmp_path / f"{stem}.png")
+        _check_svg(tmp_path / f"{stem}.svg")
+    assert not [n for n in names if n.startswith(".")]  # no temporaries left
+
+
+def test_plot_command(sphere_stl, tmp_path, capsys):
+    pytest.importorskip("matplotlib")
+    assert main(["plot", str(sphere_stl), "-t", "0.5", "--adaptive", "roi", "-o", str(tmp_path),
+                 "--layers", "3,20"]) == 0
+    out = capsys.readouterr().out
+    assert "roi level 0 (1 mm): window z" in out
+    _check_png(tmp_path / "sphere_layers_chosen.png")
+    assert main(["plot", str(sphere_stl), "-t", "0.5", "-o", str(tmp_path), "--layers", "999"]) == 2
+    assert main(["plot", str(sphere_stl), "-t", "0.5", "-o", str(tmp_path / "missing")]) == 2
