@@ -3,6 +3,7 @@
 Importing the package is cheap: pyopencl, trimesh and moderngl are imported only when a function needs them.
 """
 
+from .adaptive import AdaptiveSchedule, adaptive_schedule, cusp_schedule, roi_schedule
 from .errors import (
     DeviceError,
     EmptyMeshError,
@@ -12,6 +13,7 @@ from .errors import (
     ParameterError,
 )
 from .mesh import Mesh, load_mesh, mesh_from_arrays, mesh_from_triangles
+from .quality import cusp_summary, schedule_quality, volume_deviation
 from .result import LayerView, SliceResult
 from .schedule import Schedule, from_z, uniform
 from .slicer import SliceParams, slice_mesh
@@ -19,6 +21,7 @@ from .slicer import SliceParams, slice_mesh
 __version__ = "0.1.0"
 
 __all__ = [
+    "AdaptiveSchedule",
     "DeviceError",
     "EmptyMeshError",
     "GpusliceError",
@@ -31,10 +34,16 @@ __all__ = [
     "SliceParams",
     "SliceResult",
     "__version__",
+    "adaptive_schedule",
+    "cusp_schedule",
+    "cusp_summary",
     "from_z",
     "load_mesh",
     "mesh_from_arrays",
     "mesh_from_triangles",
+    "roi_schedule",
+    "schedule_quality",
     "slice_mesh",
     "uniform",
+    "volume_deviation",
 ]
