@@ -115,6 +115,60 @@ def _with(options):
 
 with_options = _with
 
+# ---- adaptive schedules (issue 4; gpuslice/adaptive.py): options shared by `slice`, `bench` and `plot` ----------
+adaptive_options = [
+    click.option("--adaptive", type=click.Choice(["roi", "cusp", "area"]), default=None,
+                 help="Adaptive layers: roi (the paper's ladder), cusp (t*|n_z| <= --max-cusp), area (error area)."),
+    click.option("--max-cusp", type=float, default=0.05, show_default=True, help="cusp: largest cusp height, mm."),
+    click.option("--max-area", type=float, default=0.0025, show_default=True,
+                 help="area: largest staircase error area per mm of surface, mm^2."),
+    click.option("--min-height", type=float, default=0.05, show_default=True, help="cusp/area: thinnest layer, mm."),
+    click.option("--max-height", type=float, default=0.3, show_default=True, help="cusp/area: thickest layer, mm."),
+    click.option("--smooth", type=float, default=0.0, show_default=True,
+                 help="cusp/area: thickness may change by at most this many mm per mm of height (0: off)."),
+    click.option("--roi-ladder", default="1,0.5,0.1", show_default=True, help="roi: thicknesses, coarse to fine, mm."),
+    click.option("--roi-threshold", default=None,
+                 help="roi: points per layer marking the region of interest (one value, or one per step)."),
+    click.option("--roi-quantile", type=float, default=0.75, show_default=True,
+                 help="roi: without --roi-threshold, this quantile of each level's points per layer."),
+    click.option("--roi-windows", type=int, default=1, show_default=True, help="roi: windows kept per level (0: all)."),
+]
+
+
+def _floats(text: str, option: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        _fail(f"{option}: expected comma-separated numbers, got '{text}'")
+        raise  # unreachable
+
+
+def adaptive_params(kw: dict) -> dict:
+    """SliceParams fields from the ``adaptive_options`` values."""
+    return {
+        "adaptive": kw["adaptive"], "max_cusp": kw["max_cusp"], "max_area": kw["max_area"],
+        "min_height": kw["min_height"], "max_height": kw["max_height"], "smooth": kw["smooth"],
+        "roi_ladder": _floats(kw["roi_ladder"], "--roi-ladder"),
+        "roi_threshold": _floats(kw["roi_threshold"], "--roi-threshold") if kw["roi_threshold"] else None,
+        "roi_quantile": kw["roi_quantile"], "roi_windows": kw["roi_windows"],
+    }
+
+
+def adaptive_lines(meta: dict) -> list[str]:
+    """Human-readable lines about an adaptive schedule (the roi windows chosen at each level)."""
+    info = meta.get("adaptive") or {}
+    out = []
+    for lv in info.get("levels", []):
+        wins = "; ".join(f"layers [{w['layers'][0]}, {w['layers'][1]}] = z {w['z_mm'][0]:.6g}..{w['z_mm'][1]:.6g} mm"
+                         for w in lv["windows"]) or "none"
+        out.append(f"roi level {lv['level']}: {lv['thickness_mm']:g} mm over z {lv['region_mm'][0]:.6g}.."
+                   f"{lv['region_mm'][1]:.6g} mm, {lv['layers']} layers, threshold {lv['threshold_points']:.6g} "
+                   f"points/layer -> window {wins}")
+    if info.get("mode") in ("cusp", "area"):
+        out.append(f"adaptive {info['mode']}: resolution {info['resolution_mm']:g} mm, "
+                   f"{info['bound_violations']} layers above the bound (min height)")
+    return out
+
 
 @cli.command()
 @click.argument("model", type=click.Path(dir_okay=True, path_type=str))
@@ -152,16 +206,18 @@ def info(model: str, scale: float | None, fit: float | None, as_json: bool) -> N
               help="Write the layers: .npz, .svg or .cli.")
 @click.option("--report", type=click.Path(path_type=str), default=None, help="Write the run report as JSON.")
 @click.option("-q", "--quiet", is_flag=True, help="No summary on stdout.")
+@_with(adaptive_options)
 def slice_cmd(model, thickness, first_layer, z_mode, scale, fit, fill_rule, max_gap, backend, device, output,
-              report, quiet) -> None:
+              report, quiet, **adaptive) -> None:
     """Slice MODEL into layers of closed, nested contours."""
+    from .defects import mesh_repairs
     from .export import export, write_report
     from .slicer import SliceParams, slice_mesh
 
     if output is not None and Path(output).suffix.lower() not in (".npz", ".svg", ".cli"):
         _fail(f"{output}: unknown output format '{Path(output).suffix}' (use .npz, .svg or .cli)")
     params = SliceParams(thickness=thickness, first_layer=first_layer, z_mode=z_mode, fill_rule=fill_rule,
-                         max_gap=max_gap, backend=backend, device=device)
+                         max_gap=max_gap, backend=backend, device=device, **adaptive_params(adaptive))
     dev, t_dev = None, 0.0
     if backend == "opencl":  # the device first: the mesh is welded on it too
         from .device import get_device
@@ -172,6 +228,9 @@ def slice_cmd(model, thickness, first_layer, z_mode, scale, fit, fill_rule, max_
         t_dev = time.perf_counter() - t
     mesh, load_times = _load(model, scale, fit, dev)
     result = slice_mesh(mesh, params)
+    t = time.perf_counter()  # what the mesh needed: flipped facets, non-manifold edges, ... (defects.py), first
+    result.meta["repairs"] = {**mesh_repairs(mesh), **result.meta["repairs"]}
+    load_times["mesh_check"] = time.perf_counter() - t
     timings = {**load_times, **result.meta["timings_s"]}
     timings["device"] = timings.get("device", 0.0) + t_dev
     if output is not None:
@@ -180,9 +239,16 @@ def slice_cmd(model, thickness, first_layer, z_mode, scale, fit, fill_rule, max_
         timings["export"] = time.perf_counter() - t
     result.meta["timings_s"] = timings
     meta = result.meta
-    if report is not None:
+    if report is not None:  # the schedule's cusp heights (quality.py), in every report
+        from .quality import cusp_summary
+
+        t = time.perf_counter()
+        result.meta.update(cusp_summary(mesh, result, dev))
+        timings["cusp"] = time.perf_counter() - t
         write_report(build_report(result), report)
     if not quiet:
+        for line in adaptive_lines(meta):
+            click.echo(line)
         click.echo(
             f"{Path(model).name}: {meta['facets']} facets, {meta['layers']} layers, {meta['segments']} segments, "
             f"{meta['loops']} loops, {meta['points']} points, {meta['open_chains']} open chains"
@@ -270,10 +336,18 @@ def main(argv: list[str] | None = None) -> int:
     except MemoryError:
         click.echo("gpuslice: error: out of memory", err=True)
         return 1
+    except OSError as exc:  # an output that cannot be written (disk full, permission denied): the user's to fix
+        if debug:
+            raise
+        reason = exc.strerror or " ".join(str(exc).split()) or type(exc).__name__
+        click.echo(f"gpuslice: error: {exc.filename}: {reason}" if exc.filename else f"gpuslice: error: {reason}",
+                   err=True)
+        return EXIT_USAGE
     except Exception as exc:  # never a traceback for users; --debug shows it
         if debug:
             raise
-        click.echo(f"gpuslice: internal error: {type(exc).__name__}: {exc} (run with --debug)", err=True)
+        message = " ".join(str(exc).split())  # one line
+        click.echo(f"gpuslice: internal error: {type(exc).__name__}: {message} (run with --debug)", err=True)
         return 1
     return 0
 

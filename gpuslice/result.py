@@ -163,7 +163,9 @@ class SliceResult:
         arrays = {name: getattr(self, name) for name in _ARRAYS}
         for kind, counts in sorted(self.repairs.items()):
             arrays[f"repairs__{kind}"] = counts
-        arrays["meta_json"] = np.frombuffer(json.dumps(self.meta, sort_keys=True).encode(), dtype=np.uint8)
+        # timings differ run to run: they go to the report, not into the file (byte-identical outputs)
+        meta = {k: v for k, v in self.meta.items() if k != "timings_s"}
+        arrays["meta_json"] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
                 np.savez(fh, **arrays)

@@ -1,0 +1,227 @@
+"""Mesh defects the slicer works around, counted for the report: flipped facets, inside-out shells, non-manifold and
+open edges, degenerate facets.
+
+The slicer never rewrites the mesh: loops get their orientation from nesting, open chains are joined in
+``chain.py``, degenerate facets are dropped in ``mesh.py``. This module only *counts* what was wrong, so that
+``gpuslice slice`` can say which repairs a file needed. Everything is vectorised (one sort of the facet sides, two
+numpy connected-component passes, solid angles for nested shells).
+
+Definitions (all counts are integers):
+
+* **shell**: a set of facets connected through *manifold* edges (edges used by exactly two facets). Non-manifold
+  edges (three or more facets) and open edges (one facet) separate shells.
+* **consistent orientation** of a shell: the two facets of every manifold edge traverse it in opposite directions.
+  The facets of an orientable shell fall into two classes (wound with, or against, its first facet); a shell whose
+  constraints contradict each other (a Möbius-like strip) is *non-orientable* and not judged.
+* **outward** orientation: the consistent orientation whose enclosed volume is positive for a shell nested in an
+  even number of other shells (an outer surface) and negative for one nested in an odd number (a cavity's wall),
+  nesting judged by the winding number of the shell's vertices with respect to the other shells.
+* ``flipped_facets``: facets whose stored winding disagrees with their shell's outward orientation.
+* ``inverted_shells``: shells where that is more than half of their facets (stored inside out).
+* ``non_orientable_shells``: shells without a consistent orientation.
+* ``non_manifold_edges``: edges used by three or more facets; ``open_edges``: edges used by one facet.
+* ``degenerate_facets``: facets dropped when the mesh was built (corners welded to fewer than three vertices).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .mesh import Mesh
+
+__all__ = ["MESH_REPAIR_KINDS", "mesh_repairs", "outward_facets", "connected_labels"]
+
+#: Keys of :func:`mesh_repairs`, in report order.
+MESH_REPAIR_KINDS = (
+    "flipped_facets",
+    "inverted_shells",
+    "non_orientable_shells",
+    "non_manifold_edges",
+    "open_edges",
+    "degenerate_facets",
+)
+
+# vertices of a shell tested against each shell that may contain it
+_SAMPLES = 8
+# (sample point, facet) solid angles per numpy batch (about 100 bytes each)
+_BATCH = 500_000
+# rows of the shell-box containment test per block
+_ROWS = 256
+# total (sample point, facet) solid angles for the nesting test; candidates beyond it are left unjudged
+_WORK = 50_000_000
+
+
+def connected_labels(n: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Connected components of the graph on nodes ``0 .. n - 1`` with edges ``a[i] -- b[i]``: (n,) int64 labels,
+    each node labelled with the smallest node of its component.
+
+    Min-label hooking with full pointer jumping (numpy only: no scipy import on the command line's path); the number
+    of rounds grows with the logarithm of the component sizes.
+    """
+    label = np.arange(n, dtype=np.int64)
+    a = np.asarray(a, dtype=np.int64)
+    b = np.asarray(b, dtype=np.int64)
+    while a.size:
+        la, lb = label[a], label[b]
+        differ = la != lb
+        if not differ.any():
+            break
+        a, b, la, lb = a[differ], b[differ], la[differ], lb[differ]  # edges inside a finished tree are done
+        low = np.minimum(la, lb)
+        np.minimum.at(label, np.maximum(la, lb), low)  # hook the larger root under the smaller
+        while True:  # pointer jumping until every node points at its root
+            up = label[label]
+            if np.array_equal(up, label):
+                break
+            label = up
+    return label
+
+
+def _shells(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Shell id (F,) of every facet (shells numbered by their first facet), its sign relative to the shell's first
+    facet (F,) ±1, and a per-shell non-orientable flag (S,)."""
+    n = mesh.n_faces
+    faces = mesh.faces.astype(np.int64)
+    edge = mesh.face_edges.reshape(-1).astype(np.int64)
+    counts = np.bincount(edge, minlength=mesh.edge_vertices.shape[0])
+    forward = (faces < np.roll(faces, -1, axis=1)).reshape(-1)
+    face_of = np.repeat(np.arange(n, dtype=np.int64), 3)
+    sel = np.flatnonzero(counts[edge] == 2)
+    sel = sel[np.argsort(edge[sel], kind="stable")].reshape(-1, 2)  # the two sides of each manifold edge
+    f1, f2 = face_of[sel[:, 0]], face_of[sel[:, 1]]
+    same_dir = forward[sel[:, 0]] == forward[sel[:, 1]]  # both sides run the same way: one facet is flipped
+    first = connected_labels(n, f1, f2)  # the first facet of each facet's shell
+    roots, shell = np.unique(first, return_inverse=True)
+    n_shells = roots.size
+    if not same_dir.any():  # consistently wound already: every facet agrees with its shell's first one
+        return shell.astype(np.int64), np.ones(n, dtype=np.int64), np.zeros(n_shells, dtype=bool)
+    # the doubled graph: node f is "facet f as stored", node f + n "facet f reversed"
+    a = np.concatenate([f1, f1 + n])
+    b = np.concatenate([np.where(same_dir, f2 + n, f2), np.where(same_dir, f2, f2 + n)])
+    label = connected_labels(2 * n, a, b)
+    sign = np.where(label[:n] == label[first], 1, -1).astype(np.int64)
+    non_orientable = np.zeros(n_shells, dtype=bool)
+    non_orientable[shell[label[:n] == label[n:]]] = True
+    sign[non_orientable[shell]] = 1
+    return shell.astype(np.int64), sign, non_orientable
+
+
+def _solid_angle_winding(points: np.ndarray, tri: np.ndarray, orient: np.ndarray) -> np.ndarray:
+    """Winding number (P,) of each point with respect to the triangles (T, 3, 3), each counted with its ``orient``
+    (T,) ±1 (Van Oosterom–Strackee solid angles)."""
+    out = np.zeros(points.shape[0])
+    step = max(1, _BATCH // max(1, tri.shape[0]))
+    for s in range(0, points.shape[0], step):
+        r = tri[None, :, :, :] - points[s : s + step, None, None, :]  # (p, T, 3, 3)
+        a, b, c = r[:, :, 0], r[:, :, 1], r[:, :, 2]
+        la, lb, lc = (np.sqrt(np.einsum("ptk,ptk->pt", v, v)) for v in (a, b, c))
+        det = np.einsum("ptk,ptk->pt", a, np.cross(b, c))
+        den = (la * lb * lc + np.einsum("ptk,ptk->pt", a, b) * lc + np.einsum("ptk,ptk->pt", a, c) * lb
+               + np.einsum("ptk,ptk->pt", b, c) * la)
+        out[s : s + step] = (np.arctan2(det, den) * orient).sum(axis=1) / (2 * np.pi)
+    return out
+
+
+def outward_facets(mesh: Mesh) -> tuple[np.ndarray, dict[str, int]]:
+    """Which facets are wound against their shell's outward orientation, and the counts of :func:`mesh_repairs`.
+
+    Returns ``flipped`` (F,) bool (True: the stored winding is reversed with respect to the outward orientation;
+    reversing exactly these facets gives a consistently, outward-oriented mesh) and the counts dictionary.
+    """
+    n = mesh.n_faces
+    edge_counts = mesh.edge_face_counts()
+    counts = {
+        "flipped_facets": 0,
+        "inverted_shells": 0,
+        "non_orientable_shells": 0,
+        "non_manifold_edges": int(np.sum(edge_counts > 2)),
+        "open_edges": int(np.sum(edge_counts == 1)),
+        "degenerate_facets": int(mesh.dropped_degenerate),
+    }
+    if n == 0:
+        return np.zeros(0, bool), counts
+    shell, sign, non_orientable = _shells(mesh)
+    n_shells = non_orientable.size
+    tri = mesh.vertices[mesh.faces].astype(np.float64)  # (F, 3, 3) mm
+    # per-shell bounding boxes; volumes about the box centre (translation matters only for open shells)
+    if n_shells == 1:
+        lo = np.array([[mesh.vertices[:, k].min() for k in range(3)]], dtype=np.float64)
+        hi = np.array([[mesh.vertices[:, k].max() for k in range(3)]], dtype=np.float64)
+    else:
+        lo = np.full((n_shells, 3), np.inf)
+        hi = np.full((n_shells, 3), -np.inf)
+        for k in range(3):
+            c = tri[:, :, k]
+            np.minimum.at(lo[:, k], shell, np.minimum(np.minimum(c[:, 0], c[:, 1]), c[:, 2]))
+            np.maximum.at(hi[:, k], shell, np.maximum(np.maximum(c[:, 0], c[:, 1]), c[:, 2]))
+    centre = (lo + hi) / 2
+    r = tri - (centre[0] if n_shells == 1 else centre[shell][:, None, :])
+    det = np.einsum("ij,ij->i", r[:, 0], np.cross(r[:, 1], r[:, 2]))
+    volume = np.bincount(shell, weights=sign * det, minlength=n_shells) / 6.0  # with the first facet's winding
+    # a shell is judged by its volume only when it is closed enough to have an inside (few open edges, not flat)
+    size = np.maximum((hi - lo).max(axis=1), 1e-300)
+    side_edges = mesh.face_edges.reshape(-1)
+    side_shell = np.repeat(shell, 3)
+    open_sides = np.bincount(side_shell, weights=edge_counts[side_edges] == 1, minlength=n_shells)
+    shell_size = np.bincount(shell, minlength=n_shells)
+    solid = (open_sides * 4 <= 3 * shell_size) & (shell_size >= 4) & (np.abs(volume) > 1e-9 * size**3)
+    solid &= ~non_orientable
+
+    # shells nested in another shell (its box strictly holds theirs and its surface winds around their vertices)
+    # may be cavities (wound inward) or overlaps (wound outward): both are meaningful, so they are not judged
+    nested = np.zeros(n_shells, dtype=bool)
+    cand = np.flatnonzero(solid)
+    if cand.size > 1:
+        pairs_t, pairs_s = [], []
+        for c0 in range(0, cand.size, _ROWS):  # box containment in row blocks: memory ~ _ROWS x shells
+            t = cand[c0 : c0 + _ROWS]
+            holds = (
+                np.all(lo[t, None, :] <= lo[None, cand, :], axis=2)
+                & np.all(hi[None, cand, :] <= hi[t, None, :], axis=2)
+                & np.any((lo[t, None, :] < lo[None, cand, :]) | (hi[None, cand, :] < hi[t, None, :]), axis=2)
+            )  # holds[i, j]: the box of shell t[i] contains the box of shell cand[j]
+            i, j = np.nonzero(holds)
+            pairs_t.append(t[i])
+            pairs_s.append(cand[j])
+        t_idx, s_idx = np.concatenate(pairs_t), np.concatenate(pairs_s)
+        if t_idx.size:
+            order = np.argsort(shell, kind="stable")
+            starts = np.searchsorted(shell[order], np.arange(n_shells + 1))
+            work = 0
+            for t in np.unique(t_idx):
+                ft = order[starts[t] : starts[t + 1]]
+                for s in s_idx[t_idx == t]:
+                    if nested[s]:
+                        continue
+                    if work > _WORK:  # too many candidates to test: leave them unjudged (majority), never guess
+                        nested[s] = True
+                        continue
+                    verts = np.unique(mesh.faces[order[starts[s] : starts[s + 1]]].reshape(-1))
+                    pick = verts[np.linspace(0, verts.size - 1, min(_SAMPLES, verts.size)).astype(np.int64)]
+                    # |winding number| is the same for either orientation of t, so t's first-facet class will do
+                    w = _solid_angle_winding(mesh.vertices[pick].astype(np.float64), tri[ft], sign[ft])
+                    work += pick.size * ft.size
+                    nested[s] = bool(np.all(np.abs(w) > 0.5))
+    # outward class (relative to each shell's first facet): positive volume for a free solid shell, else the
+    # majority of its facets
+    minus = np.bincount(shell, weights=(sign < 0), minlength=n_shells)
+    majority = np.where(minus * 2 > shell_size, -1, 1)
+    judged = solid & ~nested
+    outward = np.where(judged, np.where(volume > 0, 1, -1), majority)
+    flipped = (sign != outward[shell]) & ~non_orientable[shell]
+    n_flipped = np.bincount(shell, weights=flipped, minlength=n_shells)
+    counts["flipped_facets"] = int(flipped.sum())
+    counts["inverted_shells"] = int(np.sum(n_flipped * 2 > shell_size))
+    counts["non_orientable_shells"] = int(non_orientable.sum())
+    return flipped, counts
+
+
+def mesh_repairs(mesh: Mesh) -> dict[str, int]:
+    """Counts of the mesh defects the slicer works around (keys :data:`MESH_REPAIR_KINDS`, see the module docstring).
+
+    Flipped facets and inside-out shells need no rewrite of the mesh: loop orientation comes from nesting, so they
+    are sliced as if oriented outward; these counts say how many there were.
+    """
+    if "mesh_repairs" not in mesh._cache:
+        mesh._cache["mesh_repairs"] = outward_facets(mesh)[1]
+    return dict(mesh._cache["mesh_repairs"])
