@@ -4,6 +4,7 @@ Importing the package is cheap: pyopencl, trimesh and moderngl are imported only
 """
 
 from .adaptive import AdaptiveSchedule, adaptive_schedule, cusp_schedule, roi_schedule
+from .defects import MESH_REPAIR_KINDS, mesh_repairs
 from .errors import (
     DeviceError,
     EmptyMeshError,
@@ -27,6 +28,7 @@ __all__ = [
     "GpusliceError",
     "InvalidGeometryError",
     "LayerView",
+    "MESH_REPAIR_KINDS",
     "Mesh",
     "MeshFileError",
     "ParameterError",
@@ -41,6 +43,7 @@ __all__ = [
     "load_mesh",
     "mesh_from_arrays",
     "mesh_from_triangles",
+    "mesh_repairs",
     "roi_schedule",
     "schedule_quality",
     "slice_mesh",
