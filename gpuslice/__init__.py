@@ -23,6 +23,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "AdaptiveSchedule",
+    "BatchOptions",
     "DeviceError",
     "EmptyMeshError",
     "GpusliceError",
@@ -45,8 +46,19 @@ __all__ = [
     "mesh_from_triangles",
     "mesh_repairs",
     "roi_schedule",
+    "run_batch",
     "schedule_quality",
     "slice_mesh",
     "uniform",
     "volume_deviation",
 ]
+
+_LAZY = {"BatchOptions": "batch", "run_batch": "batch"}  # heavier modules, imported on first use
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+    raise AttributeError(f"module 'gpuslice' has no attribute {name!r}")
