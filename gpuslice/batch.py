@@ -386,8 +386,8 @@ def rasterise(result, mesh, path: Path, kind: str, options: dict[str, Any], devi
     bounds = (b[0, 0], b[0, 1], b[1, 0], b[1, 1])
     raster.check_fits(result, spec, bounds, name=mesh.name)
     backend = raster.choose_backend(options.get("raster_backend", "auto"))
-    tiles = raster.iter_tiles(result, spec, backend=backend, device=device, bounds=bounds,
-                              supersample=int(options.get("supersample", 4)))
+    extra = {"supersample": int(options["supersample"])} if "supersample" in options else {}  # else raster's own
+    tiles = raster.iter_tiles(result, spec, backend=backend, device=device, bounds=bounds, **extra)
     threads = int(os.environ.get("POCL_MAX_PTHREAD_COUNT", "0")) or None  # this worker's share of the cores
     level = int(options.get("png_level", 1))
     name = Path(mesh.name).stem

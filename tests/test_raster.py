@@ -1,0 +1,350 @@
+"""Resin raster (issue 3): pixel mapping, coverage, backends, PNG/SL1 writers, the CLI, and PrusaSlicer's SL1."""
+
+from __future__ import annotations
+
+import io
+import sys
+import zipfile
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gpuslice import mesh_from_triangles, shapes, slice_mesh
+from gpuslice.cli import main
+from gpuslice.errors import ParameterError
+from gpuslice.raster import (
+    RasterSpec,
+    Tile,
+    check_fits,
+    coverage_numpy,
+    gamma_lut,
+    iter_masks,
+    iter_tiles,
+    layer_edges,
+    masks,
+)
+from gpuslice.sl1 import PngEncoder, read_sl1_config, write_png_stack, write_sl1
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+
+Image = pytest.importorskip("PIL.Image")
+PIXEL_AREA = 0.05 * 0.05
+
+
+def _gl_available() -> str | None:
+    try:
+        from gpuslice.raster_gl import gl_info
+
+        return None if gl_info() is not None else "no EGL context (moderngl + libegl1 libegl-mesa0 needed)"
+    except ImportError as exc:
+        return f"moderngl missing: {exc}"
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    return slice_mesh(mesh_from_triangles(shapes.uv_sphere(12.0, 48, 96)), thickness=1.0, backend="numpy")
+
+
+@pytest.fixture(scope="module")
+def torus():
+    return slice_mesh(mesh_from_triangles(shapes.torus(15.0, 5.0, 96, 48)), thickness=1.0, backend="numpy")
+
+
+SMALL = RasterSpec(resolution=(900, 900), pixel=0.05)  # 45 x 45 mm: the torus (40 mm) fits
+
+
+# ---- mapping ---------------------------------------------------------------------------------------------------
+def test_landscape_mapping_is_prusaslicers():
+    spec = RasterSpec(resolution=(40, 20), pixel=0.5, keep_xy=True)
+    x, y = spec.pixel_centres()
+    assert np.allclose(x[0], (np.arange(40) + 0.5) * 0.5)  # column j centre at (j + 0.5) p
+    assert np.allclose(y[:, 0], 10.0 - (np.arange(20) + 0.5) * 0.5)  # row 0 is the +y edge
+    uv = spec.to_pixels(np.array([[0.0, 10.0], [20.0, 0.0]]))
+    assert np.allclose(uv, [[0, 0], [40, 20]])
+
+
+def test_centring_mirrors_and_portrait():
+    bounds = (-3.0, 1.0, 5.0, 2.0)  # centre (1, 1.5)
+    spec = RasterSpec(resolution=(40, 20), pixel=0.5)
+    assert np.allclose(spec.to_pixels(np.array([[1.0, 1.5]]), bounds), [[20, 10]])
+    mx = RasterSpec(resolution=(40, 20), pixel=0.5, mirror_x=True, keep_xy=True)
+    my = RasterSpec(resolution=(40, 20), pixel=0.5, mirror_y=True, keep_xy=True)
+    p = np.array([[1.0, 2.0]])
+    u, v = RasterSpec(resolution=(40, 20), pixel=0.5, keep_xy=True).to_pixels(p)[0]
+    assert np.allclose(mx.to_pixels(p)[0], [40 - u, v]) and np.allclose(my.to_pixels(p)[0], [u, 20 - v])
+    pt = RasterSpec(resolution=(20, 40), pixel=0.5, pixel_y=0.25, portrait=True, keep_xy=True)
+    assert pt.bed_mm == (10.0, 10.0) and pt.png_size == (40, 20) and pt.shape == (20, 40)
+    # portrait: X runs up the rows (row 0 at the bed's far X end), Y leftwards along the columns
+    assert np.allclose(pt.to_pixels(np.array([[0.0, 0.0], [10.0, 10.0], [0.0, 10.0]])), [[40, 20], [0, 0], [0, 20]])
+
+
+def test_gamma_table():
+    assert gamma_lut(1.0)[128] == 128 and gamma_lut(1.0)[255] == 255 and gamma_lut(1.0)[0] == 0
+    t0 = gamma_lut(0.0)
+    assert t0[127] == 0 and t0[128] == 255  # threshold at 50 % coverage
+    assert gamma_lut(2.2)[128] < 128 < gamma_lut(0.5)[128]
+
+
+def test_bad_specs():
+    for kw in ({"resolution": (0, 10)}, {"pixel": -1.0}, {"pixel_y": 0.0}, {"gamma": -1.0}):
+        with pytest.raises(ParameterError):
+            RasterSpec(**kw)
+
+
+# ---- coverage ----------------------------------------------------------------------------------------------------
+def test_square_coverage_is_exact():
+    # a 2.3 x 1.6 px square at a fractional offset: pixel greys are floor(256 * overlap)
+    e = np.array([[0.25, 0.5, 2.55, 0.5], [2.55, 0.5, 2.55, 2.1], [2.55, 2.1, 0.25, 2.1], [0.25, 2.1, 0.25, 0.5]])
+    g = coverage_numpy(e, 3, 4, gamma_lut(1.0)).astype(float)
+    ox = np.clip(np.minimum(np.arange(4) + 1, 2.55) - np.maximum(np.arange(4), 0.25), 0, 1)
+    oy = np.clip(np.minimum(np.arange(3) + 1, 2.1) - np.maximum(np.arange(3), 0.5), 0, 1)
+    assert np.array_equal(g, np.minimum(np.floor(256 * np.outer(oy, ox) + 1e-9), 255))
+
+
+@pytest.mark.parametrize("backend", ["numpy", "opencl"])
+@pytest.mark.parametrize("solid", ["sphere", "torus"])
+def test_area_within_0_2_percent(request, solid, backend):
+    if backend == "opencl":
+        request.getfixturevalue("device")
+    res = request.getfixturevalue(solid)
+    layers = [i for i in range(res.n_layers) if res.area[i] > 20]
+    m = masks(res, SMALL, backend=backend, layers=layers)
+    area = m.reshape(len(layers), -1).sum(axis=1, dtype=np.float64) / 255 * PIXEL_AREA
+    np.testing.assert_allclose(area, res.area[layers], rtol=2e-3)
+
+
+@pytest.mark.parametrize("solid", ["sphere", "torus"])
+def test_threshold_matches_point_in_polygon(request, solid):
+    shapely = pytest.importorskip("shapely")
+    res = request.getfixturevalue(solid)
+    spec0 = RasterSpec(resolution=(900, 900), pixel=0.05, gamma=0.0)
+    xs, ys = SMALL.pixel_centres(None)
+    for i in range(1, res.n_layers - 1, 4):
+        hard = masks(res, spec0, layers=[i], backend="numpy", bounds=_bounds(res))[0]
+        soft = masks(res, SMALL, layers=[i], backend="numpy", bounds=_bounds(res))[0]
+        xs, ys = SMALL.pixel_centres(_bounds(res))
+        poly = shapely.union_all([shapely.Polygon(o, h) for o, h in res.layer(i).polygons()])
+        inside = shapely.contains_xy(poly, xs, ys)
+        interior = (soft == 0) | (soft == 255)  # pixels the boundary does not cross
+        assert np.array_equal(hard[interior] == 255, inside[interior])
+        edge = ~interior
+        assert edge.sum() < 0.1 * max(inside.sum(), 1)
+        assert np.array_equal(hard[edge] == 255, soft[edge] >= 128)  # the 50 % threshold along the edges
+
+
+def _bounds(res):
+    lo, hi = res.points.min(axis=0), res.points.max(axis=0)
+    return (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+
+
+def test_opencl_matches_numpy_twin(device, torus):
+    a = masks(torus, SMALL, backend="numpy")
+    b = masks(torus, SMALL, backend="opencl", device=device)
+    d = np.abs(a.astype(int) - b)
+    assert d.max() <= 1 and np.count_nonzero(d) < 1e-3 * np.count_nonzero(a)
+
+
+def test_opencl_batches_and_clipping(device, torus):
+    # tiny batches (one layer each) and a display smaller than the part: clipped the same way as the twin
+    spec = RasterSpec(resolution=(500, 300), pixel=0.05)
+    a = masks(torus, spec, backend="numpy")
+    b = masks(torus, spec, backend="opencl", device=device, max_batch_pixels=1)
+    assert np.abs(a.astype(int) - b).max() <= 1
+    with pytest.raises(ParameterError, match="does not fit"):
+        check_fits(torus, spec)
+
+
+def test_gl_matches_opencl(device, torus):
+    reason = _gl_available()
+    if reason:
+        pytest.skip(reason)
+    a = masks(torus, SMALL, backend="opencl", device=device) >= 128
+    b = masks(torus, SMALL, backend="gl") >= 128
+    for i in range(len(a)):
+        union = np.count_nonzero(a[i] | b[i])
+        if union:
+            assert np.count_nonzero(a[i] & b[i]) / union >= 0.999
+
+
+def test_iterators_and_empty_layers(torus):
+    res = slice_mesh(mesh_from_triangles(shapes.torus(15.0, 5.0, 48, 24)), z=np.array([-1.0, 5.0, 50.0]),
+                     backend="numpy")
+    tiles = list(iter_tiles(res, SMALL, backend="numpy"))
+    assert [t.data.size == 0 for t in tiles] == [True, False, True]
+    full = list(iter_masks(res, SMALL, backend="numpy"))
+    assert all(m.shape == SMALL.shape for m in full) and full[0].max() == 0 and full[1].max() == 255
+    assert layer_edges(res, SMALL).tiles.shape == (3, 4)
+
+
+# ---- PNG and SL1 -------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("deflater", ["zlib", "isal"])
+@pytest.mark.parametrize("level", [1, 6])
+def test_png_encoder_roundtrip(deflater, level):
+    if deflater == "isal":
+        pytest.importorskip("isal")
+    rng = np.random.default_rng(1)
+    enc = PngEncoder(37, 23, level, deflater)
+    cases = [Tile(0, 0, 0, np.zeros((0, 0), np.uint8)), Tile(1, 0, 0, rng.integers(0, 256, (23, 37), np.uint8)),
+             Tile(2, 5, 30, rng.integers(0, 256, (18, 7), np.uint8)), Tile(3, 22, 0, np.full((1, 1), 200, np.uint8))]
+    for t in cases:
+        png = enc.encode(t)
+        n = int.from_bytes(png[33:37], "big")
+        assert png[37:41] == b"IDAT"
+        raw = zlib.decompress(png[41 : 41 + n])  # checks the Adler-32 trailer
+        assert len(raw) == 23 * 38
+        img = Image.open(io.BytesIO(png))
+        assert img.size == (37, 23) and img.mode == "L"
+        assert np.array_equal(np.asarray(img), t.full((23, 37)))
+
+
+def test_sl1_written_atomically(tmp_path, torus):
+    def broken():
+        yield from iter_tiles(torus, SMALL, backend="numpy", layers=[0, 1])
+        raise RuntimeError("boom")
+
+    from gpuslice.sl1 import info_from
+
+    out = tmp_path / "x.sl1"
+    with pytest.raises(RuntimeError):
+        write_sl1(broken(), SMALL, out, info_from(torus, "x"), torus.n_layers)
+    with pytest.raises(RuntimeError):
+        write_png_stack(broken(), SMALL, tmp_path / "stack")
+    assert list(tmp_path.iterdir()) == []
+
+
+def _torus_stl(tmp_path) -> Path:
+    p = tmp_path / "torus.stl"
+    shapes.write_stl(shapes.torus(15.0, 5.0, 48, 24), p)
+    return p
+
+
+def test_cli_sl1_reads_back(tmp_path, device, capsys):
+    stl = _torus_stl(tmp_path)
+    out = tmp_path / "part.sl1"
+    assert main(["raster", str(stl), "-t", "0.5", "--resolution", "900x900", "-o", str(out), "--no-progress"]) == 0
+    cfg, ini, names = read_sl1_config(out)
+    for key in ("action", "jobDir", "layerHeight", "numFast", "numSlow", "numFade", "expTime", "expTimeFirst",
+                "printTime", "usedMaterial", "materialName", "printerModel", "printerProfile", "printProfile",
+                "prusaSlicerVersion", "fileCreationTimestamp"):
+        assert key in cfg, key
+    assert int(cfg["numFast"]) == len(names) == 20 and float(cfg["layerHeight"]) == 0.5
+    assert names[0] == f"{cfg['jobDir']}00000.png" and names[-1] == f"{cfg['jobDir']}00019.png"
+    assert (ini["display_pixels_x"], ini["display_pixels_y"], ini["display_orientation"]) == ("900", "900",
+                                                                                               "landscape")
+    assert float(cfg["usedMaterial"]) == pytest.approx(2 * np.pi**2 * 15 * 25 / 1000, rel=0.02)
+    with zipfile.ZipFile(out) as z:
+        assert "thumbnail/thumbnail400x400.png" in z.namelist()
+        assert z.testzip() is None  # every member's CRC (layer members are deflated on the worker threads)
+        for n in names:
+            assert z.getinfo(n).compress_type == zipfile.ZIP_DEFLATED
+            assert Image.open(io.BytesIO(z.read(n))).size == (900, 900)
+        mid = np.asarray(Image.open(io.BytesIO(z.read(names[10]))))
+    assert mid[450, 450] == 0 and mid.max() == 255  # the torus's hole is at the display centre
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_cli_png_stack_and_errors(tmp_path, device, capsys):
+    stl = _torus_stl(tmp_path)
+    out = tmp_path / "stack"
+    args = ["raster", str(stl), "-t", "1", "--resolution", "900x900", "--no-progress", "-q"]
+    assert main([*args, "-o", f"{out}/", "--gamma", "0", "--mirror-x"]) == 0
+    files = sorted(p.name for p in out.iterdir())
+    assert files == [f"torus{i:05d}.png" for i in range(10)]
+    assert set(np.unique(np.asarray(Image.open(out / files[5])))) <= {0, 255}
+    assert main([*args, "-o", str(out)]) == 0  # an earlier stack is replaced
+    (out / "notes.txt").write_text("mine")
+    capsys.readouterr()
+    assert main([*args, "-o", str(out)]) == 2 and "holds other files" in capsys.readouterr().err
+    assert (out / "notes.txt").read_text() == "mine"
+    capsys.readouterr()
+    for extra, msg in (([ "-o", str(tmp_path / "a.zip")], "unknown output format"),
+                       (["-o", str(tmp_path / "b.sl1"), "--resolution", "100x100"], "does not fit"),
+                       (["-o", str(tmp_path / "c.sl1"), "--resolution", "abc"], "NXxNY"),
+                       (["-o", str(tmp_path / "d.sl1"), "--printer", "nope"], "unknown printer")):
+        assert main([*args, *extra]) == 2
+        err = capsys.readouterr().err.strip()
+        assert msg in err and len(err.splitlines()) == 1
+    assert not any(p.suffix in (".sl1", ".zip") for p in tmp_path.iterdir())
+
+
+# ---- against PrusaSlicer -----------------------------------------------------------------------------------------
+PRUSA_CASES = [("cow", 80.0, False), ("nefertiti", 80.0, True), ("benchy", 60.0, True)]
+
+
+@pytest.mark.parametrize(("name", "fit", "slow"), PRUSA_CASES)
+def test_matches_prusaslicer_sl1(tmp_path, shared_meshes, device, name, fit, slow):
+    import subprocess
+
+    import bench_raster
+    import peers
+
+    if peers.find_peer("prusa-slicer") is None:
+        pytest.skip("prusa-slicer not installed (../shared/peers/setup-peers.sh)")
+    stl = tmp_path / f"{name}.stl"
+    peers.write_scaled_stl(shared_meshes / f"{name}.stl", stl, fit=fit)
+    h = 0.05 if slow else 0.2  # the default run stays short: cow at 0.2 mm, 130 layers
+    theirs, ours = tmp_path / "prusa.sl1", tmp_path / "ours.sl1"
+    subprocess.run(bench_raster.prusa_command(stl, theirs, h=h), check=True, capture_output=True)
+    assert main(["raster", str(stl), "-t", str(h), "-o", str(ours), "--no-progress", "-q"]) == 0
+    cmp = bench_raster.compare_sl1(ours, theirs, every=1 if not slow else 7)
+    assert abs(cmp["layers_ours"] - cmp["layers_theirs"]) <= 1
+    assert cmp["sizes"] == [((2400, 3840), (2400, 3840))]
+    ious = np.array(cmp["iou"])
+    diffs = np.array(cmp["grey_diff"])
+    print(f"{name}: {len(ious)} layers compared, IoU min {ious.min():.4f}, grey diff max {diffs.max():.2f}")
+    assert ious.min() >= 0.99, (int(ious.argmin()), ious.min())
+    assert diffs.max() <= 2, (int(diffs.argmax()), diffs.max())
+
+
+def test_orientations_match_prusaslicer(tmp_path, shared_meshes):
+    """Portrait and mirror-x against PrusaSlicer's own SL1 (cow, 2 mm layers: 13 layers, a few seconds)."""
+    import subprocess
+
+    import bench_raster
+    import peers
+
+    if peers.find_peer("prusa-slicer") is None:
+        pytest.skip("prusa-slicer not installed (../shared/peers/setup-peers.sh)")
+    stl = tmp_path / "cow.stl"
+    peers.write_scaled_stl(shared_meshes / "cow.stl", stl, fit=80)
+    res = slice_mesh(mesh_from_triangles(peers.read_stl_triangles(stl)), thickness=2.0, backend="numpy")
+    b = mesh_from_triangles(peers.read_stl_triangles(stl)).bounds  # PrusaSlicer centres the mesh's bbox
+    bounds = (b[0, 0], b[0, 1], b[1, 0], b[1, 1])
+    cases = {
+        "portrait": (["portrait", "--no-display-mirror-x", "--no-display-mirror-y"],
+                     RasterSpec(resolution=(2400, 3840), portrait=True)),
+        "portrait_mirrors": (["portrait", "--display-mirror-x", "--display-mirror-y"],
+                             RasterSpec(resolution=(2400, 3840), portrait=True, mirror_x=True, mirror_y=True)),
+        "mirror_x": (["landscape", "--display-mirror-x", "--no-display-mirror-y"], RasterSpec(mirror_x=True)),
+    }
+    for name, (flags, spec) in cases.items():
+        cmd = bench_raster.prusa_command(stl, tmp_path / f"{name}.sl1", h=2.0, nx=spec.nx, ny=spec.ny)
+        k = cmd.index("--display-orientation")
+        assert cmd[k + 2 : k + 4] == ["--no-display-mirror-x", "--no-display-mirror-y"]
+        cmd[k + 1 : k + 4] = flags
+        subprocess.run(cmd, check=True, capture_output=True)
+        z, names = bench_raster.sl1_layers(tmp_path / f"{name}.sl1")
+        theirs = np.asarray(Image.open(io.BytesIO(z.read(names[6])))) >= 128
+        ours = masks(res, spec, layers=[6], backend="numpy", bounds=bounds)[0] >= 128
+        assert theirs.shape == ours.shape, name
+        assert np.count_nonzero(theirs & ours) / np.count_nonzero(theirs | ours) >= 0.99, name
+
+
+def test_sl1_bytes_reproducible_with_a_fixed_date(tmp_path):
+    import datetime as dt
+    import hashlib
+
+    from gpuslice.sl1 import info_from
+
+    res = slice_mesh(mesh_from_triangles(shapes.torus(15.0, 5.0, 48, 24)), thickness=2.0, backend="numpy")
+    now = dt.datetime(2024, 1, 2, 3, 4, 5)
+    digests = []
+    for k in range(2):
+        out = tmp_path / f"a{k}.sl1"
+        write_sl1(iter_tiles(res, SMALL, backend="numpy"), SMALL, out, info_from(res, "t"), res.n_layers, now=now)
+        digests.append(hashlib.sha256(out.read_bytes()).hexdigest())
+    assert digests[0] == digests[1]
+    cfg, _, _ = read_sl1_config(tmp_path / "a0.sl1")
+    assert cfg["fileCreationTimestamp"] == "2024-01-02 at 03:04:05 UTC"
