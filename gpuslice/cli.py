@@ -115,6 +115,34 @@ def _with(options):
 
 with_options = _with
 
+
+def slicing_options(thickness: float = 0.1, *, defaults: bool = True) -> list:
+    """The slicing options shared by ``slice``, ``raster``, ``view`` and ``batch`` (decorators, for ``with_options``):
+    ``-t/--thickness`` (mm, default ``thickness``), ``--first-layer``, ``--z-mode``, ``--scale``/``--fit``,
+    ``--fill-rule``, ``--max-gap``, ``--backend``, ``--device``. ``defaults=False`` leaves every value None unless
+    given (for a command that must tell whether the user gave one), the defaults being named in the help instead."""
+
+    def opt(*names, default, help, **kw):
+        if defaults:
+            return click.option(*names, default=default, show_default=default is not None, help=help, **kw)
+        shown = f" (default {default})" if default is not None else ""
+        return click.option(*names, default=None, help=help + shown, **kw)
+
+    return [
+        opt("-t", "--thickness", type=float, default=thickness, help="Layer thickness, mm."),
+        opt("--first-layer", type=float, default=None, help="First layer thickness, mm (default: -t)."),
+        opt("--z-mode", type=click.Choice(["mid", "paper"]), default="mid",
+            help="mid: cut at the middle of each layer, z=(i+0.5)h; paper: Z_i = i*h."),
+        *_mesh_options,
+        opt("--fill-rule", type=click.Choice(["nonzero", "evenodd", "positive"]), default="nonzero",
+            help="Which loops bound material."),
+        opt("--max-gap", type=float, default=2.0,
+            help="Join open chain ends closer than this, mm (0: never); chains left open are not filled."),
+        opt("--backend", type=click.Choice(["opencl", "numpy"]), default="opencl",
+            help="The OpenCL kernels, or their numpy reference twins."),
+        opt("--device", default=None, help="OpenCL device: 'P:D' index or a name piece (env GPUSLICE_DEVICE)."),
+    ]
+
 # ---- adaptive schedules (issue 4; gpuslice/adaptive.py): options shared by `slice`, `bench` and `plot` ----------
 adaptive_options = [
     click.option("--adaptive", type=click.Choice(["roi", "cusp", "area"]), default=None,
@@ -191,17 +219,7 @@ def info(model: str, scale: float | None, fit: float | None, as_json: bool) -> N
 
 @cli.command(name="slice")
 @click.argument("model", type=click.Path(dir_okay=True, path_type=str))
-@click.option("-t", "--thickness", type=float, default=0.1, show_default=True, help="Layer thickness, mm.")
-@click.option("--first-layer", type=float, default=None, help="First layer thickness, mm (default: -t).")
-@click.option("--z-mode", type=click.Choice(["mid", "paper"]), default="mid", show_default=True,
-              help="mid: cut at the middle of each layer, z=(i+0.5)h; paper: Z_i = i*h.")
-@_with(_mesh_options)
-@click.option("--fill-rule", type=click.Choice(["nonzero", "evenodd", "positive"]), default="nonzero",
-              show_default=True)
-@click.option("--max-gap", type=float, default=2.0, show_default=True,
-              help="Join open chain ends closer than this, mm (0: never).")
-@click.option("--backend", type=click.Choice(["opencl", "numpy"]), default="opencl", show_default=True)
-@click.option("--device", default=None, help="OpenCL device: 'P:D' index or a name piece (env GPUSLICE_DEVICE).")
+@_with(slicing_options())
 @click.option("-o", "--output", type=click.Path(path_type=str), default=None,
               help="Write the layers: .npz, .svg or .cli.")
 @click.option("--report", type=click.Path(path_type=str), default=None, help="Write the run report as JSON.")

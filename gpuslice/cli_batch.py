@@ -12,7 +12,7 @@ import sys
 
 import click
 
-from .cli import adaptive_options, adaptive_params, fail, with_options
+from .cli import adaptive_options, adaptive_params, fail, slicing_options, with_options
 
 __all__ = ["batch"]
 
@@ -70,20 +70,7 @@ class _Progress:
             self.bar.update(self.task, advance=1, description=rec["model"][-40:])
 
 
-_slice_options = [
-    click.option("-t", "--thickness", type=float, default=0.1, show_default=True, help="Layer thickness, mm."),
-    click.option("--first-layer", type=float, default=None, help="First layer thickness, mm (default: -t)."),
-    click.option("--z-mode", type=click.Choice(["mid", "paper"]), default="mid", show_default=True,
-                 help="mid: cut at the middle of each layer, z=(i+0.5)h; paper: Z_i = i*h."),
-    click.option("--scale", type=float, default=None, help="Multiply coordinates by this factor (to mm)."),
-    click.option("--fit", type=float, default=None, help="Scale each model so its longest side is this many mm."),
-    click.option("--fill-rule", type=click.Choice(["nonzero", "evenodd", "positive"]), default="nonzero",
-                 show_default=True),
-    click.option("--max-gap", type=float, default=2.0, show_default=True,
-                 help="Join open chain ends closer than this, mm (0: never)."),
-    click.option("--backend", type=click.Choice(["opencl", "numpy"]), default="opencl", show_default=True),
-    click.option("--device", default=None, help="OpenCL device: 'P:D' index or a name piece (env GPUSLICE_DEVICE)."),
-]
+_slice_options = slicing_options()
 
 
 @click.command()

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from .cli import fail, load_model, mesh_options, with_options
+from .cli import fail, load_model, slicing_options, with_options
 
 __all__ = ["raster"]
 
@@ -25,18 +25,7 @@ def _resolution(text: str) -> tuple[int, int]:
 @click.argument("model", type=click.Path(dir_okay=True, path_type=str))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=str),
               help="FILE.sl1 (archive) or DIR/ (a PNG stack).")
-@click.option("-t", "--thickness", type=float, default=0.05, show_default=True, help="Layer thickness, mm.")
-@click.option("--first-layer", type=float, default=None, help="First layer thickness, mm (default: -t).")
-@click.option("--z-mode", type=click.Choice(["mid", "paper"]), default="mid", show_default=True,
-              help="Where layers are cut (as gpuslice slice).")
-@with_options(mesh_options)
-@click.option("--fill-rule", type=click.Choice(["nonzero", "evenodd", "positive"]), default="nonzero",
-              show_default=True)
-@click.option("--max-gap", type=float, default=2.0, show_default=True,
-              help="Join open chain ends closer than this, mm (0: never); chains left open are not filled.")
-@click.option("--backend", type=click.Choice(["opencl", "numpy"]), default="opencl", show_default=True,
-              help="Slicing kernels.")
-@click.option("--device", default=None, help="OpenCL device: 'P:D' index or a name piece (env GPUSLICE_DEVICE).")
+@with_options(slicing_options(thickness=0.05))
 @click.option("--printer", default=None, help="Display preset (see gpuslice.raster.PRINTERS); options below override.")
 @click.option("--resolution", default=None,
               help="Display pixels NXxNY along X and Y [3840x2400]; PNGs are NXxNY (landscape) or NYxNX (portrait).")

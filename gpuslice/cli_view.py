@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from .cli import fail, load_model, mesh_options, with_options
+from .cli import fail, load_model, slicing_options, with_options
 
 __all__ = ["view"]
 
@@ -20,16 +20,7 @@ def _size(n: int) -> str:
 @click.argument("source", type=click.Path(dir_okay=True, path_type=str))
 @click.option("-o", "--output", type=click.Path(path_type=str), default=None,
               help="The page to write (.html; default: SOURCE's name with .html, in the current folder).")
-@click.option("-t", "--thickness", type=float, default=None, help="Layer thickness, mm (default 0.1).")
-@click.option("--first-layer", type=float, default=None, help="First layer thickness, mm (default: -t).")
-@click.option("--z-mode", type=click.Choice(["mid", "paper"]), default=None,
-              help="mid: cut at the middle of each layer (default); paper: Z_i = i*h.")
-@with_options(mesh_options)
-@click.option("--fill-rule", type=click.Choice(["nonzero", "evenodd", "positive"]), default=None,
-              help="Which loops bound material (default nonzero).")
-@click.option("--max-gap", type=float, default=None, help="Join open chain ends closer than this, mm (default 2).")
-@click.option("--backend", type=click.Choice(["opencl", "numpy"]), default=None, help="Default opencl.")
-@click.option("--device", default=None, help="OpenCL device: 'P:D' index or a name piece (env GPUSLICE_DEVICE).")
+@with_options(slicing_options(defaults=False))  # None unless given: they are refused with a saved .npz
 @click.option("--raster", is_flag=True, help="Add each layer's resin mask (gpuslice.raster), drawn under the contours.")
 @click.option("--printer", default="generic-4k", show_default=True,
               help="--raster: the display preset (gpuslice.raster.PRINTERS).")

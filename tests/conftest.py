@@ -10,6 +10,17 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_MESHES = REPO.parent / "shared" / "meshes"
 
 
+def read_catalog() -> dict[str, dict[str, str]]:
+    """``../shared/meshes/catalog.csv`` as {name: row}; empty where the shared folder is absent."""
+    import csv
+
+    path = SHARED_MESHES / "catalog.csv"
+    if not path.is_file():
+        return {}
+    with open(path, newline="") as f:
+        return {row["name"]: row for row in csv.DictReader(f)}
+
+
 def _opencl_device():
     try:
         from gpuslice.device import get_device

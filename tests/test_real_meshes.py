@@ -14,12 +14,12 @@ reason naming it.
 
 from __future__ import annotations
 
-import csv
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import read_catalog
 
 import gpuslice
 from gpuslice.errors import MeshFileError
@@ -38,15 +38,7 @@ H = 0.1  # mm, layer thickness of the volume test
 VOLUME_RTOL = 5e-3
 
 
-def _catalog() -> dict[str, dict[str, str]]:
-    path = MESHES / "catalog.csv"
-    if not path.is_file():
-        return {}
-    with open(path, newline="") as f:
-        return {row["name"]: row for row in csv.DictReader(f)}
-
-
-CATALOG = _catalog()
+CATALOG = read_catalog()
 
 
 def _opencl_skip_reason() -> str | None:

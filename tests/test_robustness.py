@@ -13,7 +13,6 @@
 
 from __future__ import annotations
 
-import csv
 import os
 import signal
 import struct
@@ -25,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import read_catalog
 
 import gpuslice
 from gpuslice.cli import main
@@ -49,15 +49,7 @@ GPUSLICE = str(Path(sys.executable).with_name("gpuslice"))
 FIT, H = 40.0, 0.2  # the command: gpuslice slice FILE --fit 40 -t 0.2 -o out.npz
 
 
-def _catalog() -> dict[str, dict[str, str]]:
-    path = MESHES / "catalog.csv"
-    if not path.is_file():
-        return {}
-    with open(path, newline="") as f:
-        return {row["name"]: row for row in csv.DictReader(f)}
-
-
-CATALOG = _catalog()
+CATALOG = read_catalog()
 
 
 def _opencl_ok() -> bool:
