@@ -72,6 +72,16 @@ def _table(res) -> None:
             click.echo(f"{r['setting']}: level {lv['level']} ({lv['thickness_mm']:g} mm) window {wins}")
 
 
+
+def _make_dir(path: str) -> None:
+    """Create the plot directory (as ``mkdir -p`` of one level); its parent must exist."""
+    d = Path(path)
+    if d.exists() and not d.is_dir():
+        fail(f"{d}: exists and is not a directory")
+    if not d.parent.is_dir():
+        fail(f"{d}: directory {d.parent} does not exist")
+    d.mkdir(exist_ok=True)
+
 @click.command()
 @click.argument("model", type=click.Path(dir_okay=True, path_type=str))
 @with_options(_common)
@@ -93,8 +103,8 @@ def bench(model, thicknesses, modes, scale, fit, backend, device, repeat, no_qua
 
     if as_json and as_csv:
         fail("--json and --csv exclude each other")
-    if plots_dir is not None and not Path(plots_dir).is_dir():
-        fail(f"{plots_dir}: plot directory does not exist")
+    if plots_dir is not None:
+        _make_dir(plots_dir)
     settings, params, mesh, load_times = _setup(model, thicknesses, modes, scale, fit, backend, device, kw)
     console = Console(stderr=True)
     steps = 1 + len(settings) * repeat + (0 if no_quality else len(settings))
@@ -130,8 +140,7 @@ def plot(model, thicknesses, modes, scale, fit, backend, device, out_dir, layers
     from .plots import default_layers, plot_all, plot_layers
     from .slicer import slice_mesh
 
-    if not Path(out_dir).is_dir():
-        fail(f"{out_dir}: plot directory does not exist")
+    _make_dir(out_dir)
     settings, params, mesh, _ = _setup(model, thicknesses, modes, scale, fit, backend, device, kw)
     results = {s.label: slice_mesh(mesh, replace(params, **s.overrides)) for s in settings}
     name = Path(model).stem

@@ -194,4 +194,8 @@ def test_plot_command(sphere_stl, tmp_path, capsys):
     assert "roi level 0 (1 mm): window z" in out
     _check_png(tmp_path / "sphere_layers_chosen.png")
     assert main(["plot", str(sphere_stl), "-t", "0.5", "-o", str(tmp_path), "--layers", "999"]) == 2
-    assert main(["plot", str(sphere_stl), "-t", "0.5", "-o", str(tmp_path / "missing")]) == 2
+    # a new plot folder is created (as mkdir), but not a missing parent, nor over a file
+    assert main(["plot", str(sphere_stl), "-t", "0.5", "-o", str(tmp_path / "new")]) == 0
+    assert (tmp_path / "new" / "sphere_points.png").is_file()
+    assert main(["plot", str(sphere_stl), "-t", "0.5", "-o", str(tmp_path / "missing" / "deeper")]) == 2
+    assert main(["plot", str(sphere_stl), "-t", "0.5", "-o", str(tmp_path / "sphere_points.png")]) == 2
