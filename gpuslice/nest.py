@@ -25,6 +25,7 @@ import numpy as np
 
 from .chain import Loops
 from .errors import ParameterError
+from .ragged import expand_ranges
 
 __all__ = ["FILL_RULES", "Nested", "signed_areas", "nest_loops"]
 
@@ -72,11 +73,9 @@ def _winding_numbers(pc, offsets, pairs_i, pairs_j, q) -> np.ndarray:
     """Winding number of query point q[i] (complex) around loop j for every pair (i, j)."""
     counts = np.diff(offsets)
     lens = counts[pairs_j]
-    pair_of = np.repeat(np.arange(pairs_i.size), lens)
     start = offsets[pairs_j]
-    local = np.arange(pair_of.size) - np.repeat(np.cumsum(lens) - lens, lens)
-    a = np.repeat(start, lens) + local
-    b = np.where(local == np.repeat(lens, lens) - 1, np.repeat(start, lens), a + 1)
+    pair_of, a = expand_ranges(start, lens)  # every edge a -> b of loop j, once per pair
+    b = np.where(a == (start + lens - 1)[pair_of], start[pair_of], a + 1)
     p = np.repeat(q[pairs_i], lens)
     pa, pb = pc[a] - p, pc[b] - p
     left = (pa.conj() * pb).imag  # > 0: the point is left of the edge a -> b
@@ -117,10 +116,8 @@ def _containment_pairs(points, pc, offsets, layer, closed, q):
     # shapely rings of just the loops these tests need, built once
     involved = np.unique(np.concatenate([pj, bi, bj]))
     counts = np.diff(offsets)[involved]
-    sel = np.repeat(offsets[:-1][involved], counts) + (
-        np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
-    )
-    rings = shapely.linearrings(points[sel].astype(np.float64), indices=np.repeat(np.arange(involved.size), counts))
+    ring_of, sel = expand_ranges(offsets[:-1][involved], counts)
+    rings = shapely.linearrings(points[sel].astype(np.float64), indices=ring_of)
     # containment: the query point of loop i strictly inside loop j (GEOS point-in-polygon, in C)
     polys = shapely.polygons(rings)
     inside = shapely.contains_xy(polys[np.searchsorted(involved, pj)], q.real[pi], q.imag[pi])
@@ -217,8 +214,8 @@ def nest_loops(loops: Loops, n_layers: int, fill_rule: str = "nonzero") -> Neste
 
         u, c = ci[m], cj[m]
         cnt = np.diff(offsets)[u]
-        sel = np.repeat(offsets[:-1][u], cnt) + (np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt))
-        u_rings = shapely.linearrings(points[sel].astype(np.float64), indices=np.repeat(np.arange(u.size), cnt))
+        ring_of, sel = expand_ranges(offsets[:-1][u], cnt)
+        u_rings = shapely.linearrings(points[sel].astype(np.float64), indices=ring_of)
         meet = shapely.intersects(u_rings, rings[np.searchsorted(involved, c)])
         suspect = np.union1d(suspect, layer[u[meet]])
     if suspect.size:

@@ -25,6 +25,7 @@ import numpy as np
 
 from .adaptive import facet_slopes, slab_max_nz
 from .mesh import Mesh
+from .ragged import expand_ranges
 from .result import SliceResult
 from .schedule import Schedule
 
@@ -141,8 +142,7 @@ def volume_deviation(result: SliceResult, reference: SliceResult, *, geoms=None,
     j0 = np.clip(j0, 0, reference.n_layers)
     j1 = np.clip(j1, 0, reference.n_layers)
     cnt = np.maximum(j1 - j0, 0)
-    pl = np.repeat(np.arange(result.n_layers), cnt)
-    pj = j0[pl] + (np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt))
+    pl, pj = expand_ranges(j0, cnt)
     w = np.minimum(e_s[pl + 1], e_r[pj + 1]) - np.maximum(e_s[pl], e_r[pj])
     good = w > 0
     pl, pj, w = pl[good], pj[good], w[good]

@@ -40,6 +40,7 @@ import numpy as np
 
 from .device import KernelDriver
 from .errors import ParameterError
+from .ragged import expand_ranges
 from .result import SliceResult
 
 __all__ = [
@@ -319,8 +320,7 @@ def coverage_numpy(edges: np.ndarray, rows: int, cols: int, lut: np.ndarray) -> 
     ra = np.maximum(np.floor(va), 0).astype(np.int64)
     rb = np.minimum(np.ceil(vb) - 1, rows - 1).astype(np.int64)
     n = np.maximum(rb - ra + 1, 0)
-    ei = np.repeat(np.arange(n.size), n)
-    r = ra[ei] + (np.arange(ei.size) - np.repeat(np.cumsum(n) - n, n))
+    ei, r = expand_ranges(ra, n)
     ys = np.maximum(va[ei], r)
     ye = np.minimum(vb[ei], r + 1.0)
     ok = ye > ys
@@ -353,8 +353,7 @@ def coverage_numpy(edges: np.ndarray, rows: int, cols: int, lut: np.ndarray) -> 
     ca = np.maximum(np.floor(umin), 0).astype(np.int64)
     cb = np.minimum(np.ceil(umax) - 1, cols - 1).astype(np.int64)
     m = np.maximum(cb - ca + 1, 0)
-    pi = np.repeat(np.arange(m.size), m)
-    c = ca[pi] + (np.arange(pi.size) - np.repeat(np.cumsum(m) - m, m))
+    pi, c = expand_ranges(ca, m)
     a = np.maximum(umin[pi], c)
     b = np.minimum(umax[pi], c + 1.0)
     d = (b - a) * slope[pi]

@@ -333,3 +333,15 @@ def test_overlapping_bodies_union(backend):
     lay = nonzero.layer(3)
     (outer, holes), = lay.polygons()
     assert not holes and signed_areas(outer, np.array([0, len(outer)]))[0] == pytest.approx(500.0)
+
+
+def test_expand_ranges_matches_a_loop():
+    from gpuslice.ragged import expand_ranges
+
+    rng = np.random.default_rng(3)
+    starts, counts = rng.integers(-50, 50, 200), rng.integers(0, 6, 200)
+    owner, values = expand_ranges(starts, counts)
+    want = [(i, s + k) for i, (s, c) in enumerate(zip(starts, counts, strict=True)) for k in range(c)]
+    assert owner.tolist() == [i for i, _ in want]
+    assert values.tolist() == [v for _, v in want]
+    assert [a.size for a in expand_ranges(np.zeros(0), np.zeros(0))] == [0, 0]
