@@ -86,13 +86,20 @@ def _shells(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     counts = np.bincount(edge, minlength=mesh.edge_vertices.shape[0])
     forward = (faces < np.roll(faces, -1, axis=1)).reshape(-1)
     face_of = np.repeat(np.arange(n, dtype=np.int64), 3)
-    sel = np.flatnonzero(counts[edge] == 2)
-    sel = sel[np.argsort(edge[sel], kind="stable")].reshape(-1, 2)  # the two sides of each manifold edge
-    f1, f2 = face_of[sel[:, 0]], face_of[sel[:, 1]]
-    same_dir = forward[sel[:, 0]] == forward[sel[:, 1]]  # both sides run the same way: one facet is flipped
+    # the two sides of each manifold edge (in edge order), by scatter: the first and the last side writing to it
+    sides = np.flatnonzero(counts[edge] == 2)
+    side0 = np.empty(counts.size, dtype=np.int64)
+    side1 = np.empty(counts.size, dtype=np.int64)
+    side0[edge[sides[::-1]]] = sides[::-1]
+    side1[edge[sides]] = sides
+    manifold = np.flatnonzero(counts == 2)
+    s0, s1 = side0[manifold], side1[manifold]
+    f1, f2 = face_of[s0], face_of[s1]
+    same_dir = forward[s0] == forward[s1]  # both sides run the same way: one facet is flipped
     first = connected_labels(n, f1, f2)  # the first facet of each facet's shell
-    roots, shell = np.unique(first, return_inverse=True)
-    n_shells = roots.size
+    is_root = first == np.arange(n)
+    shell = (np.cumsum(is_root) - 1)[first]  # shells numbered in the order of their first facets
+    n_shells = int(is_root.sum())
     if not same_dir.any():  # consistently wound already: every facet agrees with its shell's first one
         return shell.astype(np.int64), np.ones(n, dtype=np.int64), np.zeros(n_shells, dtype=bool)
     # the doubled graph: node f is "facet f as stored", node f + n "facet f reversed"
