@@ -96,9 +96,22 @@ def fail(message: str, code: int = EXIT_USAGE) -> None:
     _fail(message, code)
 
 
-def load_model(path: str, scale: float | None, fit: float | None, device=None):
-    """Read and weld ``path`` (scaled, on the bed); returns ``(Mesh, {"load": s, "topology": s})``."""
-    return _load(path, scale, fit, device)
+def load_model(path: str, scale: float | None, fit: float | None, backend: str = "opencl", device: str | None = None):
+    """The device, then the mesh: for ``backend="opencl"`` the OpenCL device ``device`` is chosen and its kernels
+    built first (the mesh is welded on it too); then ``path`` is read and welded (scaled, on the bed).
+
+    Returns ``(Mesh, Device or None, {"device": s, "load": s, "topology": s})``.
+    """
+    dev, t_dev = None, 0.0
+    if backend == "opencl":
+        from .device import get_device
+
+        t = time.perf_counter()
+        dev = get_device(device)
+        dev.program("crossings.cl")  # builds every kernels/*.cl (one program)
+        t_dev = time.perf_counter() - t
+    mesh, times = _load(path, scale, fit, dev)
+    return mesh, dev, {"device": t_dev, **times}
 
 
 mesh_options = _mesh_options
@@ -236,15 +249,8 @@ def slice_cmd(model, thickness, first_layer, z_mode, scale, fit, fill_rule, max_
         _fail(f"{output}: unknown output format '{Path(output).suffix}' (use .npz, .svg or .cli)")
     params = SliceParams(thickness=thickness, first_layer=first_layer, z_mode=z_mode, fill_rule=fill_rule,
                          max_gap=max_gap, backend=backend, device=device, **adaptive_params(adaptive))
-    dev, t_dev = None, 0.0
-    if backend == "opencl":  # the device first: the mesh is welded on it too
-        from .device import get_device
-
-        t = time.perf_counter()
-        dev = get_device(device)
-        dev.program("crossings.cl")
-        t_dev = time.perf_counter() - t
-    mesh, load_times = _load(model, scale, fit, dev)
+    mesh, dev, load_times = load_model(model, scale, fit, backend, device)
+    t_dev = load_times.pop("device")
     result = slice_mesh(mesh, params)
     t = time.perf_counter()  # what the mesh needed: flipped facets, non-manifold edges, ... (defects.py), first
     result.meta["repairs"] = {**mesh_repairs(mesh), **result.meta["repairs"]}

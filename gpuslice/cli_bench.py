@@ -29,12 +29,8 @@ def _setup(model, thicknesses, modes, scale, fit, backend, device, kw):
     settings = parse_settings(thicknesses, modes)
     kw = {**kw, "adaptive": None}
     params = SliceParams(backend=backend, device=device, **adaptive_params(kw))
-    dev = None
-    if backend == "opencl":
-        from .device import get_device
-
-        dev = get_device(device)
-    mesh, load_times = load_model(model, scale, fit, dev)
+    mesh, _, load_times = load_model(model, scale, fit, backend, device)
+    load_times.pop("device")
     return settings, params, mesh, load_times
 
 

@@ -85,12 +85,12 @@ def raster(model, output, thickness, first_layer, z_mode, scale, fit, fill_rule,
     rb = choose_backend(raster_backend)
     params = SliceParams(thickness=thickness, first_layer=first_layer, z_mode=z_mode, fill_rule=fill_rule,
                          max_gap=max_gap, backend=backend, device=device)
-    dev = None
-    if backend == "opencl" or rb == "opencl":
+    mesh, dev, timings = load_model(model, scale, fit, backend, device)
+    timings.pop("device")
+    if dev is None and rb == "opencl":  # numpy slicing, OpenCL rasterising
         from .device import get_device
 
         dev = get_device(device)
-    mesh, timings = load_model(model, scale, fit, dev if backend == "opencl" else None)
     result = slice_mesh(mesh, params)
     timings.update({f"slice_{k}": v for k, v in result.meta["timings_s"].items()})
     b = mesh.bounds

@@ -54,14 +54,10 @@ def view(source, output, thickness, first_layer, z_mode, scale, fit, fill_rule, 
     else:
         from .slicer import SliceParams, slice_mesh
 
-        params = SliceParams(thickness=0.1 if thickness is None else thickness, first_layer=first_layer,
-                             z_mode=z_mode or "mid", fill_rule=fill_rule or "nonzero",
-                             max_gap=2.0 if max_gap is None else max_gap, backend=backend or "opencl", device=device)
-        if params.backend == "opencl":
-            from .device import get_device
-
-            dev = get_device(device)
-        mesh, _ = load_model(source, scale, fit, dev)
+        given = {"thickness": thickness, "first_layer": first_layer, "z_mode": z_mode, "fill_rule": fill_rule,
+                 "max_gap": max_gap, "backend": backend, "device": device}
+        params = SliceParams(**{k: v for k, v in given.items() if v is not None})  # the rest: SliceParams' defaults
+        mesh, dev, _ = load_model(source, scale, fit, params.backend, device)
         result = slice_mesh(mesh, params)
         default_title = src.name
         lo, hi = mesh.vertices[:, :2].min(axis=0), mesh.vertices[:, :2].max(axis=0)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import os
 import re
+import stat
 from dataclasses import dataclass
 from typing import NoReturn
 
@@ -175,30 +176,27 @@ def read_mesh_file(path: str | os.PathLike[str]) -> RawMesh:
     if isinstance(name, bytes):  # os.PathLike[bytes]
         name = os.fsdecode(name)
     try:
-        os.stat(name)
-    except FileNotFoundError:
-        raise MeshFileError(f"{name}: no such file") from None
-    except NotADirectoryError:
-        raise MeshFileError(f"{name}: no such file (a parent is not a directory)") from None
-    except OSError as exc:
-        raise MeshFileError(f"{name}: cannot read: {_os_reason(exc)}") from None
-    if os.path.isdir(name):
-        raise MeshFileError(f"{name}: is a directory")
-
-    ext = os.path.splitext(name)[1].lower()
-    if ext in TRIMESH_EXTENSIONS:
-        return _read_with_trimesh(name, TRIMESH_EXTENSIONS[ext])
-
-    try:
+        if stat.S_ISDIR(os.stat(name).st_mode):
+            raise IsADirectoryError
+        ext = os.path.splitext(name)[1].lower()
+        if ext in TRIMESH_EXTENSIONS:  # trimesh opens the file itself
+            return _read_with_trimesh(name, TRIMESH_EXTENSIONS[ext])
         with open(name, "rb") as fh:
             data = fh.read()
-    except IsADirectoryError:
-        raise MeshFileError(f"{name}: is a directory") from None
-    except FileNotFoundError:
-        raise MeshFileError(f"{name}: no such file") from None
     except OSError as exc:
-        raise MeshFileError(f"{name}: cannot read: {_os_reason(exc)}") from None
+        raise _file_error(name, exc) from None
     return read_stl_bytes(data, name)
+
+
+def _file_error(name: str, exc: OSError) -> MeshFileError:
+    """The one-line error for an OS error met while opening or reading ``name``."""
+    if isinstance(exc, IsADirectoryError):
+        return MeshFileError(f"{name}: is a directory")
+    if isinstance(exc, FileNotFoundError):
+        return MeshFileError(f"{name}: no such file")
+    if isinstance(exc, NotADirectoryError):
+        return MeshFileError(f"{name}: no such file (a parent is not a directory)")
+    return MeshFileError(f"{name}: cannot read: {_os_reason(exc)}")
 
 
 def read_stl_bytes(data: bytes, name: str = "<bytes>") -> RawMesh:
