@@ -3,8 +3,7 @@
 Importing the package is cheap: pyopencl, trimesh and moderngl are imported only when a function needs them.
 """
 
-from .adaptive import AdaptiveSchedule, adaptive_schedule, cusp_schedule, roi_schedule
-from .defects import MESH_REPAIR_KINDS, mesh_repairs
+from .bench.quality import cusp_summary, schedule_quality, volume_deviation
 from .errors import (
     DeviceError,
     EmptyMeshError,
@@ -13,11 +12,12 @@ from .errors import (
     MeshFileError,
     ParameterError,
 )
-from .mesh import Mesh, load_mesh, mesh_from_arrays, mesh_from_triangles
-from .quality import cusp_summary, schedule_quality, volume_deviation
-from .result import LayerView, SliceResult
-from .schedule import Schedule, from_z, uniform
-from .slicer import SliceParams, slice_mesh
+from .mesh.defects import MESH_REPAIR_KINDS, mesh_repairs
+from .mesh.mesh import Mesh, load_mesh, mesh_from_arrays, mesh_from_triangles
+from .schedule.adaptive import AdaptiveSchedule, adaptive_schedule, cusp_schedule, roi_schedule
+from .schedule.uniform import Schedule, from_z, uniform
+from .slicing.result import LayerView, SliceResult
+from .slicing.slicer import SliceParams, slice_mesh
 
 __version__ = "0.1.0"
 
@@ -53,7 +53,7 @@ __all__ = [
     "volume_deviation",
 ]
 
-_LAZY = {"BatchOptions": "batch", "run_batch": "batch"}  # heavier modules, imported on first use
+_LAZY = {"BatchOptions": "batch.runner", "run_batch": "batch.runner"}  # heavier modules, imported on first use
 
 
 def __getattr__(name: str):

@@ -3,7 +3,7 @@
 Both slice the same scaled STL (``peers.write_scaled_stl``, nefertiti at 80 mm by default). CuraEngine 4.13 runs with
 ``adaptive_layer_height_enabled`` and a base height and variation that give the same thickness range [A, B]
 (0.05–0.3 mm: layer_height 0.175, variation 0.125, step 0.01); its layer tops (gcode Z) become a schedule whose
-quality gpuslice measures with the same code as its own (``gpuslice.quality``: max and mean cusp height). Uniform
+quality gpuslice measures with the same code as its own (``gpuslice.bench.quality``: max and mean cusp height). Uniform
 0.05 mm runs of both are the baseline. Times: CuraEngine is a whole process (it writes gcode, too: its times include
 much more than slicing), so gpuslice is timed both in-process (``slice_mesh``, schedule included) and as a whole
 ``gpuslice slice`` process. Medians of ``--repeat`` runs; the machine is shared, so timings are noisy.
@@ -28,9 +28,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import peers  # noqa: E402
 
 from gpuslice import load_mesh, slice_mesh  # noqa: E402
-from gpuslice.adaptive import schedule_from_edges  # noqa: E402
+from gpuslice.bench.quality import cusp_summary  # noqa: E402
 from gpuslice.device import get_device  # noqa: E402
-from gpuslice.quality import cusp_summary  # noqa: E402
+from gpuslice.schedule.adaptive import schedule_from_edges  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 

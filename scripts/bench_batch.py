@@ -109,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     from distributed import Client, LocalCluster
 
-    from gpuslice.batch import _cores
+    from gpuslice.batch.runner import _cores
 
     cores = _cores()
     thicknesses = [float(x) for x in args.thickness.split(",")]
@@ -126,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
         samples["models"] = len(files)
         samples["facets"] = facets
         log(f"{len(files)} models, {facets} facets, fit {args.fit} mm, {cores} cores")
-        start, _ = timed([sys.executable, "-c", "import gpuslice.batch, gpuslice.cli"])
+        start, _ = timed([sys.executable, "-c", "import gpuslice.batch.runner, gpuslice.cli"])
         samples["python_import_s"] = start
         t = time.perf_counter()
         cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",

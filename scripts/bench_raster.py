@@ -105,8 +105,8 @@ def in_process(stl: Path, gl_sample: int = 24) -> dict:
     """Stage timings (s) and rates (layers/s) inside one process, after a warm-up."""
     from gpuslice import load_mesh, slice_mesh
     from gpuslice.device import get_device
-    from gpuslice.raster import RasterSpec, iter_tiles
-    from gpuslice.sl1 import PngEncoder, _encode_all
+    from gpuslice.raster.coverage import RasterSpec, iter_tiles
+    from gpuslice.raster.sl1 import PngEncoder, _encode_all
 
     dev = get_device()
     mesh = load_mesh(stl, device=dev)
@@ -126,7 +126,7 @@ def in_process(stl: Path, gl_sample: int = 24) -> dict:
     out["raster_opencl_layers_per_s"] = res.n_layers / statistics.median(samples)
     out["tile_mpixels_per_layer"] = float(np.mean([t.data.size for t in tiles]) / 1e6)
     try:
-        from gpuslice.raster_gl import gl_info
+        from gpuslice.raster.gl import gl_info
 
         info = gl_info()
         if info is not None:

@@ -7,14 +7,14 @@ Usage::
 The mesh (``../shared/meshes/<mesh>.stl`` scaled so its longest side is ``--fit`` mm; nefertiti at 120 mm and
 0.05 mm gives 2,400 layers and about a million points) is sliced once; then, side by side in the same run:
 
-* the viewer page: written with :func:`gpuslice.view.write_view` (Python time and page size), opened ``--repeat``
+* the viewer page: written with :func:`gpuslice.view.page.write_view` (Python time and page size), opened ``--repeat``
   times in a fresh tab of Debian's ``/usr/bin/chromium`` (playwright, 1280×800): ``load``: the page's
   ``loadEventEnd`` (navigation start to the end of the load event: reading and parsing the file, decoding the
   arrays, the first layer drawn); ``ready``: ``performance.now()`` when the viewer's set-up ended; then one scrub
   through every layer (``gpusliceViewer.stepTimes``: one ``setLayer`` + a pixel read-back that waits for both
   canvases to be rasterised, each layer's Path2D built on first visit): median, 95th percentile and max ms per step.
 * the baseline a user has without the viewer: the same result exported as SVG by ``gpuslice slice -o x.svg``
-  (``gpuslice.export.write_svg``, every layer a ``<g>``), opened the same way (size and ``loadEventEnd``). No peer
+  (``gpuslice.formats.svg.write_svg``, every layer a ``<g>``), opened the same way (size and ``loadEventEnd``). No peer
   slicer (PrusaSlicer, Cura) has a layer preview that can be timed headless, so none is measured here.
 
 Other engineers share this 2-core VM: timings are noisy; medians of ``--repeat`` runs are quoted. A Markdown table
@@ -32,8 +32,8 @@ import time
 from pathlib import Path
 
 import gpuslice
-from gpuslice.export import write_svg
-from gpuslice.view import write_view
+from gpuslice.formats.svg import write_svg
+from gpuslice.view.page import write_view
 
 ROOT = Path(__file__).resolve().parents[1]
 MESHES = ROOT.parent / "shared" / "meshes"

@@ -236,10 +236,10 @@ def _check_result(res) -> None:
 def run_library(path: Path, backend: str, timeout: float, out_dir: Path) -> tuple[str, str]:
     """(outcome, detail): outcome 'ok', an error class name, or 'FAIL:...'."""
     import gpuslice
-    from gpuslice.defects import mesh_repairs
     from gpuslice.errors import GpusliceError
-    from gpuslice.export import export
-    from gpuslice.result import SliceResult
+    from gpuslice.formats import export
+    from gpuslice.mesh.defects import mesh_repairs
+    from gpuslice.slicing.result import SliceResult
 
     def alarm(signum, frame):
         raise CaseTimeout
@@ -272,7 +272,7 @@ def run_library(path: Path, backend: str, timeout: float, out_dir: Path) -> tupl
 
 def run_cli(data: bytes, timeout: float) -> tuple[str, str, float]:
     """Run ``gpuslice slice`` on ``data`` in a fresh folder: (outcome, detail, seconds)."""
-    from gpuslice.result import SliceResult
+    from gpuslice.slicing.result import SliceResult
 
     with tempfile.TemporaryDirectory(prefix="fuzz-cli-") as tmp:
         folder = Path(tmp)

@@ -1,4 +1,5 @@
-"""Adaptive schedules (gpuslice.adaptive, kernels/adaptive.cl): kernel twins, the cusp/area bounds checked by plain
+"""Adaptive schedules (gpuslice.schedule.adaptive, kernels/adaptive.cl): kernel twins, the cusp/area bounds checked by
+plain
 loops, tiling, smoothing, the roi ladder, and the `slice --adaptive` command line."""
 
 from __future__ import annotations
@@ -9,7 +10,10 @@ import numpy as np
 import pytest
 
 from gpuslice import mesh_from_arrays, mesh_from_triangles, slice_mesh
-from gpuslice.adaptive import (
+from gpuslice.cli import main
+from gpuslice.errors import ParameterError
+from gpuslice.mesh.shapes import box, icosphere, torus, write_stl
+from gpuslice.schedule.adaptive import (
     _range_max,
     cusp_schedule,
     facet_slopes,
@@ -18,10 +22,7 @@ from gpuslice.adaptive import (
     slab_max_nz,
     slab_max_nz_numpy,
 )
-from gpuslice.cli import main
-from gpuslice.errors import ParameterError
-from gpuslice.schedule import uniform
-from gpuslice.shapes import box, icosphere, torus, write_stl
+from gpuslice.schedule.uniform import uniform
 
 C, A, B = 0.05, 0.05, 0.3
 
@@ -32,7 +33,7 @@ def sphere():
 
 
 def _facets64(mesh):
-    """Per facet zmin, zmax, |n_z| in float64, computed here independently of gpuslice.adaptive."""
+    """Per facet zmin, zmax, |n_z| in float64, computed here independently of gpuslice.schedule.adaptive."""
     t = mesh.vertices.astype(np.float64)[mesh.faces]
     n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
     nz = np.abs(n[:, 2]) / np.linalg.norm(n, axis=1)

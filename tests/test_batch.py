@@ -16,8 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gpuslice import shapes
-from gpuslice.batch import (
+from gpuslice.batch.runner import (
     MANIFEST_NAME,
     BatchError,
     BatchOptions,
@@ -26,7 +25,8 @@ from gpuslice.batch import (
     discover,
     run_batch,
 )
-from gpuslice.result import SliceResult
+from gpuslice.mesh import shapes
+from gpuslice.slicing.result import SliceResult
 
 # small public meshes (a few thousand facets at most), scaled with --fit
 PUBLIC = ["prusa_cube_with_hole", "prusa_u_overhang", "prusa_bridge", "xyz_cube_20mm", "prusa_A", "cow", "spot",
@@ -343,7 +343,7 @@ def test_cli_ctrl_c_stops_cleanly(tmp_path, device):
 
 @pytest.mark.parametrize("kind", ["sl1", "png"])
 def test_raster_batch(tree, tmp_path, monkeypatch, kind):
-    pytest.importorskip("gpuslice.sl1", reason="gpuslice.sl1 (issue 3, raster output) is not in this checkout")
+    pytest.importorskip("gpuslice.raster.sl1", reason="gpuslice.raster.sl1 is not in this checkout")
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
     opts = BatchOptions(thickness=0.5, fit=25.0, raster=kind,
                         raster_options=(("resolution", "400x300"), ("pixel", 0.1), ("raster_backend", "numpy")))

@@ -1,4 +1,5 @@
-"""Schedule quality (gpuslice.quality), `gpuslice bench` (gpuslice.bench, cli_bench) and the plots (gpuslice.plots)."""
+"""Schedule quality (gpuslice.bench.quality), `gpuslice bench` (gpuslice.bench.runner, cli.bench) and the plots
+(gpuslice.bench.plots)."""
 
 from __future__ import annotations
 
@@ -11,11 +12,11 @@ import numpy as np
 import pytest
 
 from gpuslice import mesh_from_triangles, slice_mesh
-from gpuslice.bench import parse_settings, run_bench
+from gpuslice.bench.quality import cusp_heights, layer_geometries, mean_cusp, schedule_quality, volume_deviation
+from gpuslice.bench.runner import parse_settings, run_bench
 from gpuslice.cli import main
 from gpuslice.errors import ParameterError
-from gpuslice.quality import cusp_heights, layer_geometries, mean_cusp, schedule_quality, volume_deviation
-from gpuslice.shapes import box, icosphere, write_stl
+from gpuslice.mesh.shapes import box, icosphere, write_stl
 
 R = 20.0
 
@@ -76,7 +77,7 @@ def test_volume_deviation_counts_missing_and_shifted_material():
 
 
 def test_layer_geometries_keep_holes():
-    from gpuslice.shapes import torus
+    from gpuslice.mesh.shapes import torus
 
     res = slice_mesh(mesh_from_triangles(torus()), thickness=1.0, backend="numpy")
     g = layer_geometries(res)

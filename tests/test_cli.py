@@ -11,7 +11,7 @@ import pytest
 
 from gpuslice import SliceResult
 from gpuslice.cli import main
-from gpuslice.export import read_cli
+from gpuslice.formats.commonlayer import read_cli
 
 REPORT_KEYS = {"z", "thickness", "area_mm2", "points", "loops", "open_chains", "repairs", "timings_s", "device"}
 

@@ -12,11 +12,11 @@ import pytest
 from scipy.spatial import ConvexHull
 
 from gpuslice import mesh_from_arrays, mesh_from_triangles, slice_mesh
-from gpuslice import shapes as S
-from gpuslice.chain import link_segments, order_chains
-from gpuslice.crossings import compute_crossings, crossings_numpy
-from gpuslice.nest import signed_areas
-from gpuslice.schedule import uniform
+from gpuslice.mesh import shapes as S
+from gpuslice.schedule.uniform import uniform
+from gpuslice.slicing.chain import link_segments, order_chains
+from gpuslice.slicing.crossings import compute_crossings, crossings_numpy
+from gpuslice.slicing.nest import signed_areas
 
 F32 = 2e-6  # relative error of float32 coordinates in areas (a few ulps of each coordinate)
 
@@ -232,7 +232,7 @@ def test_kernel_equals_numpy_reference(device, name):
     np.testing.assert_array_equal(got.layer, ref.layer)
     np.testing.assert_array_equal(got.edges, ref.edges)
     np.testing.assert_allclose(got.points, ref.points, atol=1e-5, rtol=0)
-    from gpuslice.walk import walk_chains
+    from gpuslice.slicing.walk import walk_chains
 
     z32 = zs.astype(np.float32)
     nxt, _, _ = link_segments(ref, mesh, z32)

@@ -1,4 +1,5 @@
-"""Tests of gpuslice.export: atomic writes, SVG, CLI, JSON reports and the suffix dispatch.
+"""Tests of the contour formats (gpuslice.formats: SVG, CLI, the suffix dispatch), atomic writes (gpuslice.io.atomic)
+and JSON reports (gpuslice.io.report).
 
 The results are built by hand (no slicer involved): small squares whose areas are known exactly.
 """
@@ -14,22 +15,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gpuslice import export as ex
 from gpuslice.errors import GpusliceError, MeshFileError, ParameterError
-from gpuslice.export import (
-    CLI_CLOCKWISE,
-    CLI_COUNTER_CLOCKWISE,
-    CLI_OPEN,
-    atomic_path,
-    atomic_write_bytes,
-    atomic_write_text,
-    export,
-    read_cli,
-    write_cli,
-    write_report,
-    write_svg,
-)
-from gpuslice.result import SliceResult
+from gpuslice.formats import export
+from gpuslice.formats import numbers as ex
+from gpuslice.formats.commonlayer import CLI_CLOCKWISE, CLI_COUNTER_CLOCKWISE, CLI_OPEN, read_cli, write_cli
+from gpuslice.formats.svg import write_svg
+from gpuslice.io.atomic import atomic_path, atomic_write_bytes, atomic_write_text
+from gpuslice.io.report import write_report
+from gpuslice.slicing.result import SliceResult
 
 SVG = "{http://www.w3.org/2000/svg}"
 
@@ -200,7 +193,7 @@ def test_svg_y_axis_points_up(result, tmp_path):
     pts = result.points.astype(np.float64)
     assert x0 < pts[:, 0].min() and x0 + w > pts[:, 0].max()
     assert y0 < -pts[:, 1].max() and y0 + h > -pts[:, 1].min()
-    assert root.get("width") == f"{ex._fmt_scalar(w)}mm"
+    assert root.get("width") == f"{ex.fmt_scalar(w)}mm"
     assert float(root.get("height")[:-2]) == pytest.approx(h)
 
 
@@ -234,7 +227,7 @@ def test_svg_deterministic_and_chunking(random_result, tmp_path, monkeypatch):
     random_result.meta["timing"] = 123.0  # meta is not written
     write_svg(random_result, b)
     assert a.read_bytes() == b.read_bytes()
-    monkeypatch.setattr(ex, "_CHUNK_POINTS", 3)  # many small chunks: same bytes
+    monkeypatch.setattr(ex, "CHUNK_POINTS", 3)  # many small chunks: same bytes
     write_svg(random_result, c)
     assert a.read_bytes() == c.read_bytes()
 
@@ -347,7 +340,7 @@ def test_cli_deterministic_and_chunking(random_result, tmp_path, monkeypatch):
     write_cli(random_result, a)
     write_cli(random_result, b)
     assert a.read_bytes() == b.read_bytes()
-    monkeypatch.setattr(ex, "_CHUNK_POINTS", 2)
+    monkeypatch.setattr(ex, "CHUNK_POINTS", 2)
     write_cli(random_result, c)
     assert a.read_bytes() == c.read_bytes()
 
@@ -390,7 +383,7 @@ def test_npz_roundtrip_and_bytes(result, tmp_path, monkeypatch):
 
 
 def ex_result_arrays() -> tuple[str, ...]:
-    from gpuslice import result as result_module
+    from gpuslice.slicing import result as result_module
 
     return result_module._ARRAYS
 
@@ -530,7 +523,7 @@ def test_format_fixed_matches_python(decimals):
     v = rng.normal(0, 1, 2000) * 10.0 ** rng.integers(-6, 9, 2000)
     v = np.concatenate([v[np.abs(v) <= 1e9], [0.0, -0.0, 1e-12, -1e-12, 9.99995, -9.99995, 1e9, -1e9]])
     tokens_before = [(np.array([0, 5]), b"<"), (np.array([5]), [b"[["])]
-    buf, starts = ex._format_fixed(v, decimals, ord("|"), tokens_before, [(np.array([5, len(v) - 1]), b">")])
+    buf, starts = ex.format_fixed(v, decimals, ord("|"), tokens_before, [(np.array([5, len(v) - 1]), b">")])
     text = buf.tobytes().decode()
     pieces = [text[starts[i] : starts[i + 1]] for i in range(len(v))]
     q = np.rint(v * 10.0**decimals).astype(np.int64)

@@ -22,8 +22,8 @@ from hypothesis import strategies as st  # noqa: E402
 
 import gpuslice  # noqa: E402
 from gpuslice.errors import GpusliceError  # noqa: E402
-from gpuslice.result import SliceResult  # noqa: E402
-from gpuslice.stl import read_stl_bytes  # noqa: E402
+from gpuslice.io.meshfile import read_stl_bytes  # noqa: E402
+from gpuslice.slicing.result import SliceResult  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 import fuzz_stl  # noqa: E402

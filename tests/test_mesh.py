@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gpuslice import load_mesh, mesh_from_triangles
-from gpuslice import shapes as S
+from gpuslice.mesh import shapes as S
 
 
 def test_weld_and_edges_on_a_cube():

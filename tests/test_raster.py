@@ -11,10 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gpuslice import mesh_from_triangles, shapes, slice_mesh
+from gpuslice import mesh_from_triangles, slice_mesh
 from gpuslice.cli import main
 from gpuslice.errors import ParameterError
-from gpuslice.raster import (
+from gpuslice.mesh import shapes
+from gpuslice.raster.coverage import (
     RasterSpec,
     Tile,
     check_fits,
@@ -25,7 +26,7 @@ from gpuslice.raster import (
     layer_edges,
     masks,
 )
-from gpuslice.sl1 import PngEncoder, read_sl1_config, write_png_stack, write_sl1
+from gpuslice.raster.sl1 import PngEncoder, read_sl1_config, write_png_stack, write_sl1
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 
@@ -35,7 +36,7 @@ PIXEL_AREA = 0.05 * 0.05
 
 def _gl_available() -> str | None:
     try:
-        from gpuslice.raster_gl import gl_info
+        from gpuslice.raster.gl import gl_info
 
         return None if gl_info() is not None else "no EGL context (moderngl + libegl1 libegl-mesa0 needed)"
     except ImportError as exc:
@@ -204,7 +205,7 @@ def test_sl1_written_atomically(tmp_path, torus):
         yield from iter_tiles(torus, SMALL, backend="numpy", layers=[0, 1])
         raise RuntimeError("boom")
 
-    from gpuslice.sl1 import info_from
+    from gpuslice.raster.sl1 import info_from
 
     out = tmp_path / "x.sl1"
     with pytest.raises(RuntimeError):
@@ -336,7 +337,7 @@ def test_sl1_bytes_reproducible_with_a_fixed_date(tmp_path):
     import datetime as dt
     import hashlib
 
-    from gpuslice.sl1 import info_from
+    from gpuslice.raster.sl1 import info_from
 
     res = slice_mesh(mesh_from_triangles(shapes.torus(15.0, 5.0, 48, 24)), thickness=2.0, backend="numpy")
     now = dt.datetime(2024, 1, 2, 3, 4, 5)

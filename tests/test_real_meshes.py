@@ -114,7 +114,7 @@ def _watertight_params() -> list:
 
 
 def _load(path: Path, fit: float | None = None) -> gpuslice.Mesh:
-    """``load_mesh``, or a plain binary-STL read while ``gpuslice.stl`` does not exist yet."""
+    """``load_mesh``, or a plain binary-STL read while ``gpuslice.io.meshfile`` does not exist yet."""
     try:
         return gpuslice.load_mesh(path, fit=fit)
     except ImportError:
@@ -282,7 +282,7 @@ H_KERNEL = 0.05
 @pytest.fixture(scope="module")
 def kernel_cases(scaled_meshes, opencl_device):
     """name -> (mesh, float32 planes, numpy segments, OpenCL segments), computed once."""
-    from gpuslice.crossings import compute_crossings, crossings_numpy
+    from gpuslice.slicing.crossings import compute_crossings, crossings_numpy
 
     cache: dict = {}
 
@@ -310,8 +310,8 @@ def test_crossings_kernel_matches_numpy(kernel_cases, name):
 @needs_opencl
 @pytest.mark.parametrize("name", KERNEL_MESHES)
 def test_walk_kernel_matches_order_chains(kernel_cases, opencl_device, name):
-    from gpuslice.chain import link_segments, order_chains
-    from gpuslice.walk import walk_chains
+    from gpuslice.slicing.chain import link_segments, order_chains
+    from gpuslice.slicing.walk import walk_chains
 
     mesh, zs, seg, _ = kernel_cases(name)
     nxt, _, _ = link_segments(seg, mesh, zs)

@@ -1,4 +1,4 @@
-"""Tests of gpuslice.stl: binary / ASCII STL parsing, trimesh formats, and every user-facing error."""
+"""Tests of gpuslice.io.meshfile: binary / ASCII STL parsing, trimesh formats, and every user-facing error."""
 
 from __future__ import annotations
 
@@ -17,9 +17,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from gpuslice import stl as stl_module
 from gpuslice.errors import EmptyMeshError, GpusliceError, InvalidGeometryError, MeshFileError
-from gpuslice.stl import RawMesh, read_mesh_file, read_stl_bytes
+from gpuslice.io import meshfile as stl_module
+from gpuslice.io.meshfile import RawMesh, read_mesh_file, read_stl_bytes
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
 SHARED_MISSING = f"../shared/meshes not found: {SHARED} (the shared mesh corpus beside the repository)"
@@ -458,7 +458,7 @@ def test_import_does_not_import_trimesh() -> None:
     code = (
         "import sys, gpuslice.errors\n"
         "before = set(sys.modules)\n"
-        "import gpuslice.stl\n"
+        "import gpuslice.io.meshfile\n"
         "new = sorted(m for m in set(sys.modules) - before if m.split('.')[0] in ('trimesh', 'scipy'))\n"
         "assert not new, new\n"
     )

@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 
 import gpuslice
-from gpuslice import shapes
 from gpuslice.cli import main
 from gpuslice.errors import MeshFileError, ParameterError
-from gpuslice.view import build_view_html, read_view_data, write_view
+from gpuslice.mesh import shapes
+from gpuslice.view.page import build_view_html, read_view_data, write_view
 
 CHROMIUM = os.environ.get("GPUSLICE_CHROMIUM", "/usr/bin/chromium")
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
@@ -106,7 +106,7 @@ def test_masks_and_limits(torus, tmp_path, monkeypatch):
     assert data["masks"]["png"] == {3: png} and data["masks"]["size"] == "8x8 px"
     with pytest.raises(ParameterError, match="layer 99"):
         build_view_html(torus, masks={99: png})
-    monkeypatch.setattr("gpuslice.view.MAX_VIEW_POINTS", 100)
+    monkeypatch.setattr("gpuslice.view.page.MAX_VIEW_POINTS", 100)
     out = tmp_path / "big.html"
     with pytest.raises(ParameterError, match=r"big\.html: .*too many"):
         write_view(torus, out)
@@ -306,9 +306,9 @@ def test_browser_adaptive_thickness_and_masks(browser, tmp_path):
 
 def test_browser_resin_mask_drawn_in_place(browser, torus, tmp_path):
     """--raster: each layer's mask tile is drawn under its contours, where the display's pixels lie in mm."""
-    raster = pytest.importorskip("gpuslice.raster", reason="gpuslice.raster (resin masks) is not available")
+    raster = pytest.importorskip("gpuslice.raster.coverage", reason="gpuslice.raster is not available")
     pytest.importorskip("PIL", reason="pillow is not installed")
-    from gpuslice.view import raster_masks
+    from gpuslice.view.page import raster_masks
 
     spec = raster.RasterSpec(resolution=(640, 480), pixel=0.1)
     masks = raster_masks(torus, spec, every=2, backend="numpy")
@@ -333,7 +333,7 @@ def test_browser_resin_mask_drawn_in_place(browser, torus, tmp_path):
 
 
 def test_cli_raster_option(torus_stl, tmp_path, capsys):
-    pytest.importorskip("gpuslice.raster", reason="gpuslice.raster (resin masks) is not available")
+    pytest.importorskip("gpuslice.raster.coverage", reason="gpuslice.raster is not available")
     pytest.importorskip("PIL", reason="pillow is not installed")
     out = tmp_path / "r.html"
     args = ["view", str(torus_stl), "-t", "1", "--raster", "--mask-every", "5", "--printer", "elegoo-mars"]

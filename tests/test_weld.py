@@ -1,4 +1,4 @@
-"""The weld and the edge ids on the device (``gpuslice.weld``) against their numpy twins, bit for bit.
+"""The weld and the edge ids on the device (``gpuslice.mesh.weld``) against their numpy twins, bit for bit.
 
 The numpy twins are the code of ``gpuslice.mesh`` (checked here against ``mesh_from_triangles``); the device path
 must give identical arrays (ids numbered by first occurrence) whatever order its work-items ran in, also when a
@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from gpuslice import mesh_from_triangles
-from gpuslice import shapes as S
-from gpuslice.weld import WeldKernel, edge_ids_device, edge_ids_numpy, weld_device, weld_numpy
+from gpuslice.mesh import shapes as S
+from gpuslice.mesh.weld import WeldKernel, edge_ids_device, edge_ids_numpy, weld_device, weld_numpy
 
 
 def _corners(triangles) -> np.ndarray:
@@ -174,7 +174,7 @@ def test_kernel_parameters_checked(device):
 
 @pytest.mark.parametrize("name", ["benchy.stl", "nefertiti.stl"])
 def test_device_real_meshes(device, shared_meshes, name):
-    from gpuslice.stl import read_mesh_file
+    from gpuslice.io.meshfile import read_mesh_file
 
     path = shared_meshes / name
     if not path.is_file():

@@ -1,0 +1,156 @@
+"""``gpuslice batch``: slice many models with the same options, on local worker processes or a Dask cluster.
+
+The engine is :mod:`gpuslice.batch`; this module only parses options, shows progress and prints the summary.
+Exit status: 0 when every model is done or skipped, 1 when some model failed (the others are still done; the
+failures are listed), 2 when the batch cannot start (no models, bad options, an unreachable scheduler), 130 on
+Ctrl-C (workers stopped, no partial output left, the report written with the unfinished models as "not run").
+"""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+from .main import adaptive_options, adaptive_params, fail, slicing_options, with_options
+
+__all__ = ["batch"]
+
+
+def _parse_value(text: str):
+    for cast in (int, float):
+        try:
+            return cast(text)
+        except ValueError:
+            pass
+    return {"true": True, "false": False}.get(text.lower(), text)
+
+
+def _raster_options(pairs: tuple[str, ...]) -> tuple[tuple[str, object], ...]:
+    out = []
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key.strip():
+            fail(f"--raster-opt {pair!r}: expected KEY=VALUE")
+        out.append((key.strip().replace("-", "_"), _parse_value(value.strip())))
+    return tuple(out)
+
+
+class _Progress:
+    """A rich progress bar on stderr when it is a terminal; otherwise one line per failed model."""
+
+    def __init__(self, total: int, quiet: bool) -> None:
+        self.bar = None
+        self.quiet = quiet
+        if not quiet and sys.stderr.isatty():
+            from rich.console import Console
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+            self.bar = Progress(TextColumn("slicing"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+                                TextColumn("{task.description}"), console=Console(stderr=True), transient=True)
+            self.task = self.bar.add_task("", total=total)
+
+    def __enter__(self):
+        if self.bar is not None:
+            self.bar.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+
+    def __call__(self, rec: dict) -> None:
+        if rec["status"] == "failed" and not self.quiet:
+            line = f"gpuslice: failed: {rec['error']}"
+            if self.bar is not None:
+                self.bar.console.print(line, markup=False, highlight=False)
+            else:
+                click.echo(line, err=True)
+        if self.bar is not None:
+            self.bar.update(self.task, advance=1, description=rec["model"][-40:])
+
+
+_slice_options = slicing_options()
+
+
+@click.command()
+@click.argument("inputs", nargs=-1, required=True, type=click.Path(path_type=str))
+@click.option("-o", "--output", "out_dir", type=click.Path(path_type=str), required=True,
+              help="Output folder; it mirrors the input tree, one result per model.")
+@with_options(_slice_options)
+@with_options(adaptive_options)
+@click.option("--format", "fmt", type=click.Choice(["npz", "svg", "cli"]), default="npz", show_default=True,
+              help="Result format of each model.")
+@click.option("--glob", "pattern", default=None,
+              help="In folders, the models to take, e.g. '**/*.stl' (case-insensitive; default: every .stl .3mf "
+                   ".obj .ply .off).")
+@click.option("--raster", type=click.Choice(["sl1", "png"]), default=None,
+              help="Rasterise each model to an SL1 archive or a PNG-stack folder instead (needs gpuslice.raster).")
+@click.option("--raster-opt", "raster_opt", multiple=True, metavar="KEY=VALUE",
+              help="A rasteriser option, e.g. pixel=0.05 or resolution=3840x2400 (repeatable).")
+@click.option("-j", "--workers", type=int, default=None,
+              help="Local worker processes (0: in this process). Default: one per core, PoCL threads shared out.")
+@click.option("--threads", type=int, default=None, help="PoCL threads per local worker (default: cores // workers).")
+@click.option("--scheduler", default=None, metavar="ADDRESS",
+              help="Run on an existing Dask cluster, e.g. tcp://HOST:8786 (needs gpuslice[batch] there and here).")
+@click.option("--transfer", type=click.Choice(["bytes", "shared"]), default=None,
+              help="With --scheduler: 'bytes' sends model bytes to the workers and writes their outputs here "
+                   "(default); 'shared' lets workers read and write the paths (a shared file system).")
+@click.option("--force", is_flag=True, help="Redo models whose output exists; allow other options in OUT.")
+@click.option("--report", type=click.Path(path_type=str), default=None,
+              help="Write the batch report (per model status, facets, layers, timings, error) as JSON.")
+@click.option("-q", "--quiet", is_flag=True, help="No progress bar and no summary table.")
+def batch(inputs, out_dir, thickness, first_layer, z_mode, scale, fit, fill_rule, max_gap, backend, device, fmt,
+          pattern, raster, raster_opt, workers, threads, scheduler, transfer, force, report, quiet, **adaptive) -> None:
+    """Slice every model in INPUTS (folders, searched recursively; list files of paths, .txt/.list; model files)
+    with the same options (those of `slice`, adaptive layers included) into OUT, on local workers or a Dask
+    cluster. Models whose output exists are skipped."""
+    from ..batch.runner import BatchOptions, BatchRunner, discover, format_summary
+    from ..io.report import write_report
+
+    if workers is not None and workers < 0:
+        fail(f"--workers must be >= 0, got {workers}")
+    if threads is not None and threads < 1:
+        fail(f"--threads must be >= 1, got {threads}")
+    if transfer is not None and scheduler is None:
+        fail("--transfer only applies with --scheduler")
+    if raster is None and raster_opt:
+        fail("--raster-opt needs --raster")
+    opts = BatchOptions(thickness=thickness, first_layer=first_layer, z_mode=z_mode, fill_rule=fill_rule,
+                        max_gap=max_gap, backend=backend, device=device, scale=scale, fit=fit, fmt=fmt,
+                        raster=raster, raster_options=_raster_options(raster_opt),
+                        schedule=tuple(adaptive_params(adaptive).items()) if adaptive["adaptive"] else ())
+    if raster is not None:
+        from ..batch.runner import check_raster
+
+        check_raster(raster, opts.raster_options)
+    models = discover(inputs, pattern, opts.suffix)
+    client = None
+    if scheduler is not None:
+        from ..batch.runner import connect
+
+        client = connect(scheduler)
+    runner = None
+    try:
+        with _Progress(len(models), quiet) as progress:
+            runner = BatchRunner(models, opts, out_dir, force=force, progress=progress, inputs=inputs)
+            result = runner.run(workers, threads=threads, client=client, transfer=transfer or "bytes")
+    except KeyboardInterrupt:
+        if runner is not None and report is not None:
+            write_report(runner.report(), report)
+        if runner is not None:
+            s = runner.report()["summary"]
+            click.echo(f"gpuslice: interrupted: {s['done']} done, {s['not_run']} not run", err=True)
+        raise
+    finally:
+        if client is not None:
+            client.close()
+    if report is not None:
+        write_report(result, report)
+    if not quiet:
+        click.echo(format_summary(result))
+        if report is not None:
+            click.echo(f"wrote {report}")
+    if result["summary"]["failed"]:
+        raise SystemExit(1)
+

@@ -1,0 +1,158 @@
+"""``gpuslice bench`` (timings and quality of uniform and adaptive settings side by side) and ``gpuslice plot``
+(the paper's figures), imported only when one of them runs."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+from .main import adaptive_options, adaptive_params, fail, load_model, mesh_options, with_options
+
+__all__ = ["bench", "plot"]
+
+_common = [
+    click.option("-t", "--thickness", "thicknesses", default=None, help="Uniform thicknesses, mm: 0.1,0.2,0.3."),
+    click.option("--adaptive", "modes", default=None, help="Adaptive modes to add: roi,cusp,area."),
+    *mesh_options,
+    click.option("--backend", type=click.Choice(["opencl", "numpy"]), default="opencl", show_default=True),
+    click.option("--device", default=None, help="OpenCL device: 'P:D' index or a name piece."),
+    *adaptive_options[1:],
+]
+
+
+def _setup(model, thicknesses, modes, scale, fit, backend, device, kw):
+    from ..bench.runner import parse_settings
+    from ..slicing.slicer import SliceParams
+
+    settings = parse_settings(thicknesses, modes)
+    kw = {**kw, "adaptive": None}
+    params = SliceParams(backend=backend, device=device, **adaptive_params(kw))
+    mesh, _, load_times = load_model(model, scale, fit, backend, device)
+    load_times.pop("device")
+    return settings, params, mesh, load_times
+
+
+def _fmt(v, digits=4):
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return f"{v:.{digits}g}"
+    return str(v)
+
+
+def _table(res) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    ctx = res.context
+    t = Table(title=f"{Path(ctx['model']).name}: {ctx['facets']} facets, {ctx['height_mm']:.4g} mm tall, "
+                    f"median of {ctx['repeat']} runs (load {_fmt(ctx['load_s'])} s + weld {_fmt(ctx['topology_s'])} s"
+                    f" not included)")
+    cols = [("setting", "setting"), ("layers", "layers"), ("total_s", "total s"), ("schedule_s", "schedule"),
+            ("crossings_s", "crossings"), ("chaining_s", "chaining"), ("nesting_s", "nesting"), ("points", "points"),
+            ("max_cusp_mm", "max cusp mm"), ("mean_cusp_mm", "mean cusp mm"),
+            ("volume_deviation_pct", "vol dev %")]
+    for _, head in cols:
+        t.add_column(head, justify="left" if head == "setting" else "right")
+    for r in res.rows:
+        t.add_row(*[_fmt(r.get(k)) for k, _ in cols])
+    Console(width=max(Console().width, 160)).print(t)
+    ref = ctx.get("reference_thickness_mm")
+    click.echo(f"device: {ctx['device']}; volume deviation against a uniform {_fmt(ref)} mm reference"
+               if ref else f"device: {ctx['device']}")
+    for r in res.rows:
+        for lv in r.get("roi_windows", []):
+            wins = ", ".join(f"z {a:.4g}..{b:.4g} mm" for a, b in lv["windows_mm"]) or "none"
+            click.echo(f"{r['setting']}: level {lv['level']} ({lv['thickness_mm']:g} mm) window {wins}")
+
+
+
+def _make_dir(path: str) -> None:
+    """Create the plot directory (as ``mkdir -p`` of one level); its parent must exist."""
+    d = Path(path)
+    if d.exists() and not d.is_dir():
+        fail(f"{d}: exists and is not a directory")
+    if not d.parent.is_dir():
+        fail(f"{d}: directory {d.parent} does not exist")
+    d.mkdir(exist_ok=True)
+
+@click.command()
+@click.argument("model", type=click.Path(dir_okay=True, path_type=str))
+@with_options(_common)
+@click.option("--repeat", type=int, default=3, show_default=True, help="Runs per setting; the table shows medians.")
+@click.option("--no-quality", is_flag=True, help="Skip the volume deviation (cusp heights are always given).")
+@click.option("--ref-thickness", type=float, default=None,
+              help="Reference thickness for the volume deviation, mm (default: thinnest layer / 5).")
+@click.option("--json", "as_json", is_flag=True, help="Print the table as JSON.")
+@click.option("--csv", "as_csv", is_flag=True, help="Print the table as CSV.")
+@click.option("--plots", "plots_dir", type=click.Path(path_type=str), default=None,
+              help="Also write the plots (PNG and SVG) into this directory.")
+def bench(model, thicknesses, modes, scale, fit, backend, device, repeat, no_quality, ref_thickness, as_json, as_csv,
+          plots_dir, **kw) -> None:
+    """Time and compare layer settings on MODEL: the paper's Tables 2-3 as one table (medians of --repeat runs)."""
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from ..bench.runner import run_bench
+
+    if as_json and as_csv:
+        fail("--json and --csv exclude each other")
+    if plots_dir is not None:
+        _make_dir(plots_dir)
+    settings, params, mesh, load_times = _setup(model, thicknesses, modes, scale, fit, backend, device, kw)
+    console = Console(stderr=True)
+    steps = 1 + len(settings) * repeat + (0 if no_quality else len(settings))
+    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                  TimeElapsedColumn(), console=console, transient=True, disable=not console.is_terminal) as bar:
+        task = bar.add_task("bench", total=steps)
+        res = run_bench(mesh, settings, params, repeat=repeat, quality=not no_quality, ref_thickness=ref_thickness,
+                        load_times=load_times,
+                        progress=lambda desc, adv=1: bar.update(task, advance=adv, description=desc))
+    if as_json:
+        click.echo(json.dumps(res.to_json(), indent=1))
+    elif as_csv:
+        click.echo(res.to_csv(), nl=False)
+    else:
+        _table(res)
+    if plots_dir is not None:
+        from ..bench.plots import plot_all
+
+        paths = plot_all(res.results, plots_dir, Path(model).stem)
+        click.echo(f"wrote {len(paths)} plot files to {plots_dir}", err=as_json or as_csv)
+
+
+@click.command()
+@click.argument("model", type=click.Path(dir_okay=True, path_type=str))
+@with_options(_common)
+@click.option("-o", "--out", "out_dir", type=click.Path(path_type=str), required=True,
+              help="Directory for the PNG and SVG files.")
+@click.option("--layers", default=None, help="Layer indices to draw (of the first setting), e.g. 39,159.")
+def plot(model, thicknesses, modes, scale, fit, backend, device, out_dir, layers, **kw) -> None:
+    """Plot MODEL's slices: points per layer (Fig. 6/11), layer contours and points (Fig. 5/10), 3D stacks (Fig. 8)."""
+    from dataclasses import replace
+
+    from ..bench.plots import default_layers, plot_all, plot_layers
+    from ..slicing.slicer import slice_mesh
+
+    _make_dir(out_dir)
+    settings, params, mesh, _ = _setup(model, thicknesses, modes, scale, fit, backend, device, kw)
+    results = {s.label: slice_mesh(mesh, replace(params, **s.overrides)) for s in settings}
+    name = Path(model).stem
+    paths = plot_all(results, out_dir, name)
+    if layers:
+        first = next(iter(results.values()))
+        try:
+            idx = [int(x) for x in layers.split(",") if x.strip()]
+        except ValueError:
+            fail(f"--layers: expected comma-separated layer indices, got '{layers}'")
+        bad = [i for i in idx if not 0 <= i < first.n_layers]
+        if bad:
+            fail(f"--layers: {bad} out of range (0..{first.n_layers - 1})")
+        paths += plot_layers(first, idx or default_layers(first), Path(out_dir) / f"{name}_layers_chosen")
+    for lv in (r.meta.get("adaptive") or {} for r in results.values()):
+        for x in lv.get("levels", []):
+            wins = ", ".join(f"z {w['z_mm'][0]:.4g}..{w['z_mm'][1]:.4g} mm" for w in x["windows"]) or "none"
+            click.echo(f"roi level {x['level']} ({x['thickness_mm']:g} mm): window {wins}")
+    click.echo(f"wrote {len(paths)} files to {out_dir}")

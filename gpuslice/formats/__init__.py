@@ -1,0 +1,109 @@
+"""Contour output formats, behind one registry: ``suffix → writer``.
+
+Each format is one module here with a writer ``write(result, path, **options)`` (atomic, bytes a pure function of
+the result and options) and one :class:`ContourFormat` entry in :data:`CONTOUR_FORMATS` below. The command line's
+choices and messages (``slice -o``, ``batch --format``), the suffix dispatch of :func:`export` and the docs read
+this registry. Writer modules are imported only when a file of theirs is written.
+
+Adding a format (say GeoJSON): write ``gpuslice/formats/geojson.py`` with ``write_geojson(result, path, ...)``, then
+add ``ContourFormat("geojson", (".geojson",), "geojson:write_geojson", "…")`` to ``CONTOUR_FORMATS``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from ..errors import ParameterError
+
+if TYPE_CHECKING:
+    from ..slicing.result import SliceResult
+
+__all__ = ["CONTOUR_FORMATS", "ContourFormat", "export", "format_for", "format_names", "suffixes"]
+
+
+@dataclass(frozen=True)
+class ContourFormat:
+    """One contour output format: ``name`` (``--format`` value), ``suffixes`` (lower case, the first is the one
+    batch gives its outputs), ``writer`` as ``"module:function"`` inside :mod:`gpuslice.formats`, ``help``."""
+
+    name: str
+    suffixes: tuple[str, ...]
+    writer: str
+    help: str
+
+    @property
+    def suffix(self) -> str:
+        return self.suffixes[0]
+
+    def load(self) -> Callable[..., None]:
+        """The writer function (its module imported now)."""
+        module, func = self.writer.split(":")
+        return getattr(importlib.import_module(f"{__name__}.{module}"), func)
+
+    def options(self) -> tuple[str, ...]:
+        """The keyword options the writer takes (after ``result`` and ``path``)."""
+        params = list(inspect.signature(self.load()).parameters.values())[2:]
+        return tuple(p.name for p in params if p.kind is inspect.Parameter.KEYWORD_ONLY)
+
+
+#: the registry, in the order the help lists them
+CONTOUR_FORMATS: dict[str, ContourFormat] = {
+    f.name: f
+    for f in (
+        ContourFormat("npz", (".npz",), "npz:write_npz", "every array of the result (numpy .npz)"),
+        ContourFormat("svg", (".svg",), "svg:write_svg", "all layers in one SVG, a <g> per layer, 1 unit = 1 mm"),
+        ContourFormat("cli", (".cli",), "commonlayer:write_cli", "Common Layer Interface 2.0, ASCII"),
+    )
+}
+
+
+def format_names() -> list[str]:
+    """The registered format names (``npz``, ``svg``, ``cli``, …)."""
+    return list(CONTOUR_FORMATS)
+
+
+def suffixes() -> list[str]:
+    """Every registered suffix, e.g. ``[".npz", ".svg", ".cli"]``."""
+    return [s for f in CONTOUR_FORMATS.values() for s in f.suffixes]
+
+
+def _choices() -> str:
+    s = suffixes()
+    return ", ".join(s[:-1]) + " or " + s[-1] if len(s) > 1 else s[0]
+
+
+def format_for(path: str | os.PathLike) -> ContourFormat:
+    """The format of ``path`` by its suffix (any case); :class:`ParameterError` naming ``path`` otherwise."""
+    p = Path(os.fspath(path))
+    kind = p.suffix.lower()
+    for f in CONTOUR_FORMATS.values():
+        if kind in f.suffixes:
+            return f
+    raise ParameterError(f"{p}: unknown output format '{p.suffix}' (use {_choices()})")
+
+
+def export(result: SliceResult, path: str | os.PathLike, **options: Any) -> None:
+    """Write ``result`` in the format named by the suffix of ``path`` (case-insensitive), atomically.
+
+    ``options`` are passed on to the writer (e.g. ``decimals`` for ``.svg``/``.cli``; ``.npz`` takes none).
+
+    Raises
+    ------
+    ParameterError
+        Unknown suffix, or options the writer does not take.
+    """
+    p = Path(os.fspath(path))
+    fmt = format_for(p)
+    unknown = sorted(set(options) - set(fmt.options()))
+    if unknown:
+        if not fmt.options():
+            raise ParameterError(f"{p}: {fmt.suffix} output takes no options, got {', '.join(unknown)}")
+        raise ParameterError(f"{p}: {fmt.suffix} output takes no option {', '.join(unknown)} "
+                             f"(it takes {', '.join(fmt.options())})")
+    fmt.load()(result, p, **options)

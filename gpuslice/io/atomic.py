@@ -1,0 +1,151 @@
+"""Writing files atomically: every output of gpuslice goes through :func:`atomic_path`.
+
+The output is written under a temporary name in the destination's directory and renamed over the final name only
+once it is complete, so an interrupted run (an exception, Ctrl-C, a full disk) never leaves a truncated file under
+the name the user asked for. Folders (a PNG stack) are written the same way, as a whole.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import secrets
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from ..errors import ParameterError
+
+if TYPE_CHECKING:
+    pass
+
+PathLike = str | os.PathLike
+
+__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_text", "remove_path"]
+
+
+def remove_path(path: Path) -> None:
+    """Remove a file, link or directory tree at ``path`` if there is one; never raises."""
+    with contextlib.suppress(OSError):
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink(missing_ok=True)
+
+
+def _fsync_file(path: Path) -> None:
+    with contextlib.suppress(OSError):
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def _fsync_dir(path: Path) -> None:
+    # Makes the rename itself durable on POSIX; directories cannot be opened on Windows, hence best effort.
+    with contextlib.suppress(OSError, AttributeError):
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+@contextlib.contextmanager
+def atomic_path(path: PathLike, *, fsync: bool = True) -> Iterator[Path]:
+    """Context manager giving a temporary path that replaces ``path`` when the block succeeds.
+
+    The temporary path lies in the same directory as ``path`` (so the final rename never crosses file
+    systems) and is named ``.{name}.tmp-{pid}-{random}{suffix}``: hidden, unique, and ending with the final
+    name's suffix for writers that look at it (``np.savez`` appends ``.npz`` otherwise). The block creates
+    whatever it wants at that path, a file or a directory. When the block completes, the temporary is
+    flushed to disk (``fsync=True``) and renamed over ``path`` with :func:`os.replace`; when the block
+    raises anything, ``KeyboardInterrupt`` and ``SystemExit`` included, the temporary (file or directory
+    tree) is removed and the exception propagates. Either way no partial output is ever visible under
+    ``path`` and no temporary is left behind.
+
+    Parameters
+    ----------
+    path
+        The final output path. Its directory must exist.
+    fsync
+        Flush the written file and the directory entry to stable storage, so a power cut right after the
+        rename cannot leave an empty file under ``path``.
+
+    Yields
+    ------
+    Path
+        The temporary path to write to (nothing exists there yet).
+
+    Raises
+    ------
+    ParameterError
+        The directory of ``path`` does not exist, or ``path`` is an existing directory and the block wrote
+        a file.
+    FileNotFoundError
+        The block completed without creating anything at the temporary path.
+
+    Notes
+    -----
+    A directory written by the block replaces an existing directory at ``path`` by two renames (the old
+    tree is moved aside, the new one moved in, the old one deleted); readers see either the complete old
+    tree or the complete new one, though there is an instant where ``path`` does not exist.
+
+    Examples
+    --------
+    >>> with atomic_path("out.bin") as tmp:  # doctest: +SKIP
+    ...     with open(tmp, "wb") as fh:
+    ...         fh.write(data)
+    """
+    final = Path(os.fspath(path))
+    directory = final.parent
+    if not directory.is_dir():
+        raise ParameterError(f"{final}: directory {directory} does not exist")
+    tmp = directory / f".{final.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}{final.suffix}"
+    try:
+        yield tmp
+        if not tmp.exists() and not tmp.is_symlink():
+            raise FileNotFoundError(f"{final}: nothing was written to the temporary path {tmp}")
+        if tmp.is_dir() and not tmp.is_symlink():
+            _replace_dir(tmp, final)
+        else:
+            if final.is_dir() and not final.is_symlink():
+                raise ParameterError(f"{final}: is a directory")
+            if fsync:
+                _fsync_file(tmp)
+            os.replace(tmp, final)
+        if fsync:
+            _fsync_dir(directory)
+    except BaseException:
+        remove_path(tmp)
+        raise
+
+
+def _replace_dir(tmp: Path, final: Path) -> None:
+    if not final.exists() and not final.is_symlink():
+        os.replace(tmp, final)
+        return
+    if not final.is_dir() or final.is_symlink():
+        os.replace(tmp, final)  # raises NotADirectoryError on POSIX: a directory cannot replace a file
+        return
+    old = final.parent / f".{final.name}.old-{os.getpid()}-{secrets.token_hex(4)}"
+    os.replace(final, old)
+    try:
+        os.replace(tmp, final)
+    except BaseException:
+        os.replace(old, final)
+        raise
+    remove_path(old)
+
+
+def atomic_write_bytes(path: PathLike, data: bytes | bytearray | memoryview) -> None:
+    """Write ``data`` to ``path`` atomically (see :func:`atomic_path`)."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(data)
+
+
+def atomic_write_text(path: PathLike, text: str, *, encoding: str = "utf-8") -> None:
+    """Write ``text`` to ``path`` atomically, encoded with ``encoding``, newlines written as given."""
+    atomic_write_bytes(path, text.encode(encoding))

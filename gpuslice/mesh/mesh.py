@@ -1,0 +1,344 @@
+"""Stage 1: the mesh. Raw triangles in, a welded, placed mesh with vertex and edge ids out.
+
+Loading (``stl.py`` reads the file) is followed by, in this order:
+
+1. **Weld**: corners with bit-identical float32 coordinates as stored (after turning -0.0 into 0.0) become one
+   vertex. No tolerance is used: nearby but distinct vertices stay distinct, so cracks stay visible as open chains.
+   Vertex ids are numbered by first occurrence, so the same file always gives the same ids.
+2. **Transform** the unique vertices in float64: ``scale`` (a factor) or ``fit`` (scale so the longest
+   bounding-box side is ``fit`` mm), then a translation so the lowest point is at z = 0 (the bed); X and Y are
+   kept. Coordinates are then rounded to float32.
+3. **Degenerate facets**, whose corners weld to fewer than three distinct vertices, are dropped and counted.
+4. **Edges**: side k of facet f runs from corner k to corner (k + 1) % 3; each undirected vertex pair gets one edge
+   id (numbered by first occurrence), stored in ``face_edges`` (F, 3).
+
+Normals are computed from the winding (the paper's eq. 1, then normalised to unit length); stored normals are only
+compared with them (``stored_normal_mismatch``).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import EmptyMeshError, InvalidGeometryError, ParameterError
+
+__all__ = ["Mesh", "load_mesh", "mesh_from_triangles", "mesh_from_arrays", "first_occurrence_ids"]
+
+#: below this many facets the numpy weld is faster than a kernel launch round trip
+DEVICE_WELD_MIN_FACETS = 20_000
+
+
+@dataclass
+class Mesh:
+    """A welded triangle mesh placed on the bed, in mm.
+
+    Attributes
+    ----------
+    vertices : (V, 3) float32
+        Unique vertex positions, mm; the lowest z is 0.
+    faces : (F, 3) int32
+        Vertex ids of each facet's corners, in the file's winding order (counter-clockwise seen from outside).
+    face_edges : (F, 3) int32
+        Undirected edge id of each facet side; side k joins corners k and (k + 1) % 3.
+    edge_vertices : (E, 2) int32
+        The two vertex ids of each edge, smaller first.
+    stored_normals : (F, 3) float32 or None
+        Normals as stored in the file, for the kept facets.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    face_edges: np.ndarray
+    edge_vertices: np.ndarray
+    stored_normals: np.ndarray | None = None
+    name: str = "<mesh>"
+    source_format: str = "arrays"
+    scale: float = 1.0
+    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    dropped_degenerate: int = 0
+    solids: int = 1
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    @property
+    def n_faces(self) -> int:
+        return int(self.faces.shape[0])
+
+    @property
+    def height(self) -> float:
+        """Height of the mesh above the bed, mm (its top z)."""
+        return float(self.vertices[:, 2].max()) if self.vertices.size else 0.0
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """(2, 3) float64: bounding-box minimum and maximum, mm (per-column reductions: fast)."""
+        v = self.vertices
+        return np.array([[v[:, k].min() for k in range(3)], [v[:, k].max() for k in range(3)]], dtype=np.float64)
+
+    @property
+    def triangles(self) -> np.ndarray:
+        """(F, 3, 3) float32 corner coordinates."""
+        return self.vertices[self.faces]
+
+    def face_normals(self) -> np.ndarray:
+        """(F, 3) float32 unit normals from the winding: ``(p2 - p1) × (p3 - p1)``, normalised (0 if degenerate)."""
+        if "normals" not in self._cache:
+            t = self.triangles.astype(np.float64)
+            n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+            length = np.sqrt(np.einsum("ij,ij->i", n, n))
+            with np.errstate(invalid="ignore", divide="ignore"):
+                n = np.where(length[:, None] > 0, n / length[:, None], 0.0)
+            self._cache["normals"] = n.astype(np.float32)
+        return self._cache["normals"]
+
+    def edge_face_counts(self) -> np.ndarray:
+        """(E,) int: how many facets use each edge (2 on a closed manifold)."""
+        return np.bincount(self.face_edges.reshape(-1), minlength=self.edge_vertices.shape[0])
+
+    def info(self) -> dict:
+        """Summary figures: facets, vertices, distinct normals, bbox, watertight, bodies, volume (mm, mm^3)."""
+        counts = self.edge_face_counts()
+        normals = self.face_normals()
+        distinct_normals = int(np.unique(normals.view(np.dtype((np.void, 12))).reshape(-1)).size) if len(
+            normals
+        ) else 0
+        directed_ok = _directed_edges_paired(self)
+        t = self.triangles.astype(np.float64)
+        volume = float(np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6.0)
+        mismatch = None
+        if self.stored_normals is not None:
+            mismatch = int(stored_normal_mismatch(self.stored_normals, normals).sum())
+        b = self.bounds
+        return {
+            "file": self.name,
+            "format": self.source_format,
+            "facets": self.n_faces,
+            "vertices": int(self.vertices.shape[0]),
+            "edges": int(self.edge_vertices.shape[0]),
+            "distinct_normals": distinct_normals,
+            "bbox_min": b[0].tolist(),
+            "bbox_max": b[1].tolist(),
+            "size": (b[1] - b[0]).tolist(),
+            "scale": self.scale,
+            "watertight": bool(counts.size > 0 and np.all(counts == 2)),
+            "winding_consistent": directed_ok,
+            "boundary_edges": int(np.sum(counts == 1)),
+            "nonmanifold_edges": int(np.sum(counts > 2)),
+            "bodies": count_bodies(self),
+            "volume": volume,
+            "degenerate_dropped": self.dropped_degenerate,
+            "stored_normal_mismatch": mismatch,
+            "solids": self.solids,
+        }
+
+
+def stored_normal_mismatch(stored: np.ndarray, computed: np.ndarray) -> np.ndarray:
+    """(F,) bool: stored normals that are missing (zero, NaN, inf) or more than 45° away from the winding's."""
+    s = stored.astype(np.float64)
+    with np.errstate(invalid="ignore", over="ignore"):
+        length = np.sqrt(np.einsum("ij,ij->i", s, s))
+        cos = np.einsum("ij,ij->i", s, computed.astype(np.float64)) / length
+    bad = ~np.isfinite(cos) | (cos < np.sqrt(0.5))
+    # a degenerate facet has no direction to disagree with
+    return bad & np.any(computed != 0, axis=1)
+
+
+def _directed_edges_paired(mesh: Mesh) -> bool:
+    """True when every edge shared by exactly two facets is used once in each direction (consistent winding)."""
+    f = mesh.faces
+    a = f.reshape(-1)
+    b = np.roll(f, -1, axis=1).reshape(-1)
+    forward = (a < b).astype(np.int64)
+    e = mesh.face_edges.reshape(-1)
+    n_e = mesh.edge_vertices.shape[0]
+    fw = np.bincount(e, weights=forward, minlength=n_e)
+    total = np.bincount(e, minlength=n_e)
+    two = total == 2
+    return bool(np.all(fw[two] == 1))
+
+
+def count_bodies(mesh: Mesh) -> int:
+    """Connected components of facets sharing a vertex (bodies, shells)."""
+    if mesh.n_faces == 0:
+        return 0
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    f = mesh.faces.astype(np.int64)
+    rows = np.concatenate([f[:, 0], f[:, 1]])
+    cols = np.concatenate([f[:, 1], f[:, 2]])
+    n = mesh.vertices.shape[0]
+    graph = coo_matrix((np.ones(rows.size, dtype=np.int8), (rows, cols)), shape=(n, n))
+    n_comp, labels = connected_components(graph, directed=False)
+    used = np.zeros(n, dtype=bool)
+    used[f.reshape(-1)] = True
+    return int(np.unique(labels[used]).size)
+
+
+def first_occurrence_ids(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Number equal keys by first occurrence.
+
+    Returns ``ids`` (N,) int32 with ``ids[i] == ids[j]`` iff ``keys[i] == keys[j]``, numbered 0, 1, … in the order
+    the distinct keys first appear, and ``first`` (K,) int64, the index of each id's first occurrence.
+    """
+    n = keys.shape[0]
+    if n == 0:
+        return np.zeros(0, np.int32), np.zeros(0, np.int64)
+    order = np.argsort(keys, kind="stable")
+    sk = keys[order]
+    start = np.empty(n, dtype=bool)
+    start[0] = True
+    np.not_equal(sk[1:], sk[:-1], out=start[1:])
+    group = np.cumsum(start) - 1
+    firsts = order[start]  # stable sort: the smallest index of each group
+    rank = np.empty(firsts.size, dtype=np.int64)
+    by_first = np.argsort(firsts)
+    rank[by_first] = np.arange(firsts.size)
+    ids = np.empty(n, dtype=np.int32)
+    ids[order] = rank[group]
+    return ids, firsts[by_first]
+
+
+def mesh_from_triangles(
+    triangles: np.ndarray,
+    normals: np.ndarray | None = None,
+    *,
+    scale: float | None = None,
+    fit: float | None = None,
+    name: str = "<triangles>",
+    source_format: str = "arrays",
+    solids: int = 1,
+    device=None,
+) -> Mesh:
+    """Build a :class:`Mesh` from (F, 3, 3) corner coordinates (file units).
+
+    ``scale`` multiplies every coordinate; ``fit`` scales so the longest bounding-box side is ``fit`` mm (give one
+    or neither). The result always stands on the bed: its lowest point is moved to z = 0; X and Y are kept.
+    ``device`` (a :class:`gpuslice.device.Device`): weld and number edges with ``kernels/weld.cl`` (the same ids
+    as the numpy path) for meshes of more than :data:`DEVICE_WELD_MIN_FACETS` facets.
+    """
+    tri = np.asarray(triangles)
+    if tri.ndim != 3 or tri.shape[1:] != (3, 3):
+        raise ParameterError(f"{name}: triangles must have shape (F, 3, 3), got {tri.shape}")
+    if tri.shape[0] == 0:
+        raise EmptyMeshError(f"{name}: no facets")
+    if scale is not None and fit is not None:
+        raise ParameterError("give --scale or --fit, not both")
+    # float32 is the precision of STL; + 0.0 turns -0.0 into 0.0 so both weld together
+    corners = np.ascontiguousarray(tri.reshape(-1, 3), dtype=np.float32) + np.float32(0.0)
+    if not np.all(np.isfinite(corners)):
+        raise InvalidGeometryError(f"{name}: NaN or infinite vertex coordinates")
+    return _from_corners(
+        corners, normals, name=name, source_format=source_format, scale=scale, fit=fit, solids=solids,
+        device=device if tri.shape[0] > DEVICE_WELD_MIN_FACETS else None,
+    )
+
+
+def _placement(verts: np.ndarray, name: str, scale: float | None, fit: float | None):
+    """The scale factor and the offset that put the (scaled) mesh on the bed."""
+    lo = np.array([verts[:, k].min() for k in range(3)], dtype=np.float64)
+    hi = np.array([verts[:, k].max() for k in range(3)], dtype=np.float64)
+    factor = 1.0
+    if fit is not None:
+        if not (np.isfinite(fit) and fit > 0):
+            raise ParameterError(f"--fit must be a positive length in mm, got {fit}")
+        longest = float((hi - lo).max())
+        if longest <= 0:
+            raise InvalidGeometryError(f"{name}: the mesh has no extent to fit")
+        factor = fit / longest
+    elif scale is not None:
+        if not (np.isfinite(scale) and scale > 0):
+            raise ParameterError(f"--scale must be a positive factor, got {scale}")
+        factor = float(scale)
+    extreme = float(np.abs(np.concatenate([lo, hi])).max())
+    if extreme * factor > 1e18:
+        raise InvalidGeometryError(f"{name}: coordinates up to {extreme * factor:.3g} overflow float32 arithmetic")
+    return factor, np.array([0.0, 0.0, -lo[2] * factor])
+
+
+def _from_corners(corners, normals, *, name, source_format, scale, fit, solids, device=None) -> Mesh:
+    n_faces = corners.shape[0] // 3
+    from .weld import edge_ids_device, edge_ids_numpy, weld_device, weld_numpy
+
+    # bit-identical as stored, before any transform
+    vid, first = weld_device(corners, device) if device is not None else weld_numpy(corners)
+    verts = corners[first]
+    factor, offset = _placement(verts, name, scale, fit)
+    if factor != 1.0 or offset[2] != 0.0:
+        verts = (verts.astype(np.float64) * factor + offset).astype(np.float32) + np.float32(0.0)
+    faces = vid.reshape(n_faces, 3)
+    good = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])
+    dropped = int(n_faces - good.sum())
+    if dropped:
+        faces = faces[good]
+        if normals is not None:
+            normals = np.asarray(normals)[good]
+    if faces.shape[0] == 0:
+        raise EmptyMeshError(f"{name}: every facet is degenerate")
+    faces = np.ascontiguousarray(faces, dtype=np.int32)
+    if device is not None:
+        face_edges, edge_vertices = edge_ids_device(faces, verts.shape[0], device)
+    else:
+        face_edges, edge_vertices = edge_ids_numpy(faces, verts.shape[0])
+    return Mesh(
+        vertices=np.ascontiguousarray(verts),
+        faces=np.ascontiguousarray(faces, dtype=np.int32),
+        face_edges=face_edges,
+        edge_vertices=edge_vertices,
+        stored_normals=None if normals is None else np.asarray(normals, dtype=np.float32),
+        name=name,
+        source_format=source_format,
+        scale=float(factor),
+        offset=tuple(float(x) for x in offset),
+        dropped_degenerate=dropped,
+        solids=solids,
+    )
+
+
+def mesh_from_arrays(
+    vertices: np.ndarray, faces: np.ndarray, *, scale: float | None = None, fit: float | None = None,
+    name: str = "<arrays>",
+) -> Mesh:
+    """Build a :class:`Mesh` from indexed arrays: vertices (V, 3) and faces (F, 3), counter-clockwise outward."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces)
+    if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
+        raise ParameterError(f"{name}: vertices must be (V, 3) and faces (F, 3)")
+    if f.size and (f.min() < 0 or f.max() >= len(v)):
+        raise ParameterError(f"{name}: face indices out of range")
+    return mesh_from_triangles(v[f], scale=scale, fit=fit, name=name)
+
+
+def load_mesh(
+    path: str | os.PathLike, *, scale: float | None = None, fit: float | None = None, device=None
+) -> Mesh:
+    """Load STL (binary or ASCII), OBJ, PLY, OFF or 3MF, scale it and place it on the bed (lowest z = 0).
+
+    Parameters
+    ----------
+    path : path of the mesh file.
+    scale : multiply every coordinate by this factor (file units to mm).
+    fit : instead, scale so the longest bounding-box side is ``fit`` mm.
+    device : optional OpenCL :class:`~gpuslice.device.Device` to weld on (see :func:`mesh_from_triangles`).
+
+    Raises
+    ------
+    MeshFileError, EmptyMeshError, InvalidGeometryError
+        With a one-line message naming the file and the problem.
+    """
+    from ..io.meshfile import read_mesh_file
+
+    raw = read_mesh_file(path)
+    return mesh_from_triangles(
+        raw.triangles,
+        raw.normals,
+        scale=scale,
+        fit=fit,
+        name=str(Path(path)),
+        source_format=raw.source_format,
+        solids=raw.solids,
+        device=device,
+    )

@@ -1,0 +1,40 @@
+"""Resin layers: rasterising the nested polygons onto a printer's display (``coverage.py`` + ``kernels/raster.cl``,
+``gl.py``) and the archives resin printers read (``sl1.py``)."""
+
+from .coverage import (
+    BACKENDS,
+    PRINTERS,
+    LayerEdges,
+    RasterKernel,
+    RasterSpec,
+    Tile,
+    check_fits,
+    choose_backend,
+    coverage_numpy,
+    gamma_lut,
+    iter_masks,
+    iter_tiles,
+    layer_edges,
+    masks,
+    result_bounds,
+    with_printer,
+)
+
+__all__ = [
+    "BACKENDS",
+    "LayerEdges",
+    "PRINTERS",
+    "RasterKernel",
+    "RasterSpec",
+    "Tile",
+    "check_fits",
+    "choose_backend",
+    "coverage_numpy",
+    "gamma_lut",
+    "iter_masks",
+    "iter_tiles",
+    "layer_edges",
+    "masks",
+    "result_bounds",
+    "with_printer",
+]

@@ -1,0 +1,431 @@
+"""Adaptive layer schedules: the paper's region-of-interest ladder (``roi``) and error-bounded heights (``cusp``,
+``area``).
+
+Every schedule returned here is a :class:`~gpuslice.schedule.Schedule` (built with :func:`~gpuslice.schedule.from_z`)
+whose layers tile ``[0, height]`` of the mesh contiguously, from the bed up: layer i spans ``[e_i, e_{i+1}]`` with
+``e_0 = 0`` and the last edge exactly at the mesh's top (so the last layer may be thinner than the rest). Each layer
+is cut at the middle of its slab, ``z_i = (e_i + e_{i+1}) / 2`` (the project's convention, as Slic3r and CuraEngine).
+The schedule also carries ``info`` (a JSON-able dict: the mode, its parameters, and for ``roi`` the windows chosen
+at each level) and is accepted by :func:`~gpuslice.slicer.slice_mesh` as ``schedule=``.
+
+``cusp`` (Dolenc & Mäkelä): the cusp height of a facet with unit normal n in a layer of thickness t is t·|n_z|; each
+layer is as thick as allowed by ``t·|n_z| <= C`` over every non-horizontal facet that overlaps its slab, clamped to
+``[min_height, max_height]``. ``area``: the staircase's error area per unit length of a surface at angle α to the bed
+is t² / (2·tan α), so ``t <= sqrt(2·A_max·tan α)`` with ``cos α = |n_z|``. Horizontal facets (zmax = zmin) make no
+staircase and never limit a layer. Like PrusaSlicer's SlicingAdaptive, facets that *start inside* a proposed layer
+count too: a steep facet starting in the upper part of a thick candidate pushes the layer's top down to where it is
+allowed. Layers are found greedily from the bed up on a fine grid of bins (width ``min_height / 10`` by default):
+the device computes, per facet, its z range and |n_z| (``kernels/adaptive.cl``: ``adaptive_facets``) and, per
+bin, the largest |n_z| of the facets touching it (``adaptive_slab_blocks``: two atomic max per facet into a sparse
+table of power-of-two blocks, then ``adaptive_push_down`` level by level); a layer made of bins s .. s+n-1 is allowed
+when ``n·δ <= limit(max |n_z| over those bins)``. Layer edges lie on the bin grid, so the bound is exact (it is
+conservative by facets that only touch a slab's edge), and thicknesses are multiples of the bin width δ. Only when
+``min_height`` is above what a facet allows can the bound be exceeded (``info["bound_violations"]`` counts such
+layers). ``smooth = g`` limits how fast the thickness may change, by at most g mm per mm of height (a Lipschitz
+envelope, taken below the allowed thickness, so the bound still holds).
+
+``roi`` (the paper's method, generalised): slice the whole object at the first thickness of the ladder
+(default 1, 0.5, 0.1 mm), take the signal of points per layer, find the window(s) of consecutive layers whose points
+are at or above a threshold (default: the 0.75 quantile of that level's signal; or an absolute number of points,
+one per level), re-slice each window at the next thickness and repeat inside it. The levels merge into one
+schedule: each layer keeps the thickness of the deepest level that covers it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..device import KernelDriver
+from ..errors import ParameterError
+from ..mesh.mesh import Mesh
+from .uniform import Schedule, from_z
+
+__all__ = [
+    "AdaptiveSchedule",
+    "AdaptiveKernel",
+    "ADAPTIVE_MODES",
+    "facet_slopes",
+    "facet_slopes_numpy",
+    "slab_max_nz",
+    "slab_max_nz_numpy",
+    "slope_limit",
+    "cusp_schedule",
+    "roi_schedule",
+    "adaptive_schedule",
+    "schedule_from_edges",
+]
+
+ADAPTIVE_MODES = ("roi", "cusp", "area")
+
+#: relative safety on |n_z| so float32 rounding never lets t·|n_z| exceed the bound in float64
+_NZ_SAFETY = 1.0 + 1e-6
+
+
+@dataclass(frozen=True)
+class AdaptiveSchedule(Schedule):
+    """A :class:`Schedule` with ``info``: the adaptive mode, its parameters and (roi) the windows per level."""
+
+    info: dict = field(default_factory=dict, compare=False)
+
+
+def schedule_from_edges(edges: np.ndarray, mode: str = "custom", info: dict | None = None) -> AdaptiveSchedule:
+    """The schedule of slabs ``[edges[i], edges[i+1]]`` (mm, strictly increasing), each cut at its middle."""
+    e = np.asarray(edges, dtype=np.float64)
+    base = from_z((e[1:] + e[:-1]) / 2, np.diff(e))
+    return AdaptiveSchedule(base.z, base.thickness, mode=mode, info=dict(info or {}))
+
+
+# ---- kernels and their numpy twins ----------------------------------------------------------------------------
+
+
+def facet_slopes_numpy(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The numpy twin of ``adaptive_facets``: per facet (zmin, zmax, |n_z|), float32, bit-identical to the kernel."""
+    t = mesh.vertices[mesh.faces]  # (F, 3, 3) float32
+    a, b, c = t[:, 0], t[:, 1], t[:, 2]
+    u, v = b - a, c - a
+    nx = u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1]
+    ny = u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2]
+    nz = u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
+    length = np.sqrt((nx * nx + ny * ny) + nz * nz)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        anz = np.where(length > 0, np.abs(nz) / length, np.float32(0)).astype(np.float32)
+    z = t[:, :, 2]
+    return z.min(axis=1), z.max(axis=1), anz
+
+
+def _slab_ranges(zmin: np.ndarray, zmax: np.ndarray, edges32: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """[first, last) slabs each facet touches (the kernel's binary searches, in float32)."""
+    n = edges32.size - 1
+    first = np.searchsorted(edges32[1:], zmin, side="left")
+    last = np.searchsorted(edges32[:n], zmax, side="right")
+    return first, last
+
+
+def _range_max(n: int, lo: np.ndarray, hi: np.ndarray, val: np.ndarray) -> np.ndarray:
+    """out[i] = max(val[k] for ranges [lo[k], hi[k]) containing i), 0 elsewhere; vectorised (sparse table pushed
+    down: each range is covered by two power-of-two blocks)."""
+    out = np.zeros(n, dtype=val.dtype)
+    keep = hi > lo
+    lo, hi, val = lo[keep], hi[keep], val[keep]
+    if n == 0 or lo.size == 0:
+        return out
+    length = hi - lo
+    k = np.floor(np.log2(length)).astype(np.int64)
+    k = np.where((1 << (k + 1)) <= length, k + 1, k)  # guard log2 rounding
+    k = np.where((1 << k) > length, k - 1, k)
+    levels = int(k.max()) + 1
+    table = np.zeros((levels, n), dtype=val.dtype)
+    np.maximum.at(table, (k, lo), val)
+    np.maximum.at(table, (k, hi - (1 << k)), val)
+    for j in range(levels - 1, 0, -1):
+        half = 1 << (j - 1)
+        np.maximum(table[j - 1], table[j], out=table[j - 1])
+        np.maximum(table[j - 1][half:], table[j][: n - half], out=table[j - 1][half:])
+    return table[0]
+
+
+def slab_max_nz_numpy(zmin: np.ndarray, zmax: np.ndarray, nz: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """The numpy twin of ``adaptive_slab_blocks`` + ``adaptive_push_down``: (L,) float32, per slab
+    ``[edges[l], edges[l+1]]`` the largest |n_z| of the non-horizontal facets touching or overlapping it (0 if
+    none)."""
+    e32 = np.ascontiguousarray(edges, dtype=np.float32)
+    n = max(e32.size - 1, 0)
+    slanted = zmax > zmin
+    first, last = _slab_ranges(zmin[slanted], zmax[slanted], e32)
+    return _range_max(n, first.astype(np.int64), last.astype(np.int64), nz[slanted].astype(np.float32))
+
+
+class AdaptiveKernel(KernelDriver):
+    """Driver of ``kernels/adaptive.cl``: per-facet slopes and per-slab max |n_z| on one device."""
+
+    def __init__(self, device) -> None:
+        super().__init__(device)
+        prg = device.program("adaptive.cl")
+        self._facets = prg.adaptive_facets
+        self._blocks = prg.adaptive_slab_blocks
+        self._push = prg.adaptive_push_down
+
+    def facets(self, mesh: Mesh, *, read_back: bool = True):
+        """Per facet (zmin, zmax, |n_z|) float32; left on the device (buffers ``zmin``, ``zmax``, ``nz``) too."""
+        import pyopencl as cl
+
+        q = self.device.queue
+        n_f = mesh.n_faces
+        d_v = self._put("verts", mesh.vertices)
+        d_f = self._put("faces", mesh.faces)
+        d_lo, d_hi, d_nz = (self._buffer(k, 4 * max(n_f, 1)) for k in ("zmin", "zmax", "nz"))
+        if n_f:
+            self._facets(q, *self._grid(n_f), d_v, d_f, np.int32(n_f), d_lo, d_hi, d_nz)
+        self._mesh_key = id(mesh), n_f
+        if not read_back:
+            return None
+        out = tuple(np.empty(n_f, np.float32) for _ in range(3))
+        for host, dev in zip(out, (d_lo, d_hi, d_nz), strict=True):
+            if n_f:
+                cl.enqueue_copy(q, host, dev, is_blocking=False)
+        q.finish()
+        return out
+
+    def slab_max(self, mesh: Mesh, edges: np.ndarray) -> np.ndarray:
+        """(L,) float32 max |n_z| per slab of ``edges`` (L + 1 values, mm) over the facets touching it."""
+        import pyopencl as cl
+
+        q = self.device.queue
+        if getattr(self, "_mesh_key", None) != (id(mesh), mesh.n_faces):
+            self.facets(mesh, read_back=False)
+        e32 = np.ascontiguousarray(edges, dtype=np.float32)
+        n_l = max(e32.size - 1, 0)
+        out = np.zeros(n_l, np.uint32)
+        if n_l == 0 or mesh.n_faces == 0:
+            return out.view(np.float32)
+        levels = int(n_l).bit_length()  # a run of at most n_l slabs: level floor(log2(n_l)) at most
+        d_e = self._put("edges", e32)
+        d_t = self._fill("table", 4 * n_l * levels, np.uint32(0))
+        self._blocks(q, *self._grid(mesh.n_faces), self.buffer("zmin"), self.buffer("zmax"), self.buffer("nz"),
+                     np.int32(mesh.n_faces), d_e, np.int32(n_l), d_t)
+        for level in range(levels - 1, 0, -1):
+            self._push(q, *self._grid(n_l), d_t, np.int32(n_l), np.int32(level))
+        cl.enqueue_copy(q, out, d_t)  # row 0: the first n_l values
+        return out.view(np.float32)
+
+
+def facet_slopes(mesh: Mesh, device=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per facet (zmin, zmax, |n_z|), float32 (mm, mm, unit-normal z); on ``device`` when given."""
+    if device is None:
+        return facet_slopes_numpy(mesh)
+    return AdaptiveKernel.of(device).facets(mesh)
+
+
+def slab_max_nz(mesh: Mesh, edges: np.ndarray, device=None) -> np.ndarray:
+    """(L,) float32: per slab ``[edges[l], edges[l+1]]`` (mm) the largest |n_z| of the non-horizontal facets that
+    touch or overlap it; on ``device`` when given, else numpy."""
+    if device is None:
+        return slab_max_nz_numpy(*facet_slopes_numpy(mesh), edges)
+    return AdaptiveKernel.of(device).slab_max(mesh, edges)
+
+
+# ---- error-bounded schedules ----------------------------------------------------------------------------------
+
+
+def slope_limit(nz: np.ndarray, mode: str, max_cusp: float = 0.05, max_area: float = 0.0025) -> np.ndarray:
+    """The largest layer thickness (mm, float64; inf where unlimited) that facets with these |n_z| allow.
+
+    ``cusp``: t = C / |n_z| (cusp height t·|n_z| <= C). ``area``: t = sqrt(2·A_max·tan α), cos α = |n_z|.
+    """
+    a = np.clip(np.asarray(nz, dtype=np.float64) * _NZ_SAFETY, 0.0, 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if mode == "cusp":
+            return np.where(a > 0, max_cusp / a, np.inf)
+        if mode == "area":
+            tan = np.where(a > 0, np.sqrt(np.maximum(1.0 - a * a, 0.0)) / a, np.inf)
+            return np.sqrt(2.0 * max_area * tan)
+    raise ParameterError(f"unknown adaptive mode '{mode}' (use {', '.join(ADAPTIVE_MODES)})")
+
+
+def _check_heights(min_height: float, max_height: float) -> None:
+    if not (np.isfinite(min_height) and min_height > 0):
+        raise ParameterError(f"--min-height must be a positive number of mm, got {min_height}")
+    if not (np.isfinite(max_height) and max_height >= min_height):
+        raise ParameterError(f"--max-height must be >= --min-height ({min_height} mm), got {max_height}")
+
+
+def cusp_schedule(
+    mesh: Mesh,
+    *,
+    mode: str = "cusp",
+    max_cusp: float = 0.05,
+    max_area: float = 0.0025,
+    min_height: float = 0.05,
+    max_height: float = 0.3,
+    smooth: float = 0.0,
+    resolution: float | None = None,
+    device=None,
+) -> AdaptiveSchedule:
+    """An error-bounded adaptive schedule for ``mesh`` (see the module docstring).
+
+    Parameters
+    ----------
+    mode : ``"cusp"`` (``t·|n_z| <= max_cusp``, mm) or ``"area"`` (staircase error area per unit length
+        ``<= max_area``, mm²).
+    min_height, max_height : clamp of every layer's thickness, mm (A and B).
+    smooth : if > 0, the thickness changes by at most this many mm per mm of height.
+    resolution : the bin width δ, mm (default ``min_height / 10``, at least height / 400000); thicknesses are
+        multiples of δ except the last layer, which ends at the top.
+    device : an OpenCL :class:`~gpuslice.device.Device` for the per-facet work, or None for numpy.
+    """
+    if mode not in ("cusp", "area"):
+        raise ParameterError(f"unknown error-bounded mode '{mode}' (use cusp or area)")
+    if mode == "cusp" and not (np.isfinite(max_cusp) and max_cusp > 0):
+        raise ParameterError(f"--max-cusp must be a positive number of mm, got {max_cusp}")
+    if mode == "area" and not (np.isfinite(max_area) and max_area > 0):
+        raise ParameterError(f"--max-area must be a positive number of mm², got {max_area}")
+    _check_heights(min_height, max_height)
+    if not (np.isfinite(smooth) and smooth >= 0):
+        raise ParameterError(f"--smooth must be >= 0 (mm per mm), got {smooth}")
+    height = mesh.height
+    info = {"mode": mode, "max_cusp_mm": max_cusp if mode == "cusp" else None,
+            "max_area_mm2": max_area if mode == "area" else None, "min_height_mm": min_height,
+            "max_height_mm": max_height, "smooth": smooth}
+    if height <= 0:
+        return schedule_from_edges(np.zeros(0) if height == 0 else np.zeros(0), f"adaptive-{mode}", info)
+    delta = float(resolution) if resolution else max(min_height / 10, height / 400_000)
+    if not (delta > 0 and delta <= min_height):
+        raise ParameterError(f"adaptive resolution must be in (0, --min-height], got {resolution}")
+    n_min = max(1, int(round(min_height / delta)))
+    n_max = max(n_min, int(np.floor(max_height / delta + 1e-9)))
+    n_bins = int(np.ceil(height / delta - 1e-9))
+    edges = np.arange(n_bins + 1, dtype=np.float64) * delta
+    edges[-1] = max(edges[-1], height)
+    bin_nz = slab_max_nz(mesh, edges, device)
+    limit = np.concatenate((slope_limit(bin_nz, mode, max_cusp, max_area), np.full(n_max, np.inf)))
+    # allowed[s]: the most bins n (<= n_max) a layer starting at bin s may hold: n·δ <= min(limit[s .. s+n-1])
+    run_min = np.full(n_bins, np.inf)
+    allowed = np.zeros(n_bins, dtype=np.int64)
+    ok = np.ones(n_bins, dtype=bool)
+    for n in range(1, n_max + 1):
+        np.minimum(run_min, limit[n - 1 : n - 1 + n_bins], out=run_min)
+        ok &= n * delta <= run_min
+        allowed += ok
+    if smooth > 0:
+        t = allowed * delta
+        k = np.arange(n_bins) * delta
+        fwd = np.minimum.accumulate(t - smooth * k) + smooth * k
+        bwd = (np.minimum.accumulate((t + smooth * k)[::-1]))[::-1] - smooth * k
+        allowed = np.floor(np.minimum(fwd, bwd) / delta + 1e-9).astype(np.int64)
+    violated = allowed < n_min
+    allowed = np.maximum(allowed, n_min)
+    starts = [0]
+    s = 0
+    take = allowed.tolist()
+    while s < n_bins:  # one step per layer (sequential by nature); the per-bin work above is vectorised
+        s += take[s]
+        starts.append(min(s, n_bins))
+    bins = np.asarray(starts, dtype=np.int64)
+    layer_edges = bins * delta
+    layer_edges[-1] = height
+    if layer_edges.size > 2 and layer_edges[-1] - layer_edges[-2] < 1e-6 * max(delta, 1.0):
+        layer_edges = np.delete(layer_edges, -2)  # a sliver under the top joins the layer below
+    info["resolution_mm"] = delta
+    info["bound_violations"] = int(violated[bins[:-1][bins[:-1] < n_bins]].sum())
+    return schedule_from_edges(layer_edges, f"adaptive-{mode}", info)
+
+
+# ---- the paper's region-of-interest ladder --------------------------------------------------------------------
+
+
+def _tile(a: float, b: float, t: float) -> np.ndarray:
+    """Edges of slabs of thickness t tiling [a, b] (the last one may be thinner)."""
+    n = max(1, int(np.ceil((b - a) / t - 1e-9)))
+    e = a + np.arange(n + 1, dtype=np.float64) * t
+    e[-1] = b
+    return e
+
+
+def _windows(signal: np.ndarray, threshold: float, min_layers: int, max_windows: int) -> list[tuple[int, int]]:
+    """Runs [i0, i1] (inclusive) of consecutive layers with signal >= threshold, at least ``min_layers`` long; the
+    ``max_windows`` with the most points, in order of height."""
+    above = np.concatenate(([False], signal >= threshold, [False]))
+    d = np.diff(above.astype(np.int8))
+    starts, stops = np.flatnonzero(d == 1), np.flatnonzero(d == -1) - 1
+    runs = [(int(a), int(b)) for a, b in zip(starts, stops, strict=True) if b - a + 1 >= min_layers]
+    runs.sort(key=lambda r: -int(signal[r[0] : r[1] + 1].sum()))
+    return sorted(runs[:max_windows]) if max_windows > 0 else sorted(runs)
+
+
+def roi_schedule(
+    mesh: Mesh,
+    ladder: tuple[float, ...] = (1.0, 0.5, 0.1),
+    *,
+    threshold: float | tuple[float, ...] | None = None,
+    quantile: float = 0.75,
+    min_layers: int = 2,
+    max_windows: int = 1,
+    params=None,
+) -> AdaptiveSchedule:
+    """The paper's adaptive method, generalised: slice at ``ladder[0]`` mm, pick windows of layers whose points per
+    layer are >= the threshold, re-slice them at ``ladder[1]``, and so on; merged into one schedule.
+
+    Parameters
+    ----------
+    ladder : layer thicknesses, mm, coarse to fine (each level refines the windows of the one before).
+    threshold : points per layer, absolute: one number for every level or one per refinement step
+        (``len(ladder) - 1`` values, as the paper's 1000 points at 1 mm). None: use ``quantile``.
+    quantile : the threshold as this quantile (0..1) of the points-per-layer signal of the level being
+        refined (default 0.75: the busiest quarter of the layers).
+    min_layers : shorter runs above the threshold are ignored.
+    max_windows : windows kept per refined region, those with the most points (the paper: 1); 0 keeps all.
+    params : :class:`~gpuslice.slicer.SliceParams` for the level slices (backend, device, fill rule).
+
+    ``info["levels"]`` lists, per level, its thickness, the region(s) sliced, their points per layer and z, the
+    threshold and the windows chosen (layer indices within the region and z ranges in mm).
+    """
+    from ..slicing.slicer import SliceParams, slice_mesh
+
+    ladder = tuple(float(t) for t in ladder)
+    if not ladder or not all(np.isfinite(t) and t > 0 for t in ladder):
+        raise ParameterError(f"--roi-ladder must be positive thicknesses in mm, got {ladder}")
+    if any(b >= a for a, b in zip(ladder[:-1], ladder[1:], strict=True)):
+        raise ParameterError(f"--roi-ladder must go from coarse to fine (decreasing), got {ladder}")
+    if threshold is not None:
+        thr = (threshold,) if np.isscalar(threshold) else tuple(threshold)
+        if len(thr) == 1:
+            thr = thr * max(len(ladder) - 1, 1)
+        if len(thr) != max(len(ladder) - 1, 1):
+            raise ParameterError(f"--roi-threshold needs 1 or {len(ladder) - 1} values, got {len(thr)}")
+    else:
+        thr = None
+        if not (0.0 <= quantile <= 1.0):
+            raise ParameterError(f"--roi-quantile must be in [0, 1], got {quantile}")
+    params = params if params is not None else SliceParams()
+    height = mesh.height
+    info: dict = {"mode": "roi", "ladder_mm": list(ladder), "quantile": None if thr else quantile,
+                  "threshold_points": list(thr) if thr else None, "min_layers": min_layers,
+                  "max_windows": max_windows, "levels": []}
+    if height <= 0:
+        return schedule_from_edges(np.zeros(0), "adaptive-roi", info)
+
+    def refine(a: float, b: float, level: int) -> np.ndarray:
+        t = ladder[level]
+        e = _tile(a, b, t)
+        if level == len(ladder) - 1:
+            return e
+        res = slice_mesh(mesh, params, schedule=schedule_from_edges(e))
+        sig = res.points_per_layer
+        cut = float(thr[level]) if thr else float(np.quantile(sig, quantile)) if sig.size else 0.0
+        wins = _windows(sig, max(cut, 1.0), min_layers, max_windows)
+        info["levels"].append({
+            "level": level, "thickness_mm": t, "region_mm": [a, b], "layers": int(sig.size),
+            "threshold_points": cut, "points": sig.tolist(), "z": res.z.tolist(),
+            "windows": [{"layers": [i0, i1], "z_mm": [float(e[i0]), float(e[i1 + 1])],
+                         "points": [int(sig[i0]), int(sig[i1])]} for i0, i1 in wins],
+        })
+        parts, prev = [], 0
+        for i0, i1 in wins:
+            parts.append(e[prev:i0])
+            parts.append(refine(float(e[i0]), float(e[i1 + 1]), level + 1)[:-1])
+            prev = i1 + 1
+        parts.append(e[prev:])
+        return np.concatenate(parts)
+
+    edges = refine(0.0, float(height), 0)
+    return schedule_from_edges(edges, "adaptive-roi", info)
+
+
+def adaptive_schedule(mesh: Mesh, params, device=None) -> AdaptiveSchedule:
+    """The schedule that ``params.adaptive`` (``"roi"``, ``"cusp"`` or ``"area"``) asks for, with ``params``'
+    adaptive fields (see :class:`~gpuslice.slicer.SliceParams`)."""
+    mode = params.adaptive
+    if mode == "roi":
+        return roi_schedule(mesh, params.roi_ladder, threshold=params.roi_threshold, quantile=params.roi_quantile,
+                            max_windows=params.roi_windows, params=params)
+    if mode in ("cusp", "area"):
+        if device is None and params.backend == "opencl":
+            from ..device import get_device
+
+            device = get_device(params.device)
+        return cusp_schedule(mesh, mode=mode, max_cusp=params.max_cusp, max_area=params.max_area,
+                             min_height=params.min_height, max_height=params.max_height, smooth=params.smooth,
+                             device=device)
+    raise ParameterError(f"unknown adaptive mode '{mode}' (use {', '.join(ADAPTIVE_MODES)})")

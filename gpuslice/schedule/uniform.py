@@ -1,0 +1,132 @@
+"""Layer schedules: where each layer is cut and how thick it is.
+
+A :class:`Schedule` is two float64 arrays of equal length: ``z``, the height of each layer's cutting plane in mm
+above the bed (the mesh's lowest point is at z = 0), and ``thickness``, each layer's thickness in mm. Layers tile the
+object from the bed up: layer i spans ``[bottom[i], bottom[i] + thickness[i]]`` with ``bottom`` the running sum of
+the earlier thicknesses. The slicer only looks at ``z``; ``thickness`` is carried through to the result (areas times
+thicknesses give volumes, exports write layer tops).
+
+Uniform schedules (:func:`uniform`) follow Slic3r and CuraEngine: the plane of layer i is the middle of its slab,
+``z_i = (i + 0.5)·h`` (with a first layer of its own thickness ``h0``, ``z_0 = h0/2`` and
+``z_i = h0 + (i - 0.5)·h``), and a layer is kept while its cutting plane is below the top of the object. The
+``paper`` mode cuts at the paper's planes ``Z_i = Z_min + i·h`` (i ≥ 1), keeping planes below the top.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import ParameterError
+
+__all__ = ["Schedule", "uniform", "from_z"]
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """Cutting planes ``z`` (L,) and thicknesses ``thickness`` (L,), float64, mm; ``z`` strictly increasing."""
+
+    z: np.ndarray
+    thickness: np.ndarray
+    mode: str = "custom"
+
+    def __post_init__(self) -> None:
+        z = np.ascontiguousarray(self.z, dtype=np.float64).reshape(-1)
+        t = np.ascontiguousarray(self.thickness, dtype=np.float64).reshape(-1)
+        if t.shape != z.shape:
+            raise ParameterError(f"schedule: {z.size} z values but {t.size} thicknesses")
+        if not (np.all(np.isfinite(z)) and np.all(np.isfinite(t))):
+            raise ParameterError("schedule: z values and thicknesses must be finite")
+        if z.size > 1 and not np.all(np.diff(z) > 0):
+            raise ParameterError("schedule: z values must be strictly increasing")
+        if np.any(t <= 0):
+            raise ParameterError("schedule: thicknesses must be positive")
+        object.__setattr__(self, "z", z)
+        object.__setattr__(self, "thickness", t)
+
+    def __len__(self) -> int:
+        return int(self.z.size)
+
+    @property
+    def bottom(self) -> np.ndarray:
+        """(L,) float64: the bottom of each layer's slab, mm."""
+        return np.concatenate(([0.0], np.cumsum(self.thickness)[:-1]))
+
+    @property
+    def top(self) -> np.ndarray:
+        """(L,) float64: the top of each layer's slab, mm."""
+        return np.cumsum(self.thickness)
+
+
+def uniform(
+    height: float, thickness: float, *, first_layer: float | None = None, z_mode: str = "mid"
+) -> Schedule:
+    """A uniform schedule for an object ``height`` mm tall standing on the bed (its lowest point at z = 0).
+
+    Parameters
+    ----------
+    height : float
+        The object's height, mm (its top is at z = height).
+    thickness : float
+        Layer thickness h, mm.
+    first_layer : float, optional
+        Thickness of the first layer h0, mm (default h). Mode ``mid`` only.
+    z_mode : {"mid", "paper"}
+        ``mid``: cut each layer at the middle of its slab, ``z_i = (i + 0.5)·h`` (Slic3r, CuraEngine), keeping
+        layers whose plane is below the top. ``paper``: the paper's ``Z_i = i·h`` for i = 1, 2, … below the top;
+        layer i then spans ``[(i - 1)·h, i·h]`` and is cut at its top.
+
+    Examples
+    --------
+    >>> uniform(1.0, 0.25).z
+    array([0.125, 0.375, 0.625, 0.875])
+    >>> uniform(1.0, 0.25, z_mode="paper").z
+    array([0.25, 0.5 , 0.75])
+    """
+    if not (np.isfinite(thickness) and thickness > 0):
+        raise ParameterError(f"layer thickness must be a positive number of mm, got {thickness}")
+    if not (np.isfinite(height) and height >= 0):
+        raise ParameterError(f"object height must be finite and non-negative, got {height}")
+    h0 = thickness if first_layer is None else float(first_layer)
+    if not (np.isfinite(h0) and h0 > 0):
+        raise ParameterError(f"first layer thickness must be a positive number of mm, got {first_layer}")
+    if height / thickness > 5e7:
+        raise ParameterError(f"{height:g} mm at {thickness:g} mm would make more than 5e7 layers")
+    if z_mode == "mid":
+        n = int(np.ceil((height - h0 / 2) / thickness)) + 2 if height > h0 / 2 else 1
+        z = np.concatenate(([h0 / 2], h0 + (np.arange(1, n) - 0.5) * thickness))
+        t = np.full(z.size, thickness)
+        t[0] = h0
+    elif z_mode == "paper":
+        if first_layer is not None:
+            raise ParameterError("--first-layer applies to z-mode 'mid' only")
+        n = int(np.ceil(height / thickness)) + 1
+        z = np.arange(1, n + 1) * thickness
+        t = np.full(z.size, thickness)
+    else:
+        raise ParameterError(f"unknown z mode '{z_mode}' (use 'mid' or 'paper')")
+    keep = z < height
+    return Schedule(z[keep], t[keep], mode=f"uniform-{z_mode}")
+
+
+def from_z(z: np.ndarray, thickness: np.ndarray | float | None = None) -> Schedule:
+    """A schedule from explicit cutting planes ``z`` (mm, strictly increasing).
+
+    ``thickness`` may be an array, one number for every layer, or None: then each layer reaches from the middle
+    between its plane and the one below (0 for the first) to the middle between its plane and the one above
+    (the last layer is as thick above its plane as below).
+    """
+    z = np.asarray(z, dtype=np.float64).reshape(-1)
+    if thickness is None:
+        if z.size == 0:
+            t = np.zeros(0)
+        else:
+            edges = np.concatenate(([min(0.0, z[0])], (z[1:] + z[:-1]) / 2, [0.0]))
+            if z[0] <= 0:  # a plane at or below the bed: give it the spacing above it (or 1 mm alone)
+                edges[0] = z[0] - ((edges[1] - z[0]) if z.size > 1 else 0.5)
+            edges[-1] = z[-1] + (z[-1] - edges[-2])
+            t = np.diff(edges)
+    else:
+        t = np.broadcast_to(np.asarray(thickness, dtype=np.float64), z.shape)
+    return Schedule(z, t, mode="custom")

@@ -1,0 +1,293 @@
+"""Stage 4: chaining segments into loops by the mesh's edge ids (exact topology, no coordinate rounding).
+
+Every mesh edge e crosses a contiguous range of layers ``[k0(e), k1(e))`` (its endpoints' z bracket the planes);
+a prefix sum over edges gives every (edge, layer) crossing its own *slot*. A segment starts at one slot and ends at
+another. On a closed, consistently wound mesh each slot is the end of exactly one segment and the start of exactly
+one other, so the successor of every segment is found with one scatter and one gather, no sort (a direct-address
+table). Where a slot has several segments ending and starting (non-manifold edges shared by 4 or 6 facets), the
+i-th segment ending there is paired with the i-th starting there (by segment index). What cannot be paired is an
+open end.
+
+Loops are then put in a canonical order: per layer, open chains from their head (the segment without
+predecessor) by increasing head, then closed loops from their smallest segment index, increasing; so the output
+does not depend on how the walk ran (numpy pointer jumping or the OpenCL walk of ``kernels/walk.cl``). Each
+loop's points are the start points of its segments (plus the end point of the last one for open chains). A
+zero-length segment (the plane through a vertex, Fig. 3a) starts where its successor starts, so its point is
+skipped: no loop holds consecutive duplicate points. Closed loops left with fewer than three points are dropped
+as degenerate (``degenerate_loops``).
+
+Repairs of open chains, per layer, in this order (counted by kind):
+``joined_by_id``: two free ends on the same slot (e.g. a facet wound the wrong way) are joined, reversing a chain;
+``gap_closed``: the nearest free ends closer than ``max_gap`` mm are joined, closest first (a chain's own two ends
+included, as the free ends are all candidates alike). Chains still open are kept as open chains and reported.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..mesh.mesh import Mesh
+from .crossings import Segments, vertex_layers
+
+__all__ = ["Loops", "link_segments", "order_chains", "chain_segments", "REPAIR_KINDS"]
+
+REPAIR_KINDS = ("joined_by_id", "reversed", "gap_closed", "open_chains", "degenerate_loops")
+
+
+@dataclass
+class Loops:
+    """Chained loops before nesting: ``points`` (P, 2) float32, ``offsets`` (R + 1,) int64, ``layer`` (R,)
+    int32, ``closed`` (R,) bool, and per-layer repair counts."""
+
+    points: np.ndarray
+    offsets: np.ndarray
+    layer: np.ndarray
+    closed: np.ndarray
+    repairs: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+def edge_slots(mesh: Mesh, zs: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Per edge: its first crossed layer ``k0`` and slot offset; and the total number of slots."""
+    ev = vertex_layers(mesh, zs)[mesh.edge_vertices]
+    k0 = ev.min(axis=1)
+    count = (ev.max(axis=1) - k0).astype(np.int64)
+    off = np.cumsum(count) - count
+    return k0, off, int(count.sum())
+
+
+def link_segments(seg: Segments, mesh: Mesh, zs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Successor of every segment (-1 where none), and each segment's start and end slot.
+
+    Returns ``next`` (S,) int32, ``start_slot`` (S,) int64, ``end_slot`` (S,) int64.
+    """
+    k0, off, n_slots = edge_slots(mesh, zs)
+    e0, e1 = seg.edges[:, 0], seg.edges[:, 1]
+    start = off[e0] + (seg.layer - k0[e0])
+    end = off[e1] + (seg.layer - k0[e1])
+    n = len(seg)
+    n_start = np.bincount(start, minlength=n_slots)
+    n_end = np.bincount(end, minlength=n_slots)
+    if n == 0 or (n_start.max() <= 1 and n_end.max() <= 1):
+        starter = np.full(n_slots, -1, dtype=np.int32)
+        starter[start] = np.arange(n, dtype=np.int32)
+        return starter[end], start, end
+    # general pairing: the i-th segment ending at a slot continues with the i-th segment starting there
+    s_order = np.argsort(start, kind="stable").astype(np.int32)
+    e_order = np.argsort(end, kind="stable")
+    s_first = np.cumsum(n_start) - n_start
+    e_first = np.cumsum(n_end) - n_end
+    sorted_end = end[e_order]
+    rank = np.arange(n, dtype=np.int64) - e_first[sorted_end]
+    ok = rank < n_start[sorted_end]
+    nxt = np.full(n, -1, dtype=np.int32)
+    nxt[e_order[ok]] = s_order[s_first[sorted_end[ok]] + rank[ok]]
+    return nxt, start, end
+
+
+def order_chains(nxt: np.ndarray, layer: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cut the successor graph into chains in canonical order (numpy pointer jumping, O(S log S)).
+
+    Returns ``order`` (S,) int32 (segments chain after chain), ``chain_offsets`` (C + 1,) int64 and
+    ``chain_closed`` (C,) bool. Per layer, open chains come first, from their head (the segment without
+    predecessor) in increasing head order, then closed loops, each from its smallest segment index, in increasing
+    order (the order ``kernels/walk.cl`` produces).
+    """
+    n = nxt.shape[0]
+    if n == 0:
+        return np.zeros(0, np.int32), np.zeros(1, np.int64), np.zeros(0, bool)
+    idx = np.arange(n, dtype=np.int32)
+    has_next = nxt >= 0
+    jump = np.where(has_next, nxt, idx)
+    label = idx.copy()
+    longest = int(np.bincount(layer).max())
+    rounds = max(1, int(np.ceil(np.log2(longest + 1))))
+    for _ in range(rounds):
+        np.minimum(label, label[jump], out=label)
+        jump = jump[jump]
+    on_path = ~has_next[jump]
+    # break each cycle before its smallest segment
+    cut = ~on_path & (nxt == label)
+    nxt2 = np.where(cut, -1, nxt)
+    has_prev = np.zeros(n, dtype=bool)
+    has_prev[nxt2[nxt2 >= 0]] = True
+    heads = np.flatnonzero(~has_prev).astype(np.int32)
+    # list ranking: distance of every segment to the end of its chain
+    tail_of = np.where(nxt2 >= 0, nxt2, idx)
+    dist = (nxt2 >= 0).astype(np.int32)
+    for _ in range(rounds):
+        dist += dist[tail_of]
+        tail_of = tail_of[tail_of]
+    chain_order = np.lexsort((heads, ~on_path[heads], layer[heads]))
+    heads = heads[chain_order]
+    lengths = dist[heads].astype(np.int64) + 1
+    offsets = np.zeros(heads.size + 1, dtype=np.int64)
+    np.cumsum(lengths, out=offsets[1:])
+    chain_of_tail = np.empty(n, dtype=np.int64)
+    chain_of_tail[tail_of[heads]] = np.arange(heads.size)
+    c = chain_of_tail[tail_of]
+    pos = offsets[c] + (lengths[c] - 1 - dist)
+    order = np.empty(n, dtype=np.int32)
+    order[pos] = idx
+    closed = ~on_path[heads]
+    return order, offsets, closed
+
+
+def chain_segments(seg, mesh: Mesh, zs: np.ndarray, n_layers: int, *, max_gap: float = 2.0, device=None) -> Loops:
+    """Chain the segment buffer into loops (see the module docstring).
+
+    ``seg``: :class:`~gpuslice.crossings.Segments` on the host, or ``DeviceSegments`` left on ``device`` by the
+    crossings kernel, which are then chained on the device when the mesh allows (no slot shared by several
+    segment ends, no open chain), and fetched and chained on the host otherwise.
+    """
+    chain_layer = None
+    if not isinstance(seg, Segments):
+        from .walk import chain_kernels
+
+        done = chain_kernels(device).chain_on_device(seg, mesh, zs, n_layers)
+        if done is not None:
+            order, coff, cclosed, chain_layer = done
+            seg_points = seg.fetch_points()
+        else:
+            seg = seg.fetch()
+    if chain_layer is None:
+        seg_points = seg.points
+        nxt, start_slot, end_slot = link_segments(seg, mesh, zs)
+        if device is not None:
+            from .walk import walk_chains
+
+            order, coff, cclosed = walk_chains(nxt, seg.layer, n_layers, device)
+        else:
+            order, coff, cclosed = order_chains(nxt, seg.layer)
+        chain_layer = seg.layer[order[coff[:-1]]] if coff.size > 1 else np.zeros(0, np.int32)
+    lengths = np.diff(coff)
+    n_chains = lengths.size
+    # points: the start of every segment, plus the end of the last segment of open chains. A zero-length segment
+    # (through a vertex on the plane) starts where its successor starts: its start point is skipped, which
+    # removes every consecutive duplicate.
+    # each point viewed as one complex64 (x + iy): 1-D gathers are much faster than 2-D fancy indexing
+    ends = seg_points.view(np.complex64)
+    first_pt, last_pt = ends[:, 0], ends[:, 1]
+    zero_length = first_pt == last_pt
+    open_idx = np.flatnonzero(~cclosed)
+    keep_seg = None if not zero_length.any() else ~zero_length[order]
+    if keep_seg is None:
+        kept = lengths
+        points_of = order
+    else:
+        chain_of = np.repeat(np.arange(n_chains), lengths)
+        kept = np.bincount(chain_of[keep_seg], minlength=n_chains).astype(np.int64)
+        points_of = order[keep_seg]
+    extra = np.zeros(n_chains, dtype=np.int64)
+    extra[open_idx] = 1
+    offsets = np.zeros(n_chains + 1, dtype=np.int64)
+    np.cumsum(kept + extra, out=offsets[1:])
+    packed = np.empty(int(offsets[-1]), dtype=np.complex64)
+    if open_idx.size == 0:
+        np.take(first_pt, points_of, out=packed)
+    else:
+        is_extra = np.zeros(packed.size, dtype=bool)
+        tails = order[coff[open_idx + 1] - 1]
+        is_extra[offsets[open_idx + 1] - 1] = True
+        packed[~is_extra] = first_pt[points_of]
+        packed[is_extra] = last_pt[tails]
+    points = packed.view(np.float32).reshape(-1, 2)
+    repairs = {k: np.zeros(n_layers, dtype=np.int32) for k in REPAIR_KINDS}
+    if open_idx.size:
+        heads = order[coff[open_idx]]
+        points, offsets, chain_layer, cclosed = _repair(
+            points, offsets, chain_layer, cclosed, open_idx, start_slot[heads], end_slot[tails], max_gap, repairs
+        )
+    counts = np.diff(offsets)
+    degenerate = (cclosed & (counts < 3)) | (~cclosed & (counts < 2))
+    if degenerate.any():
+        np.add.at(repairs["degenerate_loops"], chain_layer[degenerate], 1)
+        keep = ~degenerate
+        pt_keep = np.repeat(keep, counts)
+        points = points[pt_keep]
+        offsets = np.zeros(int(keep.sum()) + 1, dtype=np.int64)
+        np.cumsum(counts[keep], out=offsets[1:])
+        chain_layer, cclosed = chain_layer[keep], cclosed[keep]
+    np.add.at(repairs["open_chains"], chain_layer[~cclosed], 1)
+    return Loops(points, offsets, chain_layer.astype(np.int32), cclosed, repairs)
+
+
+def _repair(points, offsets, chain_layer, closed, open_idx, head_slot, tail_slot, max_gap, repairs):
+    """Join open chains: equal slots first (reversing where needed), then nearest ends within ``max_gap``.
+
+    Runs per layer over that layer's open chains only (a handful on broken meshes, none on closed ones).
+    """
+    from scipy.spatial import cKDTree
+
+    pieces = [points[offsets[i] : offsets[i + 1]] for i in open_idx]
+    new_points, new_layer = [], []
+    layers = chain_layer[open_idx]
+    for lay in np.unique(layers):
+        sel = np.flatnonzero(layers == lay)
+        m = sel.size
+        # ends: 2*i is the head of open chain sel[i], 2*i + 1 its tail
+        link = np.full(2 * m, -1, dtype=np.int64)
+        slots = np.empty(2 * m, dtype=np.int64)
+        slots[0::2], slots[1::2] = head_slot[sel], tail_slot[sel]
+        order = np.argsort(slots, kind="stable")
+        s = slots[order]
+        for a in range(len(order) - 1):  # free ends sharing a slot: pair them in order
+            i, j = order[a], order[a + 1]
+            if s[a] == s[a + 1] and link[i] < 0 and link[j] < 0:
+                link[i], link[j] = j, i
+                repairs["joined_by_id"][lay] += 1
+                if (i % 2) == (j % 2):
+                    repairs["reversed"][lay] += 1
+        free = np.flatnonzero(link < 0)
+        if free.size > 1 and max_gap > 0:
+            xy = np.array([pieces[sel[e // 2]][0 if e % 2 == 0 else -1] for e in free], dtype=np.float64)
+            pairs = cKDTree(xy).query_pairs(max_gap, output_type="ndarray")
+            if pairs.size:
+                d = np.linalg.norm(xy[pairs[:, 0]] - xy[pairs[:, 1]], axis=1)
+                for a, b in pairs[np.argsort(d, kind="stable")]:
+                    i, j = free[a], free[b]
+                    if link[i] < 0 and link[j] < 0:
+                        link[i], link[j] = j, i
+                        repairs["gap_closed"][lay] += 1
+        # walk the links: paths (from a free end) first, then cycles
+        used = np.zeros(m, dtype=bool)
+        starts = [e for e in range(2 * m) if link[e] < 0] + list(range(0, 2 * m, 2))
+        for e0 in starts:
+            if used[e0 // 2]:
+                continue
+            parts, e = [], e0
+            is_closed = False
+            while True:
+                c = e // 2
+                used[c] = True
+                p = pieces[sel[c]]
+                parts.append(p if e % 2 == 0 else p[::-1])
+                other = e ^ 1
+                nxt = link[other]
+                if nxt < 0:
+                    break
+                if nxt == e0:
+                    is_closed = True
+                    break
+                e = nxt
+            pts = np.concatenate(parts)
+            if is_closed and len(pts) > 1 and np.all(pts[0] == pts[-1]):
+                pts = pts[:-1]
+            new_points.append((pts, is_closed))
+            new_layer.append(lay)
+    keep = np.ones(closed.size, dtype=bool)
+    keep[open_idx] = False
+    counts = np.diff(offsets)
+    base_points = points[np.repeat(keep, counts)]
+    all_counts = np.concatenate([counts[keep], [len(p) for p, _ in new_points]]).astype(np.int64)
+    all_layer = np.concatenate([chain_layer[keep], np.array(new_layer, dtype=chain_layer.dtype)])
+    all_closed = np.concatenate([closed[keep], np.array([c for _, c in new_points], dtype=bool)])
+    all_points = np.concatenate([base_points] + [p.astype(np.float32) for p, _ in new_points])
+    # restore the per-layer order: stable by layer, repaired chains after the layer's closed loops
+    order = np.argsort(all_layer, kind="stable")
+    starts = np.concatenate([[0], np.cumsum(all_counts)])
+    new_offsets = np.zeros(order.size + 1, dtype=np.int64)
+    np.cumsum(all_counts[order], out=new_offsets[1:])
+    idx = np.arange(int(new_offsets[-1])) + np.repeat(starts[order] - new_offsets[:-1], all_counts[order])
+    return all_points[idx], new_offsets, all_layer[order], all_closed[order]

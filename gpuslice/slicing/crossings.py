@@ -1,0 +1,183 @@
+"""Stage 3: facet–plane crossings of all layers at once, into one flat segment buffer.
+
+The rule for vertices, edges and facets lying exactly on a plane is stated once, at the top of
+``kernels/crossings.cl``: a vertex with ``z >= plane`` counts as above (half-open), so the section at a plane is the
+limit of the sections just below it. :func:`crossings_numpy` is the numpy twin of the kernel with the same
+semantics, used as the test oracle and as ``backend="numpy"``.
+
+Segments are ordered by facet, then by layer. Segment s lies in layer ``layer[s]``, runs from ``points[s, :2]`` on
+mesh edge ``edges[s, 0]`` to ``points[s, 2:]`` on mesh edge ``edges[s, 1]`` (mm), with material on its left for an
+outward-wound mesh.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..device import KernelDriver
+from ..mesh.mesh import Mesh
+
+__all__ = ["Segments", "DeviceSegments", "crossings_numpy", "CrossingsKernel", "compute_crossings"]
+
+
+@dataclass
+class Segments:
+    """The segment buffer: ``layer`` (S,) int32, ``edges`` (S, 2) int32, ``points`` (S, 4) float32 (x0, y0, x1, y1)."""
+
+    layer: np.ndarray
+    edges: np.ndarray
+    points: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.layer.shape[0])
+
+
+@dataclass
+class DeviceSegments:
+    """The segment buffer left on the device (valid until the kernel's next call); :meth:`fetch` reads it back."""
+
+    n: int
+    layer: object
+    edges: object
+    points: object
+    kernel: CrossingsKernel
+
+    def __len__(self) -> int:
+        return self.n
+
+    def fetch_points(self) -> np.ndarray:
+        import pyopencl as cl
+
+        out = np.empty((self.n, 4), dtype=np.float32)
+        if self.n:
+            cl.enqueue_copy(self.kernel.device.queue, out, self.points)
+        return out
+
+    def fetch(self) -> Segments:
+        import pyopencl as cl
+
+        q = self.kernel.device.queue
+        seg = Segments(np.empty(self.n, np.int32), np.empty((self.n, 2), np.int32), np.empty((self.n, 4), np.float32))
+        if self.n:
+            cl.enqueue_copy(q, seg.layer, self.layer, is_blocking=False)
+            cl.enqueue_copy(q, seg.edges, self.edges, is_blocking=False)
+            cl.enqueue_copy(q, seg.points, self.points, is_blocking=True)
+        return seg
+
+
+def _planes32(z: np.ndarray) -> np.ndarray:
+    zs = np.ascontiguousarray(z, dtype=np.float32)
+    if zs.size > 1 and not np.all(np.diff(zs) > 0):
+        from ..errors import ParameterError
+
+        raise ParameterError("layers closer than float32 resolution: cutting planes coincide")
+    return zs
+
+
+def vertex_layers(mesh: Mesh, zs: np.ndarray) -> np.ndarray:
+    """(V,) int32: for each vertex the first layer whose plane is above it (``upper_bound`` of its z)."""
+    return np.searchsorted(zs, mesh.vertices[:, 2], side="right").astype(np.int32)
+
+
+def facet_layer_ranges(mesh: Mesh, zs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(first layer, count) of the layers each facet crosses: layers k with zmin < zs[k] <= zmax."""
+    fv = vertex_layers(mesh, zs)[mesh.faces]
+    lo = fv.min(axis=1)
+    return lo, fv.max(axis=1) - lo
+
+
+def _edge_points(verts: np.ndarray, a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray:
+    u, w = np.minimum(a, b), np.maximum(a, b)
+    vu, vw = verts[u], verts[w]
+    zu, zw = vu[:, 2], vw[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (p - zu) / (zw - zu)
+    x = vu[:, 0] + t * (vw[:, 0] - vu[:, 0])
+    y = vu[:, 1] + t * (vw[:, 1] - vu[:, 1])
+    at_w, at_u = zw == p, zu == p
+    x = np.where(at_w, vw[:, 0], np.where(at_u, vu[:, 0], x))
+    y = np.where(at_w, vw[:, 1], np.where(at_u, vu[:, 1], y))
+    return np.stack([x, y], axis=1).astype(np.float32)
+
+
+def crossings_numpy(mesh: Mesh, z: np.ndarray) -> Segments:
+    """The numpy reference of ``kernels/crossings.cl``: the same segments, in the same order."""
+    zs = _planes32(z)
+    lo, count = facet_layer_ranges(mesh, zs)
+    total = int(count.sum(dtype=np.int64))
+    facet = np.repeat(np.arange(mesh.n_faces, dtype=np.int64), count)
+    start = np.cumsum(count, dtype=np.int64) - count
+    layer = (lo[facet] + (np.arange(total, dtype=np.int64) - start[facet])).astype(np.int32)
+    p = zs[layer]
+    v = mesh.faces[facet]
+    below = mesh.vertices[:, 2][v] < p[:, None]
+    nxt = np.roll(below, -1, axis=1)
+    down = np.argmax(~below & nxt, axis=1)
+    up = np.argmax(below & ~nxt, axis=1)
+    rows = np.arange(total)
+    va, vb = v[rows, down], v[rows, (down + 1) % 3]
+    wa, wb = v[rows, up], v[rows, (up + 1) % 3]
+    pts = np.empty((total, 4), dtype=np.float32)
+    pts[:, :2] = _edge_points(mesh.vertices, va, vb, p)
+    pts[:, 2:] = _edge_points(mesh.vertices, wa, wb, p)
+    fe = mesh.face_edges[facet]
+    edges = np.stack([fe[rows, down], fe[rows, up]], axis=1).astype(np.int32)
+    return Segments(layer, edges, pts)
+
+
+class CrossingsKernel(KernelDriver):
+    """Driver of ``kernels/crossings.cl`` on one device: builds once, keeps the kernels and reuses buffers."""
+
+    def __init__(self, device) -> None:
+        super().__init__(device)
+        prg = device.program("crossings.cl")
+        self._vertex = prg.vertex_layers
+        self._count = prg.count_crossings
+        self._emit = prg.emit_segments
+
+    def __call__(self, mesh: Mesh, z: np.ndarray, *, read_back: bool = True) -> Segments | DeviceSegments:
+        import pyopencl as cl
+
+        q = self.device.queue
+        zs = _planes32(z)
+        n_f, n_l = mesh.n_faces, int(zs.size)
+        d_verts = self._put("verts", mesh.vertices)
+        d_faces = self._put("faces", mesh.faces)
+        d_edges = self._put("face_edges", mesh.face_edges)
+        d_zs = self._put("zs", zs)
+        n_v = int(mesh.vertices.shape[0])
+        d_vub = self._buffer("vub", 4 * n_v)
+        self._vertex(q, *self._grid(n_v), d_verts, np.int32(n_v), d_zs, np.int32(n_l), d_vub)
+        d_first = self._buffer("first", 4 * n_f)
+        d_count = self._buffer("count", 4 * n_f)
+        self._count(q, *self._grid(n_f), d_vub, d_faces, np.int32(n_f), d_first, d_count)
+        count = np.empty(n_f, dtype=np.int32)
+        cl.enqueue_copy(q, count, d_count)
+        offsets = np.cumsum(count, dtype=np.int64)
+        total = int(offsets[-1]) if n_f else 0
+        offsets -= count
+        if total == 0:
+            empty = Segments(np.empty(0, np.int32), np.empty((0, 2), np.int32), np.empty((0, 4), np.float32))
+            return empty if read_back else DeviceSegments(0, None, None, None, self)
+        d_off = self._put("offsets", offsets)
+        d_layer = self._buffer("seg_layer", 4 * total)
+        d_sedges = self._buffer("seg_edges", 8 * total)
+        d_spts = self._buffer("seg_points", 16 * total)
+        self._emit(
+            q, *self._grid(n_f), d_verts, d_faces, d_edges, np.int32(n_f), d_zs, d_first, d_count, d_off,
+            d_layer, d_sedges, d_spts,
+        )
+        dseg = DeviceSegments(total, d_layer, d_sedges, d_spts, self)
+        return dseg.fetch() if read_back else dseg
+
+
+def compute_crossings(mesh: Mesh, z: np.ndarray, device=None, *, read_back: bool = True):
+    """All segments of ``mesh`` cut at the planes ``z`` (mm, increasing): on ``device``, or numpy when None.
+
+    With ``read_back=False`` (device only) the segments stay on the device as :class:`DeviceSegments`.
+    """
+    if device is None:
+        return crossings_numpy(mesh, z)
+    return CrossingsKernel.of(device)(mesh, z, read_back=read_back)

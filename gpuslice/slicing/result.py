@@ -1,0 +1,184 @@
+"""The columnar slicing result: every layer's loops in a few flat numpy arrays.
+
+Layout (the GeoArrow / ragged-array layout, see ``docs/ARCHITECTURE.md``)::
+
+    points        (P, 2) float32   x, y in mm, every loop's points one after another
+    loop_offsets  (R + 1,) int64   loop r owns points[loop_offsets[r]:loop_offsets[r + 1]]
+    layer_offsets (L + 1,) int64   layer i owns loops layer_offsets[i]:layer_offsets[i + 1]
+    loop_layer    (R,) int32       the layer of each loop
+    loop_is_hole  (R,) bool        True for holes (clockwise seen from +z), False for outer contours (CCW)
+    loop_parent   (R,) int32       for a hole, the index of the outer loop it lies in; -1 for outer loops
+    loop_closed   (R,) bool        False for chains left open after repair (broken meshes only)
+    z             (L,) float64     the cutting plane of each layer, mm above the bed
+    thickness     (L,) float64     each layer's thickness, mm; layer i spans [bottom[i], bottom[i] + thickness[i]]
+    area          (L,) float64     filled area of each layer under the fill rule, mm^2
+    repairs       dict[str, (L,) int32]   per-layer counts of each kind of repair
+
+Within a layer, loops come polygon by polygon: an outer loop, then its holes. A closed loop does not repeat its
+first point at the end. Outer loops are counter-clockwise and holes clockwise, seen from +z (looking down).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import MeshFileError
+
+__all__ = ["SliceResult", "LayerView"]
+
+_ARRAYS = (
+    "points",
+    "loop_offsets",
+    "layer_offsets",
+    "loop_layer",
+    "loop_is_hole",
+    "loop_parent",
+    "loop_closed",
+    "z",
+    "thickness",
+    "area",
+)
+
+
+@dataclass
+class LayerView:
+    """One layer of a :class:`SliceResult`, as views into the result's arrays (no copies).
+
+    ``loops`` are the loop indices of the layer; ``loop(i)`` returns the (n, 2) float32 points of the i-th loop of
+    this layer, in mm.
+    """
+
+    index: int
+    z: float
+    thickness: float
+    area: float
+    result: SliceResult
+    loops: range
+
+    def loop(self, i: int) -> np.ndarray:
+        r = self.loops[i]
+        o = self.result.loop_offsets
+        return self.result.points[o[r] : o[r + 1]]
+
+    def polygons(self) -> list[tuple[np.ndarray, list[np.ndarray]]]:
+        """The layer's filled region as ``[(outer (n, 2), [hole (m, 2), ...]), ...]`` (closed loops only)."""
+        res = self.result
+        out: list[tuple[np.ndarray, list[np.ndarray]]] = []
+        index_of: dict[int, int] = {}
+        for k, r in enumerate(self.loops):
+            if not res.loop_closed[r]:
+                continue
+            if not res.loop_is_hole[r]:
+                index_of[r] = len(out)
+                out.append((self.loop(k), []))
+            else:
+                parent = int(res.loop_parent[r])
+                if parent in index_of:
+                    out[index_of[parent]][1].append(self.loop(k))
+        return out
+
+    @property
+    def n_points(self) -> int:
+        o = self.result.loop_offsets
+        return int(o[self.loops.stop] - o[self.loops.start])
+
+
+@dataclass
+class SliceResult:
+    """Nested contours of every layer of a sliced mesh; see the module docstring for the layout.
+
+    All lengths are in mm. ``meta`` holds the run's report (device, timings, parameters, counts) as JSON-able
+    values.
+    """
+
+    points: np.ndarray
+    loop_offsets: np.ndarray
+    layer_offsets: np.ndarray
+    loop_layer: np.ndarray
+    loop_is_hole: np.ndarray
+    loop_parent: np.ndarray
+    loop_closed: np.ndarray
+    z: np.ndarray
+    thickness: np.ndarray
+    area: np.ndarray
+    repairs: dict[str, np.ndarray] = field(default_factory=dict)
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    # ---- sizes and per-layer signals -------------------------------------------------------------------
+    @property
+    def n_layers(self) -> int:
+        return int(self.z.shape[0])
+
+    @property
+    def n_loops(self) -> int:
+        return int(self.loop_layer.shape[0])
+
+    @property
+    def bottom(self) -> np.ndarray:
+        """(L,) float64: the bottom of each layer's slab, mm (layers tile the object from the bed up)."""
+        return np.concatenate(([0.0], np.cumsum(self.thickness)[:-1])) if self.n_layers else np.zeros(0)
+
+    @property
+    def points_per_layer(self) -> np.ndarray:
+        """(L,) int64: points in each layer, the paper's Fig. 11 signal."""
+        return np.diff(self.loop_offsets[self.layer_offsets])
+
+    @property
+    def loops_per_layer(self) -> np.ndarray:
+        return np.diff(self.layer_offsets)
+
+    @property
+    def open_chains_per_layer(self) -> np.ndarray:
+        return np.bincount(self.loop_layer[~self.loop_closed], minlength=self.n_layers).astype(np.int64)
+
+    @property
+    def volume(self) -> float:
+        """Σ area · thickness, mm^3."""
+        return float(np.dot(self.area, self.thickness))
+
+    def layer(self, i: int) -> LayerView:
+        if not -self.n_layers <= i < self.n_layers:
+            raise IndexError(f"layer {i} out of range for {self.n_layers} layers")
+        i %= self.n_layers
+        a, b = int(self.layer_offsets[i]), int(self.layer_offsets[i + 1])
+        return LayerView(i, float(self.z[i]), float(self.thickness[i]), float(self.area[i]), self, range(a, b))
+
+    def __iter__(self):
+        return (self.layer(i) for i in range(self.n_layers))
+
+    def __len__(self) -> int:
+        return self.n_layers
+
+    # ---- persistence -----------------------------------------------------------------------------------
+    def save(self, path: str | os.PathLike) -> None:
+        """Write a ``.npz`` (uncompressed, byte-identical for identical results), atomically."""
+        from ..io.atomic import atomic_path
+
+        arrays = {name: getattr(self, name) for name in _ARRAYS}
+        for kind, counts in sorted(self.repairs.items()):
+            arrays[f"repairs__{kind}"] = counts
+        # timings differ run to run: they go to the report, not into the file (byte-identical outputs)
+        meta = {k: v for k, v in self.meta.items() if k != "timings_s"}
+        arrays["meta_json"] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, **arrays)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> SliceResult:
+        """Read a ``.npz`` written by :meth:`save`."""
+        p = Path(path)
+        try:
+            with np.load(p, allow_pickle=False) as data:
+                arrays = {name: data[name] for name in _ARRAYS}
+                repairs = {k[len("repairs__") :]: data[k] for k in data.files if k.startswith("repairs__")}
+                meta = json.loads(bytes(data["meta_json"]).decode()) if "meta_json" in data.files else {}
+        except (OSError, KeyError, ValueError) as exc:
+            raise MeshFileError(f"{p}: not a gpuslice result ({exc})") from None
+        return cls(**arrays, repairs=repairs, meta=meta)

@@ -1,0 +1,250 @@
+"""The pipeline: mesh → layer schedule → crossings (kernel) → chaining → nesting → :class:`SliceResult`.
+
+Each stage is one module (``mesh``, ``schedule``, ``crossings``, ``chain``, ``nest``); this one only wires them,
+times them and fills the report. Huge models are sliced in batches of layers (``max_segments_per_batch``) so peak
+memory is set by the batch, not by the model.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from ..errors import ParameterError
+from ..mesh.mesh import Mesh
+from ..schedule.uniform import Schedule, from_z, uniform
+from .chain import REPAIR_KINDS, chain_segments
+from .crossings import _planes32, compute_crossings, facet_layer_ranges
+from .nest import FILL_RULES, nest_loops
+from .result import SliceResult
+
+__all__ = ["SliceParams", "slice_mesh", "make_schedule"]
+
+
+@dataclass(frozen=True)
+class SliceParams:
+    """Every slicing option in one place (lengths in mm).
+
+    thickness : uniform layer thickness h (ignored when a schedule or z values are given).
+    first_layer : thickness of the first layer (default: h).
+    z_mode : ``"mid"`` (planes at the middle of each slab, z_i = (i + 0.5)·h) or ``"paper"`` (Z_i = i·h).
+    fill_rule : ``"nonzero"``, ``"evenodd"`` or ``"positive"``.
+    max_gap : open chain ends closer than this are joined (PrusaSlicer's default: 2 mm); 0 disables.
+    backend : ``"opencl"`` (default) or ``"numpy"`` (the reference implementation of every kernel).
+    device : OpenCL device spec (see :mod:`gpuslice.device`); None for the default.
+    max_segments_per_batch : layers are processed in batches of at most about this many segments.
+    adaptive : None (uniform), ``"roi"``, ``"cusp"`` or ``"area"``: an adaptive schedule (:mod:`gpuslice.adaptive`).
+    max_cusp : cusp mode: the largest cusp height t·|n_z|, mm. max_area : area mode: the largest staircase error
+        area per unit length, mm². min_height, max_height : cusp/area modes: thickness clamp, mm. smooth : cusp/area
+        modes: the thickness changes by at most this many mm per mm of height (0: no smoothing).
+    roi_ladder : roi mode: thicknesses, coarse to fine, mm. roi_threshold : roi mode: points per layer (one value,
+        or one per refinement step); None: the ``roi_quantile`` of each level's signal. roi_windows : windows kept per
+        level (0: all).
+    """
+
+    thickness: float = 0.1
+    first_layer: float | None = None
+    z_mode: str = "mid"
+    fill_rule: str = "nonzero"
+    max_gap: float = 2.0
+    backend: str = "opencl"
+    device: str | None = None
+    max_segments_per_batch: int = 8_000_000
+    adaptive: str | None = None
+    max_cusp: float = 0.05
+    max_area: float = 0.0025
+    min_height: float = 0.05
+    max_height: float = 0.3
+    smooth: float = 0.0
+    roi_ladder: tuple[float, ...] = (1.0, 0.5, 0.1)
+    roi_threshold: tuple[float, ...] | None = None
+    roi_quantile: float = 0.75
+    roi_windows: int = 1
+
+    def __post_init__(self) -> None:
+        if self.adaptive not in (None, "roi", "cusp", "area"):
+            raise ParameterError(f"unknown adaptive mode '{self.adaptive}' (use roi, cusp or area)")
+        if self.fill_rule not in FILL_RULES:
+            raise ParameterError(f"unknown fill rule '{self.fill_rule}' (use {', '.join(FILL_RULES)})")
+        if self.backend not in ("opencl", "numpy"):
+            raise ParameterError(f"unknown backend '{self.backend}' (use opencl or numpy)")
+        if not (self.max_gap >= 0):
+            raise ParameterError(f"--max-gap must be >= 0 mm, got {self.max_gap}")
+        if self.max_segments_per_batch < 1:
+            raise ParameterError("max_segments_per_batch must be positive")
+
+
+def make_schedule(mesh: Mesh, params: SliceParams, z=None, thickness=None) -> Schedule:
+    """The schedule for ``mesh``: explicit ``z`` (with optional ``thickness``) or uniform from ``params``."""
+    if z is not None:
+        return from_z(z, thickness)
+    if params.adaptive is not None:
+        from ..schedule.adaptive import adaptive_schedule
+
+        return adaptive_schedule(mesh, params)
+    return uniform(mesh.height, params.thickness, first_layer=params.first_layer, z_mode=params.z_mode)
+
+
+def _batches(mesh: Mesh, zs: np.ndarray, limit: int) -> list[tuple[int, int]]:
+    """Contiguous layer ranges whose segment counts stay under ``limit`` (one range if the whole fits)."""
+    lo, count = facet_layer_ranges(mesh, zs)
+    # a difference array: +1 at each facet's first layer, -1 after its last
+    n = zs.size + 1
+    per_layer = np.cumsum(np.bincount(lo, minlength=n) - np.bincount(lo + count, minlength=n))[:-1]
+    if per_layer.sum() <= limit:
+        return [(0, int(zs.size))]
+    out, start, acc = [], 0, 0
+    for k, c in enumerate(per_layer):
+        if acc + c > limit and k > start:
+            out.append((start, k))
+            start, acc = k, 0
+        acc += int(c)
+    out.append((start, int(zs.size)))
+    return out
+
+
+def slice_mesh(
+    mesh: Mesh,
+    params: SliceParams | None = None,
+    *,
+    z: np.ndarray | None = None,
+    layer_thickness: np.ndarray | float | None = None,
+    schedule: Schedule | None = None,
+    **overrides,
+) -> SliceResult:
+    """Slice ``mesh`` into closed, nested contours for every layer.
+
+    Parameters
+    ----------
+    mesh : a :class:`~gpuslice.mesh.Mesh` (mm, standing on the bed).
+    params : a :class:`SliceParams`; keyword ``overrides`` replace its fields (e.g. ``thickness=0.2``).
+    z : optional explicit cutting planes, mm above the bed, strictly increasing; ``layer_thickness`` gives their
+        thicknesses (an array or one number; default: from the midpoints between planes).
+    schedule : optional :class:`~gpuslice.schedule.Schedule` (takes precedence over ``z``).
+
+    Returns
+    -------
+    SliceResult
+        Columnar contours; ``result.meta`` holds the report (timings per stage in s, repairs, device).
+
+    Examples
+    --------
+    >>> from gpuslice import mesh_from_arrays, slice_mesh
+    >>> import numpy as np
+    >>> v = np.array([[0, 0, 0], [10, 0, 0], [10, 10, 0], [0, 10, 0],
+    ...               [0, 0, 10], [10, 0, 10], [10, 10, 10], [0, 10, 10]], float)
+    >>> f = [[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4],
+    ...      [1, 2, 6], [1, 6, 5], [2, 3, 7], [2, 7, 6], [3, 0, 4], [3, 4, 7]]
+    >>> r = slice_mesh(mesh_from_arrays(v, f), thickness=2.5, backend="numpy")
+    >>> r.z.tolist(), r.area.tolist()
+    ([1.25, 3.75, 6.25, 8.75], [100.0, 100.0, 100.0, 100.0])
+    """
+    params = SliceParams(**{**asdict(params or SliceParams()), **overrides})
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    sched = schedule if schedule is not None else make_schedule(mesh, params, z, layer_thickness)
+    zs = _planes32(sched.z)
+    timings["schedule"] = time.perf_counter() - t0
+    device = None
+    device_name = "numpy (reference)"
+    if params.backend == "opencl":
+        from ..device import get_device
+
+        t = time.perf_counter()
+        device = get_device(params.device)
+        device.program("crossings.cl")
+        device.program("walk.cl")
+        device_name = device.name
+        timings["device"] = time.perf_counter() - t
+    n_layers = int(zs.size)
+    for key in ("crossings", "chaining", "nesting"):
+        timings[key] = 0.0
+    parts = []
+    n_segments = 0
+    batches = _batches(mesh, zs, params.max_segments_per_batch) if n_layers else []
+    for a, b in batches:
+        t = time.perf_counter()
+        if device is not None:
+            seg = compute_crossings(mesh, zs[a:b], device, read_back=False)
+            device.queue.finish()  # so the kernels' time counts here, not in the next stage
+        else:
+            seg = compute_crossings(mesh, zs[a:b])
+        timings["crossings"] += time.perf_counter() - t
+        n_segments += len(seg)
+        t = time.perf_counter()
+        loops = chain_segments(seg, mesh, zs[a:b], b - a, max_gap=params.max_gap, device=device)
+        del seg
+        timings["chaining"] += time.perf_counter() - t
+        t = time.perf_counter()
+        nested = nest_loops(loops, b - a, params.fill_rule)
+        timings["nesting"] += time.perf_counter() - t
+        parts.append((a, nested, loops.repairs))
+    result = _assemble(parts, sched, n_layers)
+    if getattr(sched, "info", None):
+        result.meta["adaptive"] = sched.info
+    result.meta.update(
+        {
+            "file": mesh.name,
+            "facets": mesh.n_faces,
+            "layers": n_layers,
+            "segments": n_segments,
+            "loops": result.n_loops,
+            "points": int(result.points.shape[0]),
+            "open_chains": int((~result.loop_closed).sum()),
+            "repairs": {k: int(v.sum()) for k, v in result.repairs.items()},
+            "device": device_name,
+            "backend": params.backend,
+            "batches": len(batches),
+            "params": asdict(params),
+            "schedule_mode": sched.mode,
+            "scale": mesh.scale,
+            "dropped_degenerate_facets": mesh.dropped_degenerate,
+            "timings_s": timings,
+        }
+    )
+    return result
+
+
+def _assemble(parts, sched: Schedule, n_layers: int) -> SliceResult:
+    if not parts:
+        return SliceResult(
+            points=np.zeros((0, 2), np.float32), loop_offsets=np.zeros(1, np.int64),
+            layer_offsets=np.zeros(n_layers + 1, np.int64), loop_layer=np.zeros(0, np.int32),
+            loop_is_hole=np.zeros(0, bool), loop_parent=np.zeros(0, np.int32), loop_closed=np.zeros(0, bool),
+            z=sched.z, thickness=sched.thickness, area=np.zeros(n_layers),
+            repairs={k: np.zeros(n_layers, np.int32) for k in (*REPAIR_KINDS, "unfilled_loops", "overlaps_resolved")},
+        )
+    if len(parts) == 1:
+        _, nd, rep = parts[0]
+        repairs = dict(rep)
+        repairs["unfilled_loops"] = nd.unfilled_loops
+        repairs["overlaps_resolved"] = nd.overlaps_resolved
+        return SliceResult(
+            nd.points, nd.loop_offsets, nd.layer_offsets, nd.loop_layer, nd.loop_is_hole, nd.loop_parent,
+            nd.loop_closed, sched.z, sched.thickness, nd.area, repairs,
+        )
+    pts, loff, lay, hole, par, closed, area = [], [np.zeros(1, np.int64)], [], [], [], [], []
+    repairs: dict[str, list] = {}
+    p_base = r_base = 0
+    for a, nd, rep in parts:
+        pts.append(nd.points)
+        loff.append(nd.loop_offsets[1:] + p_base)
+        lay.append(nd.loop_layer + a)
+        hole.append(nd.loop_is_hole)
+        par.append(np.where(nd.loop_parent >= 0, nd.loop_parent + r_base, -1))
+        closed.append(nd.loop_closed)
+        area.append(nd.area)
+        for k, v in {**rep, "unfilled_loops": nd.unfilled_loops, "overlaps_resolved": nd.overlaps_resolved}.items():
+            repairs.setdefault(k, []).append(v)
+        p_base += nd.points.shape[0]
+        r_base += nd.loop_layer.size
+    loop_layer = np.concatenate(lay).astype(np.int32)
+    layer_offsets = np.zeros(n_layers + 1, np.int64)
+    np.cumsum(np.bincount(loop_layer, minlength=n_layers), out=layer_offsets[1:])
+    return SliceResult(
+        np.concatenate(pts), np.concatenate(loff), layer_offsets, loop_layer, np.concatenate(hole),
+        np.concatenate(par).astype(np.int32), np.concatenate(closed), sched.z, sched.thickness,
+        np.concatenate(area), {k: np.concatenate(v) for k, v in repairs.items()},
+    )
