@@ -13,11 +13,12 @@ from .errors import (
     ParameterError,
 )
 from .mesh.defects import MESH_REPAIR_KINDS, mesh_repairs
-from .mesh.mesh import Mesh, load_mesh, mesh_from_arrays, mesh_from_triangles
-from .schedule.adaptive import AdaptiveSchedule, adaptive_schedule, cusp_schedule, roi_schedule
+from .mesh.mesh import Mesh, Placement, load_mesh, mesh_from_arrays, mesh_from_triangles
+from .schedule.adaptive import AdaptiveSchedule, adaptive_schedule, cusp_schedule
 from .schedule.uniform import Schedule, from_z, uniform
+from .slicing.params import SliceParams
 from .slicing.result import LayerView, SliceResult
-from .slicing.slicer import SliceParams, slice_mesh
+from .slicing.slicer import roi_schedule, slice_mesh
 
 __version__ = "0.1.0"
 
@@ -31,6 +32,7 @@ __all__ = [
     "LayerView",
     "MESH_REPAIR_KINDS",
     "Mesh",
+    "Placement",
     "MeshFileError",
     "ParameterError",
     "Schedule",
@@ -53,7 +55,7 @@ __all__ = [
     "volume_deviation",
 ]
 
-_LAZY = {"BatchOptions": "batch.runner", "run_batch": "batch.runner"}  # heavier modules, imported on first use
+_LAZY = {"BatchOptions": "batch.options", "run_batch": "batch.runner"}  # heavier modules, imported on first use
 
 
 def __getattr__(name: str):

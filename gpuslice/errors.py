@@ -14,6 +14,7 @@ __all__ = [
     "InvalidGeometryError",
     "ParameterError",
     "DeviceError",
+    "BatchError",
 ]
 
 
@@ -34,8 +35,20 @@ class InvalidGeometryError(MeshFileError):
 
 
 class ParameterError(GpusliceError):
-    """An option out of range: a non-positive thickness, unsorted z values, an unknown fill rule."""
+    """An option out of range: a non-positive thickness, unsorted z values, an unknown fill rule.
+
+    ``param``: the option field(s) the message names (``"max_gap"``, or a tuple), as declared in the options'
+    dataclasses (:mod:`gpuslice.options`); the command line shows them as its flags (``--max-gap``).
+    """
+
+    def __init__(self, message: str, *, param: str | tuple[str, ...] | None = None) -> None:
+        super().__init__(message)
+        self.params: tuple[str, ...] = (param,) if isinstance(param, str) else tuple(param or ())
 
 
 class DeviceError(GpusliceError):
     """No usable OpenCL device, or the one asked for does not exist."""
+
+
+class BatchError(GpusliceError):
+    """A batch cannot start: no models found, clashing outputs, options differing from the output folder's."""

@@ -105,8 +105,8 @@ def in_process(stl: Path, gl_sample: int = 24) -> dict:
     """Stage timings (s) and rates (layers/s) inside one process, after a warm-up."""
     from gpuslice import load_mesh, slice_mesh
     from gpuslice.device import get_device
-    from gpuslice.raster.coverage import RasterSpec, iter_tiles
-    from gpuslice.raster.sl1 import PngEncoder, _encode_all
+    from gpuslice.raster import RasterSpec, iter_tiles
+    from gpuslice.raster.png import PngEncoder, encode_all
 
     dev = get_device()
     mesh = load_mesh(stl, device=dev)
@@ -148,7 +148,7 @@ def in_process(stl: Path, gl_sample: int = 24) -> dict:
         nbytes = sum(len(enc.encode(x)) for x in sub)
         one = len(sub) / (time.perf_counter() - t)
         t = time.perf_counter()
-        _encode_all(sub, enc, lambda k, d: None, None)
+        encode_all(sub, enc, lambda k, d: None, None)
         pool = len(sub) / (time.perf_counter() - t)
         out[f"encode_{deflater}{level}"] = {"layers_per_s_1thread": one, "layers_per_s_pool": pool,
                                             "kb_per_layer": nbytes / len(sub) / 1e3}

@@ -16,6 +16,8 @@ Per mesh of ``<meshes>/catalog.csv`` (``--meshes``, default ``<repo>/../shared/m
 stack; ``view``; for the first few meshes also ``raster --gamma 0`` and ``view --raster``. Plus one ``batch`` of
 three meshes to npz and to sl1 (``--only batch`` selects it when ``--only`` is used). A mesh both sides refuse
 (same exit code, same first stderr line) counts as "refused by both". Exit status 1 when anything differs.
+PNGs are compared byte for byte; a DIFF says when the pixels are identical anyway (the isal deflater does not always
+pick the same LZ77 matches twice), and ``--png-pixels`` lets such PNGs pass (counted in a note).
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ import tempfile
 import threading
 import time
 import zipfile
+import zlib
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -98,11 +101,46 @@ class Side:
         return rc, first, time.perf_counter() - t0
 
 
-# ---- comparisons: each returns None when equal, else a short detail --------------------------------------
+# ---- comparisons: each returns None when equal, else a short detail; ``notes`` collects what was let pass ------
+PIXELS_ONLY = [False]  # --png-pixels: a PNG whose bytes differ but whose pixels do not counts as the same
+
+
 def first_diff(a: bytes, b: bytes) -> str:
     i = next((k for k, (x, y) in enumerate(zip(a, b, strict=False)) if x != y), min(len(a), len(b)))
-    line = a[:i].count(b"\n") + 1
-    return f"{len(a)} vs {len(b)} bytes, first difference at byte {i} (line {line})"
+    line = f" (line {a[:i].count(10) + 1})" if 0 not in a[:i] else ""
+    return f"{len(a)} vs {len(b)} bytes, first difference at byte {i}{line}"
+
+
+def png_pixels(data: bytes) -> bytes:
+    """Every chunk but IDAT, then the inflated IDAT stream: what a PNG shows, whatever the deflater chose (raw
+    bytes when it cannot be inflated)."""
+    i, head, idat = 8, [data[:8]], []
+    while i + 8 <= len(data):
+        n, kind = int.from_bytes(data[i : i + 4], "big"), data[i + 4 : i + 8]
+        if kind == b"IDAT":
+            idat.append(data[i + 8 : i + 8 + n])
+        else:
+            head.append(kind + data[i + 8 : i + 8 + n])
+        i += 12 + n
+    try:
+        return b"".join(head) + zlib.decompress(b"".join(idat))
+    except zlib.error:
+        return data
+
+
+def first_of(diffs: list[str], what: str) -> str | None:
+    return f"{diffs[0]} (+{len(diffs) - 1} more {what})" if len(diffs) > 1 else (diffs[0] if diffs else None)
+
+
+def cmp_blob(name: str, x: bytes, y: bytes, notes: list[str]) -> str | None:
+    if x == y:
+        return None
+    if name.endswith(".png") and png_pixels(x) == png_pixels(y):
+        if PIXELS_ONLY[0]:
+            notes.append("PNG bytes differ, pixels identical")
+            return None
+        return f"{len(x)} vs {len(y)} bytes, pixels identical (deflate chose other LZ77 matches)"
+    return first_diff(x, y)
 
 
 def json_path_diff(a, b, path: str = "") -> str | None:
@@ -134,11 +172,11 @@ def scrub(x):
     return [scrub(v) for v in x] if isinstance(x, list) else x
 
 
-def cmp_json(a: Path, b: Path) -> str | None:
+def cmp_json(a: Path, b: Path, notes: list[str]) -> str | None:
     return json_path_diff(scrub(json.loads(a.read_text())), scrub(json.loads(b.read_text())))
 
 
-def cmp_npz(a: Path, b: Path) -> str | None:
+def cmp_npz(a: Path, b: Path, notes: list[str]) -> str | None:
     if a.read_bytes() == b.read_bytes():
         return None
     with np.load(a, allow_pickle=False) as za, np.load(b, allow_pickle=False) as zb:
@@ -158,50 +196,44 @@ def cmp_npz(a: Path, b: Path) -> str | None:
     return "arrays and meta equal, zip container bytes differ"
 
 
-def cmp_bytes(a: Path, b: Path) -> str | None:
-    x, y = a.read_bytes(), b.read_bytes()
-    return None if x == y else first_diff(x, y)
+def cmp_bytes(a: Path, b: Path, notes: list[str]) -> str | None:
+    return cmp_blob(a.name, a.read_bytes(), b.read_bytes(), notes)
 
 
-def cmp_dir(a: Path, b: Path) -> str | None:
+def cmp_dir(a: Path, b: Path, notes: list[str]) -> str | None:
     fa, fb = (sorted(str(p.relative_to(d)) for p in d.rglob("*") if p.is_file()) for d in (a, b))
     if fa != fb:
         return f"file lists differ: only A {sorted(set(fa) - set(fb))[:3]}, only B {sorted(set(fb) - set(fa))[:3]}"
-    for name in fa:
-        if d := compare_file(a / name, b / name):
-            return f"{name}: {d}"
-    return None
+    return first_of([f"{n}: {d}" for n in fa if (d := compare_file(a / n, b / n, notes))], "files")
 
 
-def current_time(z: zipfile.ZipFile) -> bool:
-    """Whether this archive's config.ini carries a date other than SOURCE_DATE_EPOCH's."""
-    return f"fileCreationTimestamp = {STAMP}" not in z.read("config.ini").decode()
-
-
-def cmp_sl1(a: Path, b: Path) -> str | None:
+def cmp_sl1(a: Path, b: Path, notes: list[str]) -> str | None:
+    """Members byte for byte, in order; config.ini's creation date and the zip member dates are let pass (noted:
+    ``gpuslice raster`` may date the archive now whatever SOURCE_DATE_EPOCH says)."""
     with zipfile.ZipFile(a) as za, zipfile.ZipFile(b) as zb:
-        now = " and ".join(s for s, z in (("A", za), ("B", zb)) if current_time(z))
-        notes = [f"{now} wrote the current time"] if now else []
+        now = [s for s, z in (("A", za), ("B", zb)) if f"= {STAMP}" not in z.read("config.ini").decode()]
+        if now:
+            notes.append(f"{' and '.join(now)} wrote the current time")
         if za.namelist() != zb.namelist():
             return f"members differ: {len(za.namelist())} vs {len(zb.namelist())}"
+        diffs = []
         for ia, ib in zip(za.infolist(), zb.infolist(), strict=True):
             x, y = za.read(ia), zb.read(ib)
-            if ia.filename == "config.ini":  # the creation date is ignored (reported as a note)
+            if ia.filename == "config.ini":
                 x, y = (re.sub(rb"(?m)^fileCreationTimestamp = .*$", b"", v) for v in (x, y))
-            if x != y:
-                return f"member {ia.filename}: {first_diff(x, y)}"
-            if ia.compress_type != ib.compress_type or ia.external_attr != ib.external_attr:
-                return f"member {ia.filename}: zip attributes differ"
+            if d := cmp_blob(ia.filename, x, y, notes):
+                diffs.append(f"member {ia.filename}: {d}")
+            elif ia.compress_type != ib.compress_type or ia.external_attr != ib.external_attr:
+                diffs.append(f"member {ia.filename}: zip attributes differ")
             if ia.date_time != ib.date_time and "zip member dates differ" not in notes:
-                notes.append("zip member dates differ")  # ignored too (reported as a note)
-    return f"NOTE {', '.join(notes)}" if notes else None
+                notes.append("zip member dates differ")
+    return first_of(diffs, "members")
 
 
-def compare_file(a: Path, b: Path) -> str | None:
+def compare_file(a: Path, b: Path, notes: list[str]) -> str | None:
     if a.is_dir() or b.is_dir():
-        return cmp_dir(a, b) if a.is_dir() and b.is_dir() else "a folder on one side only"
-    fn = {".json": cmp_json, ".npz": cmp_npz, ".sl1": cmp_sl1}.get(a.suffix, cmp_bytes)
-    return fn(a, b)
+        return cmp_dir(a, b, notes) if a.is_dir() and b.is_dir() else "a folder on one side only"
+    return {".json": cmp_json, ".npz": cmp_npz, ".sl1": cmp_sl1}.get(a.suffix, cmp_bytes)(a, b, notes)
 
 
 # ---- the runs ------------------------------------------------------------------------------------------------
@@ -221,18 +253,12 @@ def mesh_runs(mesh: Path, extra: bool) -> list[tuple[list[str], list[str]]]:
     return runs
 
 
-def batch_runs(folder: Path) -> list[tuple[list[str], list[str]]]:
-    common = ["-t", "0.2", "--fit", "60", "-q"]
-    return [(["batch", str(folder), "-o", "npz", *common, "--format", "npz"], ["npz"]),
-            (["batch", str(folder), "-o", "sl1", *common, "--raster", "sl1"], ["sl1"])]
-
-
 class Compare:
     def __init__(self, a: Side, b: Side, work: Path, keep: bool, log) -> None:
         self.a, self.b, self.work, self.keep, self.log = a, b, work, keep, log
         self.lock = threading.Lock()
         self.counts = {"same": 0, "diff": 0, "refused": 0}
-        self.notes: list[str] = []
+        self.notes: dict[str, list[str]] = {}  # note -> the outputs it was let pass in
 
     def emit(self, text: str, to_stdout: bool = True) -> None:
         with self.lock:
@@ -256,13 +282,17 @@ class Compare:
                         ("diff", f"DIFF: A rc {ra[0]} {ra[1]!r}, B rc {rb[0]} {rb[1]!r}")
                 else:
                     pa, pb = (self.work / name / s.label / out for s in (self.a, self.b))
-                    missing = [s for s, p in (("A", pa), ("B", pb)) if not p.exists()]
-                    d = f"missing in {' and '.join(missing)}" if missing else compare_file(pa, pb)
-                    if d and d.startswith("NOTE "):
-                        self.notes.append(f"{name} {label}: {d[5:]}")
-                        kind, text = "same", f"same ({d[5:]}; date ignored)"
-                    else:
-                        kind, text = ("same", "same") if d is None else ("diff", f"DIFF: {d}")
+                    missing, notes = [s for s, p in (("A", pa), ("B", pb)) if not p.exists()], []
+                    try:
+                        d = f"missing in {' and '.join(missing)}" if missing else compare_file(pa, pb, notes)
+                    except Exception as exc:  # an unreadable output is a difference, not the end of the run
+                        d = f"cannot compare: {type(exc).__name__}: {exc}"
+                    note = "; ".join(n + (f" ({notes.count(n)}x)" if notes.count(n) > 1 else "")
+                                     for n in dict.fromkeys(notes))
+                    for n in dict.fromkeys(notes) if d is None else ():
+                        with self.lock:
+                            self.notes.setdefault(n, []).append(f"{name} {label}")
+                    kind, text = ("diff", f"DIFF: {d}") if d else ("same", f"same ({note})" if notes else "same")
                 with self.lock:
                     self.counts[kind] += 1
                 lines.append(f"{name:<26} {label:<26} {text}")
@@ -286,8 +316,7 @@ def load_catalog(folder: Path) -> list[tuple[str, Path]]:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--a", default="8c0d960", help="revision A (default: 8c0d960)")
     ap.add_argument("--b", default=None, help="revision B (default: the working tree)")
     ap.add_argument("--meshes", type=Path, default=ROOT.parent / "shared" / "meshes", help="folder with catalog.csv")
@@ -295,10 +324,12 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help=f"only the first {QUICK} meshes")
     ap.add_argument("--jobs", type=int, default=1, help="meshes run in parallel")
     ap.add_argument("--keep", action="store_true", help="keep the run folders")
+    ap.add_argument("--png-pixels", action="store_true", help="PNGs whose pixels match count as same")
     ap.add_argument("--log", type=Path, help="also write every line and each command's exit code and time here")
     opt = ap.parse_args()
 
-    meshes = load_catalog(opt.meshes.resolve())
+    PIXELS_ONLY[0] = opt.png_pixels
+    meshes = catalog = load_catalog(opt.meshes.resolve())
     if opt.only:
         unknown = set(opt.only) - {n for n, _ in meshes} - {"batch"}
         if unknown:
@@ -320,15 +351,18 @@ def main() -> int:
         if not opt.only or "batch" in opt.only:
             src = base / "batch-in"
             src.mkdir()
-            by_name = dict(load_catalog(opt.meshes.resolve()))
+            by_name = dict(catalog)
             for n in [n for n in BATCH_MESHES if n in by_name] or list(by_name)[:3]:
                 shutil.copy(by_name[n], src / by_name[n].name)
-            cases.append(("batch", batch_runs(src)))
+            common = ["-t", "0.2", "--fit", "60", "-q"]  # -q: batch's progress bar and table are not compared
+            cases.append(("batch", [(["batch", str(src), "-o", "npz", *common, "--format", "npz"], ["npz"]),
+                                    (["batch", str(src), "-o", "sl1", *common, "--raster", "sl1"], ["sl1"])]))
         with ThreadPoolExecutor(max(1, opt.jobs)) as pool:
             for f in [pool.submit(cmp.case, n, r) for n, r in cases]:
                 f.result()
-        for note in cmp.notes:
-            cmp.emit(f"note: {note} (config.ini fileCreationTimestamp and zip dates ignored)")
+        for note, where in cmp.notes.items():
+            more = " ..." if len(where) > 3 else ""
+            cmp.emit(f"note: {note}, let pass in {len(where)} outputs: {', '.join(where[:3])}{more}")
         c = cmp.counts
         cmp.emit(f"elapsed {time.perf_counter() - t0:.0f} s; run folders: {base / 'runs' if opt.keep else 'removed'}")
         cmp.emit(f"{sum(c.values())} compared, {c['same']} identical, {c['diff']} differ, "

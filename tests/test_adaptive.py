@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from gpuslice import mesh_from_arrays, mesh_from_triangles, slice_mesh
+from gpuslice import mesh_from_arrays, mesh_from_triangles, roi_schedule, slice_mesh
 from gpuslice.cli import main
 from gpuslice.errors import ParameterError
 from gpuslice.mesh.shapes import box, icosphere, torus, write_stl
@@ -18,7 +18,6 @@ from gpuslice.schedule.adaptive import (
     cusp_schedule,
     facet_slopes,
     facet_slopes_numpy,
-    roi_schedule,
     slab_max_nz,
     slab_max_nz_numpy,
 )
@@ -191,7 +190,7 @@ def test_slicer_takes_the_adaptive_schedule(sphere, backend):
 
 
 def test_roi_ladder_on_a_sphere(sphere):
-    sched = roi_schedule(sphere, (1.0, 0.5, 0.1), params=None)
+    sched = roi_schedule(sphere, (1.0, 0.5, 0.1))
     _check_tiling(sphere, sched, lo=0.1 - 1e-9, hi=1.0)
     assert set(np.round(sched.thickness[:-1], 9)) == {1.0, 0.5, 0.1}
     levels = sched.info["levels"]

@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gpuslice.batch.runner import (
+from gpuslice import Placement, SliceParams
+from gpuslice.batch import (
     MANIFEST_NAME,
     BatchError,
     BatchOptions,
@@ -43,7 +44,7 @@ GENERATED = {
     "ico": lambda: shapes.icosphere(subdivisions=2),
 }
 SHARED_MESHES = Path(__file__).resolve().parents[2] / "shared" / "meshes"
-OPTS = BatchOptions(thickness=0.5, fit=25.0)
+OPTS = BatchOptions(SliceParams(thickness=0.5), Placement(fit=25.0))
 BROKEN = "broken/garbage.stl"
 
 
@@ -177,7 +178,7 @@ def test_local_workers_match_serial_and_rerun_skips(tree, serial, tmp_path):
     again = _by_model(run_batch([tree], out, OPTS, workers=2))
     assert {k for k, r in again.items() if r["status"] == "skipped"} == set(again) - {BROKEN}
     # other options into the same folder are refused, unless forced
-    other = BatchOptions(thickness=0.4, fit=25.0)
+    other = BatchOptions(SliceParams(thickness=0.4), Placement(fit=25.0))
     with pytest.raises(BatchError, match=r"other options \(thickness 0.5 -> 0.4\)"):
         run_batch([tree], out, other, workers=0)
     forced = _by_model(run_batch([tree / "gen" / "deep"], out, other, workers=0, force=True))
@@ -343,9 +344,8 @@ def test_cli_ctrl_c_stops_cleanly(tmp_path, device):
 
 @pytest.mark.parametrize("kind", ["sl1", "png"])
 def test_raster_batch(tree, tmp_path, monkeypatch, kind):
-    pytest.importorskip("gpuslice.raster.sl1", reason="gpuslice.raster.sl1 is not in this checkout")
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
-    opts = BatchOptions(thickness=0.5, fit=25.0, raster=kind,
+    opts = BatchOptions(SliceParams(thickness=0.5), Placement(fit=25.0), raster=kind,
                         raster_options=(("resolution", "400x300"), ("pixel", 0.1), ("raster_backend", "numpy")))
     outs = []
     for workers in (0, 2):

@@ -15,7 +15,7 @@ from gpuslice import mesh_from_triangles, slice_mesh
 from gpuslice.cli import main
 from gpuslice.errors import ParameterError
 from gpuslice.mesh import shapes
-from gpuslice.raster.coverage import (
+from gpuslice.raster import (
     RasterSpec,
     Tile,
     check_fits,
@@ -26,7 +26,9 @@ from gpuslice.raster.coverage import (
     layer_edges,
     masks,
 )
-from gpuslice.raster.sl1 import PngEncoder, read_sl1_config, write_png_stack, write_sl1
+from gpuslice.raster.png import PngEncoder
+from gpuslice.raster.pngstack import write_png_stack
+from gpuslice.raster.sl1 import read_sl1_config, write_sl1
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 

@@ -12,28 +12,23 @@ import sys
 
 import click
 
-from .main import adaptive_options, adaptive_params, fail, slicing_options, with_options
+from ..batch.options import BatchOptions
+from .options import build, click_options, fail, slicing_options, slicing_values, with_options
 
 __all__ = ["batch"]
 
 
-def _parse_value(text: str):
-    for cast in (int, float):
-        try:
-            return cast(text)
-        except ValueError:
-            pass
-    return {"true": True, "false": False}.get(text.lower(), text)
-
-
 def _raster_options(pairs: tuple[str, ...]) -> tuple[tuple[str, object], ...]:
+    """``KEY=VALUE`` texts typed by their option fields (:func:`gpuslice.batch.options.typed_raster_options`)."""
+    from ..batch.options import typed_raster_options
+
     out = []
     for pair in pairs:
         key, sep, value = pair.partition("=")
         if not sep or not key.strip():
             fail(f"--raster-opt {pair!r}: expected KEY=VALUE")
-        out.append((key.strip().replace("-", "_"), _parse_value(value.strip())))
-    return tuple(out)
+        out.append((key.strip(), value.strip()))
+    return typed_raster_options(tuple(out))
 
 
 class _Progress:
@@ -70,24 +65,19 @@ class _Progress:
             self.bar.update(self.task, advance=1, description=rec["model"][-40:])
 
 
-_slice_options = slicing_options()
-
-
 @click.command()
 @click.argument("inputs", nargs=-1, required=True, type=click.Path(path_type=str))
 @click.option("-o", "--output", "out_dir", type=click.Path(path_type=str), required=True,
               help="Output folder; it mirrors the input tree, one result per model.")
-@with_options(_slice_options)
-@with_options(adaptive_options)
-@click.option("--format", "fmt", type=click.Choice(["npz", "svg", "cli"]), default="npz", show_default=True,
-              help="Result format of each model.")
+@with_options(slicing_options())
+@with_options(click_options(BatchOptions, only=("fmt",)))
 @click.option("--glob", "pattern", default=None,
               help="In folders, the models to take, e.g. '**/*.stl' (case-insensitive; default: every .stl .3mf "
                    ".obj .ply .off).")
-@click.option("--raster", type=click.Choice(["sl1", "png"]), default=None,
-              help="Rasterise each model to an SL1 archive or a PNG-stack folder instead (needs gpuslice.raster).")
+@with_options(click_options(BatchOptions, only=("raster",)))
 @click.option("--raster-opt", "raster_opt", multiple=True, metavar="KEY=VALUE",
-              help="A rasteriser option, e.g. pixel=0.05 or resolution=3840x2400 (repeatable).")
+              help="A resin option (a `gpuslice raster` option's name), e.g. pixel=0.05, resolution=3840x2400, "
+                   "printer=generic-4k (repeatable).")
 @click.option("-j", "--workers", type=int, default=None,
               help="Local worker processes (0: in this process). Default: one per core, PoCL threads shared out.")
 @click.option("--threads", type=int, default=None, help="PoCL threads per local worker (default: cores // workers).")
@@ -100,12 +90,12 @@ _slice_options = slicing_options()
 @click.option("--report", type=click.Path(path_type=str), default=None,
               help="Write the batch report (per model status, facets, layers, timings, error) as JSON.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar and no summary table.")
-def batch(inputs, out_dir, thickness, first_layer, z_mode, scale, fit, fill_rule, max_gap, backend, device, fmt,
-          pattern, raster, raster_opt, workers, threads, scheduler, transfer, force, report, quiet, **adaptive) -> None:
+def batch(inputs, out_dir, pattern, raster_opt, workers, threads, scheduler, transfer, force, report, quiet,
+          **kw) -> None:
     """Slice every model in INPUTS (folders, searched recursively; list files of paths, .txt/.list; model files)
     with the same options (those of `slice`, adaptive layers included) into OUT, on local workers or a Dask
     cluster. Models whose output exists are skipped."""
-    from ..batch.runner import BatchOptions, BatchRunner, discover, format_summary
+    from ..batch import BatchRunner, discover, format_summary
     from ..io.report import write_report
 
     if workers is not None and workers < 0:
@@ -114,20 +104,15 @@ def batch(inputs, out_dir, thickness, first_layer, z_mode, scale, fit, fill_rule
         fail(f"--threads must be >= 1, got {threads}")
     if transfer is not None and scheduler is None:
         fail("--transfer only applies with --scheduler")
-    if raster is None and raster_opt:
+    if kw["raster"] is None and raster_opt:
         fail("--raster-opt needs --raster")
-    opts = BatchOptions(thickness=thickness, first_layer=first_layer, z_mode=z_mode, fill_rule=fill_rule,
-                        max_gap=max_gap, backend=backend, device=device, scale=scale, fit=fit, fmt=fmt,
-                        raster=raster, raster_options=_raster_options(raster_opt),
-                        schedule=tuple(adaptive_params(adaptive).items()) if adaptive["adaptive"] else ())
-    if raster is not None:
-        from ..batch.runner import check_raster
-
-        check_raster(raster, opts.raster_options)
+    params, placement = slicing_values(kw)
+    opts = build(BatchOptions, kw, params=params, placement=placement,
+                 raster_options=_raster_options(raster_opt) if kw["raster"] is not None else ())
     models = discover(inputs, pattern, opts.suffix)
     client = None
     if scheduler is not None:
-        from ..batch.runner import connect
+        from ..batch import connect
 
         client = connect(scheduler)
     runner = None

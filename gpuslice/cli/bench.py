@@ -1,5 +1,7 @@
 """``gpuslice bench`` (timings and quality of uniform and adaptive settings side by side) and ``gpuslice plot``
-(the paper's figures), imported only when one of them runs."""
+(the paper's figures), imported only when one of them runs. The model is loaded by the pipeline's own stages
+(:func:`gpuslice.pipeline.prepare_device`, :func:`~gpuslice.pipeline.load_job_mesh`); each setting is then sliced
+by :func:`gpuslice.slicing.slicer.slice_mesh`, the slicing stages the bench times."""
 
 from __future__ import annotations
 
@@ -8,29 +10,34 @@ from pathlib import Path
 
 import click
 
-from .main import adaptive_options, adaptive_params, fail, load_model, mesh_options, with_options
+from ..mesh.mesh import Placement
+from ..slicing.params import SliceParams
+from .options import build, click_options, fail, values, with_options
 
 __all__ = ["bench", "plot"]
+
+#: the SliceParams fields bench and plot take as they are (thicknesses and adaptive modes are lists here)
+_SHARED = ("backend", "device", "max_cusp", "max_area", "min_height", "max_height", "smooth", "roi_ladder",
+           "roi_threshold", "roi_quantile", "roi_windows")
 
 _common = [
     click.option("-t", "--thickness", "thicknesses", default=None, help="Uniform thicknesses, mm: 0.1,0.2,0.3."),
     click.option("--adaptive", "modes", default=None, help="Adaptive modes to add: roi,cusp,area."),
-    *mesh_options,
-    click.option("--backend", type=click.Choice(["opencl", "numpy"]), default="opencl", show_default=True),
-    click.option("--device", default=None, help="OpenCL device: 'P:D' index or a name piece."),
-    *adaptive_options[1:],
+    *click_options(Placement),
+    *click_options(SliceParams, only=_SHARED),
 ]
 
 
-def _setup(model, thicknesses, modes, scale, fit, backend, device, kw):
+def _setup(model, thicknesses, modes, kw):
     from ..bench.runner import parse_settings
-    from ..slicing.slicer import SliceParams
+    from ..pipeline import Job, load_job_mesh, prepare_device
 
     settings = parse_settings(thicknesses, modes)
-    kw = {**kw, "adaptive": None}
-    params = SliceParams(backend=backend, device=device, **adaptive_params(kw))
-    mesh, _, load_times = load_model(model, scale, fit, backend, device)
-    load_times.pop("device")
+    params = SliceParams(**values(SliceParams, kw))
+    job = Job(source=model, placement=build(Placement, kw), params=params)
+    load_times: dict[str, float] = {}
+    dev = prepare_device(params, timings=load_times)
+    mesh = load_job_mesh(job, dev, load_times)
     return settings, params, mesh, load_times
 
 
@@ -89,8 +96,7 @@ def _make_dir(path: str) -> None:
 @click.option("--csv", "as_csv", is_flag=True, help="Print the table as CSV.")
 @click.option("--plots", "plots_dir", type=click.Path(path_type=str), default=None,
               help="Also write the plots (PNG and SVG) into this directory.")
-def bench(model, thicknesses, modes, scale, fit, backend, device, repeat, no_quality, ref_thickness, as_json, as_csv,
-          plots_dir, **kw) -> None:
+def bench(model, thicknesses, modes, repeat, no_quality, ref_thickness, as_json, as_csv, plots_dir, **kw) -> None:
     """Time and compare layer settings on MODEL: the paper's Tables 2-3 as one table (medians of --repeat runs)."""
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
@@ -101,7 +107,7 @@ def bench(model, thicknesses, modes, scale, fit, backend, device, repeat, no_qua
         fail("--json and --csv exclude each other")
     if plots_dir is not None:
         _make_dir(plots_dir)
-    settings, params, mesh, load_times = _setup(model, thicknesses, modes, scale, fit, backend, device, kw)
+    settings, params, mesh, load_times = _setup(model, thicknesses, modes, kw)
     console = Console(stderr=True)
     steps = 1 + len(settings) * repeat + (0 if no_quality else len(settings))
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
@@ -129,7 +135,7 @@ def bench(model, thicknesses, modes, scale, fit, backend, device, repeat, no_qua
 @click.option("-o", "--out", "out_dir", type=click.Path(path_type=str), required=True,
               help="Directory for the PNG and SVG files.")
 @click.option("--layers", default=None, help="Layer indices to draw (of the first setting), e.g. 39,159.")
-def plot(model, thicknesses, modes, scale, fit, backend, device, out_dir, layers, **kw) -> None:
+def plot(model, thicknesses, modes, out_dir, layers, **kw) -> None:
     """Plot MODEL's slices: points per layer (Fig. 6/11), layer contours and points (Fig. 5/10), 3D stacks (Fig. 8)."""
     from dataclasses import replace
 
@@ -137,7 +143,7 @@ def plot(model, thicknesses, modes, scale, fit, backend, device, out_dir, layers
     from ..slicing.slicer import slice_mesh
 
     _make_dir(out_dir)
-    settings, params, mesh, _ = _setup(model, thicknesses, modes, scale, fit, backend, device, kw)
+    settings, params, mesh, _ = _setup(model, thicknesses, modes, kw)
     results = {s.label: slice_mesh(mesh, replace(params, **s.overrides)) for s in settings}
     name = Path(model).stem
     paths = plot_all(results, out_dir, name)

@@ -1,4 +1,5 @@
-"""``gpuslice view``: slice a mesh (or load a saved ``.npz`` result) and write the self-contained layer viewer page."""
+"""``gpuslice view``: slice a mesh (or load a saved ``.npz`` result) and write the self-contained layer viewer page
+(one pipeline job)."""
 
 from __future__ import annotations
 
@@ -7,13 +8,22 @@ from pathlib import Path
 
 import click
 
-from .main import fail, load_model, slicing_options, with_options
+from ..mesh.mesh import Placement
+from ..options import options_of
+from ..slicing.params import SliceParams
+from .options import fail, slicing_options, slicing_values, with_options
 
 __all__ = ["view"]
 
 
 def _size(n: int) -> str:
     return f"{n / 1e6:.1f} MB" if n >= 1e6 else f"{n / 1e3:.1f} kB"
+
+
+def _printers() -> tuple[str, ...]:
+    from ..raster.spec import PRINTERS
+
+    return tuple(sorted(PRINTERS))
 
 
 @click.command()
@@ -28,66 +38,44 @@ def _size(n: int) -> str:
               help="--raster: a mask for every N-th layer only (smaller page).")
 @click.option("--title", default=None, help="Page title (default: the model's file name).")
 @click.option("-q", "--quiet", is_flag=True, help="Print nothing but errors.")
-def view(source, output, thickness, first_layer, z_mode, scale, fit, fill_rule, max_gap, backend, device, raster,
-         printer, mask_every, title, quiet) -> None:
+def view(source: str, output: str | None, raster: bool, printer: str, mask_every: int, title: str | None,
+         quiet: bool, **kw) -> None:
     """Write a self-contained HTML layer viewer for SOURCE (a mesh, sliced with the `slice` options, or a saved
     .npz result). Open it in any browser, offline: slider and arrow keys step through the layers."""
-    from ..slicing.result import SliceResult
-    from ..view.page import write_view
+    from ..pipeline import Job, ViewOutput, run_job
 
     src = Path(source)
     if output is None:
         output = src.with_suffix(".html").name
     if Path(output).suffix.lower() not in (".html", ".htm"):
         fail(f"{output}: the viewer is an HTML page (use a .html name)")
-    slicing = {"-t": thickness, "--first-layer": first_layer, "--z-mode": z_mode, "--scale": scale, "--fit": fit,
-               "--fill-rule": fill_rule, "--max-gap": max_gap, "--backend": backend, "--device": device}
-    t0 = time.perf_counter()
-    dev, bounds = None, None
     if src.suffix.lower() == ".npz":
-        given = [k for k, v in slicing.items() if v is not None]
+        flags = {i.name: i.flags[0] for cls in (SliceParams, Placement) for i in options_of(cls) if i.flags}
+        given = [flags[k] for k, v in kw.items() if v is not None and k in flags]
         if given:
             fail(f"{source}: a saved result is already sliced; {', '.join(given)} only apply to meshes")
-        result = SliceResult.load(src)
-        sliced = result.meta.get("file")
-        default_title = f"{Path(str(sliced)).name} ({src.name})" if sliced else src.name
-    else:
-        from ..slicing.slicer import SliceParams, slice_mesh
-
-        given = {"thickness": thickness, "first_layer": first_layer, "z_mode": z_mode, "fill_rule": fill_rule,
-                 "max_gap": max_gap, "backend": backend, "device": device}
-        params = SliceParams(**{k: v for k, v in given.items() if v is not None})  # the rest: SliceParams' defaults
-        mesh, dev, _ = load_model(source, scale, fit, params.backend, device)
-        result = slice_mesh(mesh, params)
-        default_title = src.name
-        lo, hi = mesh.vertices[:, :2].min(axis=0), mesh.vertices[:, :2].max(axis=0)
-        bounds = (float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))  # the mesh is centred, as `raster` does
     masks = None
     if raster:
-        masks = _masks(source, result, printer, mask_every, bounds, backend, dev)
-    t1 = time.perf_counter()
-    size = write_view(result, output, title=title or default_title, masks=masks)
-    t2 = time.perf_counter()
+        try:
+            import PIL  # noqa: F401
+        except ImportError:
+            fail("--raster needs pillow (pip install 'gpuslice[raster]')")
+        if mask_every < 1:
+            fail(f"--mask-every must be >= 1, got {mask_every}")
+        if printer not in _printers():
+            fail(f"unknown printer '{printer}' (use {', '.join(_printers())})")
+        from ..raster.spec import with_printer
+
+        masks = with_printer(printer)
+    params, placement = slicing_values(kw)
+    t0 = time.perf_counter()
+    done = run_job(Job(source=source, placement=placement, params=params, mesh_check=False,
+                       view=ViewOutput(output, title, masks, mask_every)))
+    t1 = done.timings.get("view", 0.0)
     if not quiet:
-        extra = f", {len(masks.png):,} masks ({masks.label})" if masks is not None else ""
-        click.echo(f"wrote {output}: {_size(size)} ({size:,} bytes), {result.n_layers:,} layers, "
-                   f"{int(result.points.shape[0]):,} points{extra}; slicing/loading/masks {t1 - t0:.2f} s, "
-                   f"page {t2 - t1:.2f} s")
-
-
-def _masks(source: str, result, printer: str, every: int, bounds, backend: str | None, device):
-    """The resin masks for ``--raster``, or a one-line error when gpuslice.raster or pillow is missing."""
-    try:
-        from ..raster.coverage import with_printer
-    except ImportError as exc:
-        fail(f"--raster needs gpuslice.raster ({exc})")
-    try:
-        import PIL  # noqa: F401
-    except ImportError:
-        fail("--raster needs pillow (pip install 'gpuslice[raster]')")
-    from ..view.page import raster_masks
-
-    if every < 1:
-        fail(f"--mask-every must be >= 1, got {every}")
-    return raster_masks(result, with_printer(printer), every=every, bounds=bounds,
-                        backend="numpy" if backend == "numpy" else "auto", device=device, name=source)
+        m = done.stats.get("masks")
+        extra = f", {len(m.png):,} masks ({m.label})" if m is not None else ""
+        size = done.stats["view_bytes"]
+        click.echo(f"wrote {output}: {_size(size)} ({size:,} bytes), {done.result.n_layers:,} layers, "
+                   f"{int(done.result.points.shape[0]):,} points{extra}; slicing/loading/masks "
+                   f"{time.perf_counter() - t0 - t1:.2f} s, page {t1:.2f} s")

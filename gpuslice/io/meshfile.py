@@ -24,14 +24,17 @@ from __future__ import annotations
 import os
 import re
 import stat
+import tempfile
 from dataclasses import dataclass
+from pathlib import Path
 from typing import NoReturn
 
 import numpy as np
 
-from gpuslice.errors import EmptyMeshError, InvalidGeometryError, MeshFileError
+from ..errors import EmptyMeshError, GpusliceError, InvalidGeometryError, MeshFileError
 
 __all__ = [
+    "read_mesh_source",
     "RawMesh",
     "read_mesh_file",
     "read_stl_bytes",
@@ -186,6 +189,30 @@ def read_mesh_file(path: str | os.PathLike[str]) -> RawMesh:
     except OSError as exc:
         raise _file_error(name, exc) from None
     return read_stl_bytes(data, name)
+
+
+def read_mesh_source(path: str | os.PathLike[str], data: bytes | None = None, label: str | None = None) -> RawMesh:
+    """Read a mesh from ``path``, or from ``data`` (the file's bytes, e.g. sent to a batch worker) with ``path``'s
+    suffix telling the format; messages name the file ``label`` (default: ``path``)."""
+    where = os.fspath(path)
+    label = label or where
+    if data is None:
+        try:
+            return read_mesh_file(where)
+        except GpusliceError as exc:  # name the file as the user gave it
+            if label == where:
+                raise
+            raise type(exc)(str(exc).replace(where, label)) from None
+    suffix = Path(where).suffix.lower()
+    if suffix in TRIMESH_EXTENSIONS:  # trimesh reads files: through a private temporary folder
+        with tempfile.TemporaryDirectory(prefix="gpuslice-") as tmp:
+            p = Path(tmp) / ("model" + suffix)
+            p.write_bytes(data)
+            try:
+                return read_mesh_file(p)
+            except GpusliceError as exc:
+                raise type(exc)(str(exc).replace(str(p), label)) from None
+    return read_stl_bytes(data, label)
 
 
 def _file_error(name: str, exc: OSError) -> MeshFileError:

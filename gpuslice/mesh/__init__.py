@@ -2,6 +2,7 @@
 check (``defects.py``) and built-in test solids (``shapes.py``)."""
 
 from .defects import MESH_REPAIR_KINDS, mesh_repairs
-from .mesh import Mesh, load_mesh, mesh_from_arrays, mesh_from_triangles
+from .mesh import Mesh, Placement, load_mesh, mesh_from_arrays, mesh_from_triangles
 
-__all__ = ["MESH_REPAIR_KINDS", "Mesh", "load_mesh", "mesh_from_arrays", "mesh_from_triangles", "mesh_repairs"]
+__all__ = ["MESH_REPAIR_KINDS", "Mesh",
+    "Placement", "load_mesh", "mesh_from_arrays", "mesh_from_triangles", "mesh_repairs"]

@@ -25,8 +25,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EmptyMeshError, InvalidGeometryError, ParameterError
+from ..options import option
+from .weld import edge_ids_device, edge_ids_numpy, weld_device, weld_numpy
 
-__all__ = ["Mesh", "load_mesh", "mesh_from_triangles", "mesh_from_arrays", "first_occurrence_ids"]
+__all__ = ["Mesh", "Placement", "load_mesh", "mesh_from_triangles", "mesh_from_arrays"]
 
 #: below this many facets the numpy weld is faster than a kernel launch round trip
 DEVICE_WELD_MIN_FACETS = 20_000
@@ -178,28 +180,17 @@ def count_bodies(mesh: Mesh) -> int:
     return int(np.unique(labels[used]).size)
 
 
-def first_occurrence_ids(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Number equal keys by first occurrence.
+@dataclass(frozen=True)
+class Placement:
+    """How a mesh is scaled before slicing (declared once, :mod:`gpuslice.options`). It then always stands on the
+    bed: its lowest point at z = 0, X and Y kept. Give ``scale`` or ``fit``, or neither (file units are mm)."""
 
-    Returns ``ids`` (N,) int32 with ``ids[i] == ids[j]`` iff ``keys[i] == keys[j]``, numbered 0, 1, … in the order
-    the distinct keys first appear, and ``first`` (K,) int64, the index of each id's first occurrence.
-    """
-    n = keys.shape[0]
-    if n == 0:
-        return np.zeros(0, np.int32), np.zeros(0, np.int64)
-    order = np.argsort(keys, kind="stable")
-    sk = keys[order]
-    start = np.empty(n, dtype=bool)
-    start[0] = True
-    np.not_equal(sk[1:], sk[:-1], out=start[1:])
-    group = np.cumsum(start) - 1
-    firsts = order[start]  # stable sort: the smallest index of each group
-    rank = np.empty(firsts.size, dtype=np.int64)
-    by_first = np.argsort(firsts)
-    rank[by_first] = np.arange(firsts.size)
-    ids = np.empty(n, dtype=np.int32)
-    ids[order] = rank[group]
-    return ids, firsts[by_first]
+    scale: float | None = option(None, "Multiply coordinates by this factor (to mm)")
+    fit: float | None = option(None, "Scale so the longest side is this many mm")
+
+    def __post_init__(self) -> None:
+        if self.scale is not None and self.fit is not None:
+            raise ParameterError("give scale or fit, not both", param=("scale", "fit"))
 
 
 def mesh_from_triangles(
@@ -226,7 +217,7 @@ def mesh_from_triangles(
     if tri.shape[0] == 0:
         raise EmptyMeshError(f"{name}: no facets")
     if scale is not None and fit is not None:
-        raise ParameterError("give --scale or --fit, not both")
+        raise ParameterError("give scale or fit, not both", param=("scale", "fit"))
     # float32 is the precision of STL; + 0.0 turns -0.0 into 0.0 so both weld together
     corners = np.ascontiguousarray(tri.reshape(-1, 3), dtype=np.float32) + np.float32(0.0)
     if not np.all(np.isfinite(corners)):
@@ -244,14 +235,14 @@ def _placement(verts: np.ndarray, name: str, scale: float | None, fit: float | N
     factor = 1.0
     if fit is not None:
         if not (np.isfinite(fit) and fit > 0):
-            raise ParameterError(f"--fit must be a positive length in mm, got {fit}")
+            raise ParameterError(f"fit must be a positive length in mm, got {fit}", param="fit")
         longest = float((hi - lo).max())
         if longest <= 0:
             raise InvalidGeometryError(f"{name}: the mesh has no extent to fit")
         factor = fit / longest
     elif scale is not None:
         if not (np.isfinite(scale) and scale > 0):
-            raise ParameterError(f"--scale must be a positive factor, got {scale}")
+            raise ParameterError(f"scale must be a positive factor, got {scale}", param="scale")
         factor = float(scale)
     extreme = float(np.abs(np.concatenate([lo, hi])).max())
     if extreme * factor > 1e18:
@@ -261,7 +252,6 @@ def _placement(verts: np.ndarray, name: str, scale: float | None, fit: float | N
 
 def _from_corners(corners, normals, *, name, source_format, scale, fit, solids, device=None) -> Mesh:
     n_faces = corners.shape[0] // 3
-    from .weld import edge_ids_device, edge_ids_numpy, weld_device, weld_numpy
 
     # bit-identical as stored, before any transform
     vid, first = weld_device(corners, device) if device is not None else weld_numpy(corners)

@@ -1,6 +1,6 @@
 """The weld and the edge ids on the OpenCL device (``kernels/weld.cl``), bit for bit the numpy path of ``mesh.py``.
 
-Two numberings by first occurrence (see :func:`gpuslice.mesh.first_occurrence_ids`):
+Two numberings by first occurrence (see :func:`first_occurrence_ids`):
 
 * **weld**: corners (N, 3) float32 (already ``+ 0.0``-normalised, so -0.0 is 0.0) with bit-identical coordinates
   share a vertex id; ids are numbered in the order of their first corner. Returns ``vid`` (N,) int32 and ``first``
@@ -19,9 +19,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..device import KernelDriver
-from .mesh import first_occurrence_ids
 
-__all__ = ["WeldKernel", "weld_device", "edge_ids_device", "weld_numpy", "edge_ids_numpy"]
+__all__ = ["WeldKernel", "first_occurrence_ids", "weld_device", "edge_ids_device", "weld_numpy", "edge_ids_numpy"]
 
 # items per work-item in the counting and numbering passes
 _CHUNK = 32
@@ -36,6 +35,30 @@ _KERNEL_NAMES = (
     "emit_sides",
     "gather_ids",
 )
+
+
+def first_occurrence_ids(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Number equal keys by first occurrence.
+
+    Returns ``ids`` (N,) int32 with ``ids[i] == ids[j]`` iff ``keys[i] == keys[j]``, numbered 0, 1, … in the order
+    the distinct keys first appear, and ``first`` (K,) int64, the index of each id's first occurrence.
+    """
+    n = keys.shape[0]
+    if n == 0:
+        return np.zeros(0, np.int32), np.zeros(0, np.int64)
+    order = np.argsort(keys, kind="stable")
+    sk = keys[order]
+    start = np.empty(n, dtype=bool)
+    start[0] = True
+    np.not_equal(sk[1:], sk[:-1], out=start[1:])
+    group = np.cumsum(start) - 1
+    firsts = order[start]  # stable sort: the smallest index of each group
+    rank = np.empty(firsts.size, dtype=np.int64)
+    by_first = np.argsort(firsts)
+    rank[by_first] = np.arange(firsts.size)
+    ids = np.empty(n, dtype=np.int32)
+    ids[order] = rank[group]
+    return ids, firsts[by_first]
 
 
 def weld_numpy(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,24 +1,25 @@
-"""Resin layers: rasterising the nested polygons onto a printer's display (``coverage.py`` + ``kernels/raster.cl``,
-``gl.py``) and the archives resin printers read (``sl1.py``)."""
+"""Resin layers: rasterising the nested polygons onto a printer's display and writing the archives resin printers
+read.
+
+``spec.py`` (the display, presets, resin options), ``coverage.py`` + ``kernels/raster.cl`` (exact area coverage;
+numpy twin), ``gl.py`` (the moderngl pass), ``outputs.py`` (the resin-output registry), ``png.py`` (the PNG encoder),
+``sl1.py`` and ``pngstack.py`` (the outputs).
+"""
 
 from .coverage import (
-    BACKENDS,
-    PRINTERS,
     LayerEdges,
     RasterKernel,
-    RasterSpec,
     Tile,
     check_fits,
     choose_backend,
     coverage_numpy,
-    gamma_lut,
     iter_masks,
     iter_tiles,
     layer_edges,
     masks,
     result_bounds,
-    with_printer,
 )
+from .spec import BACKENDS, PRINTERS, RasterSpec, ResinOptions, gamma_lut, with_printer
 
 __all__ = [
     "BACKENDS",
@@ -26,6 +27,7 @@ __all__ = [
     "PRINTERS",
     "RasterKernel",
     "RasterSpec",
+    "ResinOptions",
     "Tile",
     "check_fits",
     "choose_backend",

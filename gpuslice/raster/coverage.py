@@ -32,9 +32,8 @@ OpenCL otherwise (llvmpipe, Mesa's software GL, is slower than the OpenCL pass o
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -42,12 +41,10 @@ from ..device import KernelDriver
 from ..errors import ParameterError
 from ..ragged import expand_ranges
 from ..slicing.result import SliceResult
+from .spec import BACKENDS, RasterSpec, gamma_lut
 
 __all__ = [
-    "RasterSpec",
     "Tile",
-    "PRINTERS",
-    "gamma_lut",
     "layer_edges",
     "coverage_numpy",
     "RasterKernel",
@@ -56,144 +53,14 @@ __all__ = [
     "masks",
     "choose_backend",
     "BACKENDS",
+    "LayerEdges",
+    "check_fits",
+    "result_bounds",
 ]
 
-BACKENDS = ("auto", "opencl", "numpy", "gl")
 
 #: fixed-point scale of the OpenCL accumulation (coverage 1.0 = 65536); ``|sum| >> 8`` is ``floor(256·c)``
 FIXED_ONE = 1 << 16
-
-
-@dataclass(frozen=True)
-class RasterSpec:
-    """A resin printer's display and how the model is placed on it (lengths in mm).
-
-    resolution : (nx, ny) pixels: the PNG's width and height.
-    pixel : pixel width px, mm; ``pixel_y`` its height py (default: square, = px).
-    mirror_x, mirror_y, portrait : display orientation (module docstring).
-    keep_xy : keep the model's own XY (bed = model coordinates) instead of centring its bbox on the bed.
-    gamma : PrusaSlicer's gamma correction: 1 linear coverage, 0 hard threshold at 50 % coverage.
-    """
-
-    resolution: tuple[int, int] = (3840, 2400)
-    pixel: float = 0.05
-    pixel_y: float | None = None
-    mirror_x: bool = False
-    mirror_y: bool = False
-    portrait: bool = False
-    keep_xy: bool = False
-    gamma: float = 1.0
-
-    def __post_init__(self) -> None:
-        nx, ny = self.resolution
-        if not (isinstance(nx, int | np.integer) and isinstance(ny, int | np.integer) and nx > 0 and ny > 0):
-            raise ParameterError(f"--resolution must be two positive integers NXxNY, got {self.resolution}")
-        if nx * ny > 2**31 - 1:
-            raise ParameterError(f"--resolution {nx}x{ny} is too large")
-        for name, v in (("--pixel", self.pixel), ("--pixel-y", self.py)):
-            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
-                raise ParameterError(f"{name} must be a positive number of mm, got {v}")
-        if not (math.isfinite(self.gamma) and self.gamma >= 0):
-            raise ParameterError(f"--gamma must be >= 0, got {self.gamma}")
-
-    @property
-    def nx(self) -> int:
-        return int(self.resolution[0])
-
-    @property
-    def ny(self) -> int:
-        return int(self.resolution[1])
-
-    @property
-    def px(self) -> float:
-        return float(self.pixel)
-
-    @property
-    def py(self) -> float:
-        return float(self.pixel if self.pixel_y is None else self.pixel_y)
-
-    @property
-    def png_size(self) -> tuple[int, int]:
-        """(width, height) of a layer's PNG in pixels: (nx, ny) in landscape, (ny, nx) in portrait."""
-        return (self.ny, self.nx) if self.portrait else (self.nx, self.ny)
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        """(rows, cols) of a mask: the PNG's (height, width)."""
-        w, h = self.png_size
-        return h, w
-
-    @property
-    def display_mm(self) -> tuple[float, float]:
-        """(display_width, display_height) in mm, PrusaSlicer's names: nx·px, ny·py."""
-        return self.nx * self.px, self.ny * self.py
-
-    @property
-    def bed_mm(self) -> tuple[float, float]:
-        """(X, Y) extent of the printable bed in model axes, mm: the display's (width, height) in both orientations."""
-        return self.display_mm
-
-    def offset_for(self, bounds: Sequence[float] | None) -> tuple[float, float]:
-        """(dx, dy) mm added to model XY to get bed XY: centres ``bounds`` = (xmin, ymin, xmax, ymax) on the bed."""
-        if self.keep_xy or bounds is None:
-            return 0.0, 0.0
-        xmin, ymin, xmax, ymax = (float(b) for b in bounds)
-        bx, by = self.bed_mm
-        return bx / 2 - (xmin + xmax) / 2, by / 2 - (ymin + ymax) / 2
-
-    def affine(self, bounds: Sequence[float] | None = None) -> np.ndarray:
-        """(2, 3) float64 matrix A with (u, v) = A @ (x, y, 1): model mm → continuous pixel coordinates."""
-        dx, dy = self.offset_for(bounds)
-        w, h = self.display_mm
-        if self.portrait:  # u = (h - Y)/py, v = (w - X)/px
-            a = np.array([[0.0, -1.0 / self.py, (h - dy) / self.py], [-1.0 / self.px, 0.0, (w - dx) / self.px]])
-        else:  # u = X/px, v = (h - Y)/py
-            a = np.array([[1.0 / self.px, 0.0, dx / self.px], [0.0, -1.0 / self.py, (h - dy) / self.py]])
-        cols, rows = self.png_size
-        if self.mirror_x:
-            a[0] = -a[0]
-            a[0, 2] += cols
-        if self.mirror_y:
-            a[1] = -a[1]
-            a[1, 2] += rows
-        return a
-
-    def to_pixels(self, xy: np.ndarray, bounds: Sequence[float] | None = None) -> np.ndarray:
-        """(n, 2) float64 continuous pixel coordinates (u = column, v = row) of model points ``xy`` (mm)."""
-        a = self.affine(bounds)
-        x = np.asarray(xy[:, 0], dtype=np.float64)
-        y = np.asarray(xy[:, 1], dtype=np.float64)
-        out = np.empty((x.size, 2), np.float64)
-        out[:, 0] = a[0, 0] * x + a[0, 1] * y + a[0, 2]  # one of a[0, :2] is 0: exact as a matrix product
-        out[:, 1] = a[1, 0] * x + a[1, 1] * y + a[1, 2]
-        return out
-
-    def pixel_centres(self, bounds: Sequence[float] | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Model (x, y) in mm of every pixel centre, two (ny, nx) arrays (inverse of :meth:`affine`)."""
-        a = self.affine(bounds)
-        inv = np.linalg.inv(np.vstack([a, [0, 0, 1]]))
-        v, u = np.mgrid[0 : self.shape[0], 0 : self.shape[1]].astype(np.float64) + 0.5
-        return inv[0, 0] * u + inv[0, 1] * v + inv[0, 2], inv[1, 0] * u + inv[1, 1] * v + inv[1, 2]
-
-
-#: display presets: name -> RasterSpec keyword arguments (nominal panel figures; check your printer)
-PRINTERS: dict[str, dict] = {
-    "generic-4k": {"resolution": (3840, 2400), "pixel": 0.05},  # 192 x 120 mm, e.g. 8.9" 4K monochrome LCDs
-    "generic-2k": {"resolution": (2560, 1440), "pixel": 0.04725},  # 120.96 x 68.04 mm, 5.5" 2K LCDs
-    # the display values of PrusaSlicer's Original Prusa SL1 profile (68.04 x 120.96 mm, portrait, mirrored X)
-    "prusa-sl1": {"resolution": (1440, 2560), "pixel": 0.04725, "portrait": True, "mirror_x": True},
-    "elegoo-mars": {"resolution": (1440, 2560), "pixel": 0.04725},  # 5.5" 2K, 68.04 x 120.96 mm
-    "elegoo-saturn": {"resolution": (3840, 2400), "pixel": 0.05},  # 8.9" 4K
-    "anycubic-photon-mono-x": {"resolution": (3840, 2400), "pixel": 0.05},  # 8.9" 4K
-}
-
-
-def gamma_lut(gamma: float) -> np.ndarray:
-    """(256,) uint8: grey for ``k = min(255, floor(256·coverage))``, as agg's ``gamma_power``/``gamma_threshold``."""
-    k = np.arange(256, dtype=np.float64) / 255.0
-    if gamma == 0:
-        return np.where(k >= 0.5, 255, 0).astype(np.uint8)
-    return np.floor(255.0 * k**gamma + 0.5).astype(np.uint8)
 
 
 @dataclass
@@ -519,10 +386,3 @@ def masks(result: SliceResult, spec: RasterSpec | None = None, **options) -> np.
         h, w = tile.data.shape
         out[k, tile.row0 : tile.row0 + h, tile.col0 : tile.col0 + w] = tile.data
     return out
-
-
-def with_printer(name: str, **overrides) -> RasterSpec:
-    """A :class:`RasterSpec` from the preset ``name`` (:data:`PRINTERS`) with ``overrides``."""
-    if name not in PRINTERS:
-        raise ParameterError(f"unknown printer '{name}' (use {', '.join(sorted(PRINTERS))})")
-    return replace(RasterSpec(**PRINTERS[name]), **overrides)

@@ -1,7 +1,7 @@
 """Stage 3, the layer schedule: uniform and explicit (``uniform.py``), adaptive (``adaptive.py`` +
 ``kernels/adaptive.cl``)."""
 
-from .adaptive import ADAPTIVE_MODES, AdaptiveSchedule, adaptive_schedule, cusp_schedule, roi_schedule
+from .adaptive import ADAPTIVE_MODES, AdaptiveSchedule, adaptive_schedule, cusp_schedule
 from .uniform import Schedule, from_z, uniform
 
 __all__ = [
@@ -11,6 +11,5 @@ __all__ = [
     "adaptive_schedule",
     "cusp_schedule",
     "from_z",
-    "roi_schedule",
     "uniform",
 ]

@@ -33,7 +33,9 @@ schedule: each layer keeps the thickness of the deepest level that covers it.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -226,9 +228,10 @@ def slope_limit(nz: np.ndarray, mode: str, max_cusp: float = 0.05, max_area: flo
 
 def _check_heights(min_height: float, max_height: float) -> None:
     if not (np.isfinite(min_height) and min_height > 0):
-        raise ParameterError(f"--min-height must be a positive number of mm, got {min_height}")
+        raise ParameterError(f"min_height must be a positive number of mm, got {min_height}", param="min_height")
     if not (np.isfinite(max_height) and max_height >= min_height):
-        raise ParameterError(f"--max-height must be >= --min-height ({min_height} mm), got {max_height}")
+        raise ParameterError(f"max_height must be >= min_height ({min_height} mm), got {max_height}",
+                             param=("max_height", "min_height"))
 
 
 def cusp_schedule(
@@ -258,12 +261,12 @@ def cusp_schedule(
     if mode not in ("cusp", "area"):
         raise ParameterError(f"unknown error-bounded mode '{mode}' (use cusp or area)")
     if mode == "cusp" and not (np.isfinite(max_cusp) and max_cusp > 0):
-        raise ParameterError(f"--max-cusp must be a positive number of mm, got {max_cusp}")
+        raise ParameterError(f"max_cusp must be a positive number of mm, got {max_cusp}", param="max_cusp")
     if mode == "area" and not (np.isfinite(max_area) and max_area > 0):
-        raise ParameterError(f"--max-area must be a positive number of mm², got {max_area}")
+        raise ParameterError(f"max_area must be a positive number of mm², got {max_area}", param="max_area")
     _check_heights(min_height, max_height)
     if not (np.isfinite(smooth) and smooth >= 0):
-        raise ParameterError(f"--smooth must be >= 0 (mm per mm), got {smooth}")
+        raise ParameterError(f"smooth must be >= 0 (mm per mm), got {smooth}", param="smooth")
     height = mesh.height
     info = {"mode": mode, "max_cusp_mm": max_cusp if mode == "cusp" else None,
             "max_area_mm2": max_area if mode == "area" else None, "min_height_mm": min_height,
@@ -342,7 +345,7 @@ def roi_schedule(
     quantile: float = 0.75,
     min_layers: int = 2,
     max_windows: int = 1,
-    params=None,
+    slicer: Callable[[Schedule], Any],
 ) -> AdaptiveSchedule:
     """The paper's adaptive method, generalised: slice at ``ladder[0]`` mm, pick windows of layers whose points per
     layer are >= the threshold, re-slice them at ``ladder[1]``, and so on; merged into one schedule.
@@ -356,29 +359,29 @@ def roi_schedule(
         refined (default 0.75: the busiest quarter of the layers).
     min_layers : shorter runs above the threshold are ignored.
     max_windows : windows kept per refined region, those with the most points (the paper: 1); 0 keeps all.
-    params : :class:`~gpuslice.slicer.SliceParams` for the level slices (backend, device, fill rule).
+    slicer : slices ``mesh`` at a schedule and returns the result (its ``points_per_layer`` and ``z``): the slicing
+        stage passes itself here (:func:`gpuslice.slicing.slicer.roi_schedule` binds it), so this stage never
+        imports the slicer.
 
     ``info["levels"]`` lists, per level, its thickness, the region(s) sliced, their points per layer and z, the
     threshold and the windows chosen (layer indices within the region and z ranges in mm).
     """
-    from ..slicing.slicer import SliceParams, slice_mesh
-
     ladder = tuple(float(t) for t in ladder)
     if not ladder or not all(np.isfinite(t) and t > 0 for t in ladder):
-        raise ParameterError(f"--roi-ladder must be positive thicknesses in mm, got {ladder}")
+        raise ParameterError(f"roi_ladder must be positive thicknesses in mm, got {ladder}", param="roi_ladder")
     if any(b >= a for a, b in zip(ladder[:-1], ladder[1:], strict=True)):
-        raise ParameterError(f"--roi-ladder must go from coarse to fine (decreasing), got {ladder}")
+        raise ParameterError(f"roi_ladder must go from coarse to fine (decreasing), got {ladder}", param="roi_ladder")
     if threshold is not None:
         thr = (threshold,) if np.isscalar(threshold) else tuple(threshold)
         if len(thr) == 1:
             thr = thr * max(len(ladder) - 1, 1)
         if len(thr) != max(len(ladder) - 1, 1):
-            raise ParameterError(f"--roi-threshold needs 1 or {len(ladder) - 1} values, got {len(thr)}")
+            raise ParameterError(f"roi_threshold needs 1 or {len(ladder) - 1} values, got {len(thr)}",
+                                 param="roi_threshold")
     else:
         thr = None
         if not (0.0 <= quantile <= 1.0):
-            raise ParameterError(f"--roi-quantile must be in [0, 1], got {quantile}")
-    params = params if params is not None else SliceParams()
+            raise ParameterError(f"roi_quantile must be in [0, 1], got {quantile}", param="roi_quantile")
     height = mesh.height
     info: dict = {"mode": "roi", "ladder_mm": list(ladder), "quantile": None if thr else quantile,
                   "threshold_points": list(thr) if thr else None, "min_layers": min_layers,
@@ -391,7 +394,7 @@ def roi_schedule(
         e = _tile(a, b, t)
         if level == len(ladder) - 1:
             return e
-        res = slice_mesh(mesh, params, schedule=schedule_from_edges(e))
+        res = slicer(schedule_from_edges(e))
         sig = res.points_per_layer
         cut = float(thr[level]) if thr else float(np.quantile(sig, quantile)) if sig.size else 0.0
         wins = _windows(sig, max(cut, 1.0), min_layers, max_windows)
@@ -413,13 +416,15 @@ def roi_schedule(
     return schedule_from_edges(edges, "adaptive-roi", info)
 
 
-def adaptive_schedule(mesh: Mesh, params, device=None) -> AdaptiveSchedule:
+def adaptive_schedule(mesh: Mesh, params, device=None, *, slicer: Callable[[Schedule], Any] | None = None
+                      ) -> AdaptiveSchedule:
     """The schedule that ``params.adaptive`` (``"roi"``, ``"cusp"`` or ``"area"``) asks for, with ``params``'
-    adaptive fields (see :class:`~gpuslice.slicer.SliceParams`)."""
+    adaptive fields (see :class:`~gpuslice.slicing.params.SliceParams`); ``slicer``: see :func:`roi_schedule`
+    (needed for roi only)."""
     mode = params.adaptive
     if mode == "roi":
         return roi_schedule(mesh, params.roi_ladder, threshold=params.roi_threshold, quantile=params.roi_quantile,
-                            max_windows=params.roi_windows, params=params)
+                            max_windows=params.roi_windows, slicer=slicer)
     if mode in ("cusp", "area"):
         if device is None and params.backend == "opencl":
             from ..device import get_device

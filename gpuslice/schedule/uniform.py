@@ -100,7 +100,7 @@ def uniform(
         t[0] = h0
     elif z_mode == "paper":
         if first_layer is not None:
-            raise ParameterError("--first-layer applies to z-mode 'mid' only")
+            raise ParameterError("first_layer applies to z_mode 'mid' only", param=("first_layer", "z_mode"))
         n = int(np.ceil(height / thickness)) + 1
         z = np.arange(1, n + 1) * thickness
         t = np.full(z.size, thickness)

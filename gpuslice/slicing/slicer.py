@@ -8,72 +8,20 @@ memory is set by the batch, not by the model.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 
 import numpy as np
 
-from ..errors import ParameterError
 from ..mesh.mesh import Mesh
+from ..schedule.adaptive import AdaptiveSchedule
 from ..schedule.uniform import Schedule, from_z, uniform
 from .chain import REPAIR_KINDS, chain_segments
 from .crossings import _planes32, compute_crossings, facet_layer_ranges
-from .nest import FILL_RULES, nest_loops
+from .nest import nest_loops
+from .params import SliceParams
 from .result import SliceResult
 
-__all__ = ["SliceParams", "slice_mesh", "make_schedule"]
-
-
-@dataclass(frozen=True)
-class SliceParams:
-    """Every slicing option in one place (lengths in mm).
-
-    thickness : uniform layer thickness h (ignored when a schedule or z values are given).
-    first_layer : thickness of the first layer (default: h).
-    z_mode : ``"mid"`` (planes at the middle of each slab, z_i = (i + 0.5)·h) or ``"paper"`` (Z_i = i·h).
-    fill_rule : ``"nonzero"``, ``"evenodd"`` or ``"positive"``.
-    max_gap : open chain ends closer than this are joined (PrusaSlicer's default: 2 mm); 0 disables.
-    backend : ``"opencl"`` (default) or ``"numpy"`` (the reference implementation of every kernel).
-    device : OpenCL device spec (see :mod:`gpuslice.device`); None for the default.
-    max_segments_per_batch : layers are processed in batches of at most about this many segments.
-    adaptive : None (uniform), ``"roi"``, ``"cusp"`` or ``"area"``: an adaptive schedule (:mod:`gpuslice.adaptive`).
-    max_cusp : cusp mode: the largest cusp height t·|n_z|, mm. max_area : area mode: the largest staircase error
-        area per unit length, mm². min_height, max_height : cusp/area modes: thickness clamp, mm. smooth : cusp/area
-        modes: the thickness changes by at most this many mm per mm of height (0: no smoothing).
-    roi_ladder : roi mode: thicknesses, coarse to fine, mm. roi_threshold : roi mode: points per layer (one value,
-        or one per refinement step); None: the ``roi_quantile`` of each level's signal. roi_windows : windows kept per
-        level (0: all).
-    """
-
-    thickness: float = 0.1
-    first_layer: float | None = None
-    z_mode: str = "mid"
-    fill_rule: str = "nonzero"
-    max_gap: float = 2.0
-    backend: str = "opencl"
-    device: str | None = None
-    max_segments_per_batch: int = 8_000_000
-    adaptive: str | None = None
-    max_cusp: float = 0.05
-    max_area: float = 0.0025
-    min_height: float = 0.05
-    max_height: float = 0.3
-    smooth: float = 0.0
-    roi_ladder: tuple[float, ...] = (1.0, 0.5, 0.1)
-    roi_threshold: tuple[float, ...] | None = None
-    roi_quantile: float = 0.75
-    roi_windows: int = 1
-
-    def __post_init__(self) -> None:
-        if self.adaptive not in (None, "roi", "cusp", "area"):
-            raise ParameterError(f"unknown adaptive mode '{self.adaptive}' (use roi, cusp or area)")
-        if self.fill_rule not in FILL_RULES:
-            raise ParameterError(f"unknown fill rule '{self.fill_rule}' (use {', '.join(FILL_RULES)})")
-        if self.backend not in ("opencl", "numpy"):
-            raise ParameterError(f"unknown backend '{self.backend}' (use opencl or numpy)")
-        if not (self.max_gap >= 0):
-            raise ParameterError(f"--max-gap must be >= 0 mm, got {self.max_gap}")
-        if self.max_segments_per_batch < 1:
-            raise ParameterError("max_segments_per_batch must be positive")
+__all__ = ["SliceParams", "slice_mesh", "make_schedule", "roi_schedule"]
 
 
 def make_schedule(mesh: Mesh, params: SliceParams, z=None, thickness=None) -> Schedule:
@@ -83,8 +31,19 @@ def make_schedule(mesh: Mesh, params: SliceParams, z=None, thickness=None) -> Sc
     if params.adaptive is not None:
         from ..schedule.adaptive import adaptive_schedule
 
-        return adaptive_schedule(mesh, params)
+        return adaptive_schedule(mesh, params, slicer=lambda sched: slice_mesh(mesh, params, schedule=sched))
     return uniform(mesh.height, params.thickness, first_layer=params.first_layer, z_mode=params.z_mode)
+
+
+def roi_schedule(mesh: Mesh, ladder: tuple[float, ...] = (1.0, 0.5, 0.1), *, params: SliceParams | None = None,
+                 **options) -> AdaptiveSchedule:
+    """The paper's adaptive schedule (:func:`gpuslice.schedule.adaptive.roi_schedule`) with its level slices made
+    by :func:`slice_mesh` under ``params`` (backend, device, fill rule; default :class:`SliceParams`); ``options``:
+    ``threshold``, ``quantile``, ``min_layers``, ``max_windows``."""
+    from ..schedule.adaptive import roi_schedule as roi
+
+    p = params if params is not None else SliceParams()
+    return roi(mesh, ladder, slicer=lambda sched: slice_mesh(mesh, p, schedule=sched), **options)
 
 
 def _batches(mesh: Mesh, zs: np.ndarray, limit: int) -> list[tuple[int, int]]:

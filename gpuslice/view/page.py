@@ -141,7 +141,8 @@ def raster_masks(
     """
     from PIL import Image
 
-    from ..raster.coverage import RasterSpec, check_fits, iter_tiles, result_bounds
+    from ..raster.coverage import check_fits, iter_tiles, result_bounds
+    from ..raster.spec import RasterSpec
 
     if every < 1:
         raise ParameterError(f"--mask-every must be >= 1, got {every}")

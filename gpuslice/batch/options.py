@@ -1,0 +1,130 @@
+"""The options of a batch, composed of the pipeline's own (:class:`SliceParams`, :class:`Placement`, the resin
+output's :class:`RasterSpec` and :class:`ResinOptions`), never copied from them."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+from ..errors import ParameterError
+from ..formats import CONTOUR_FORMATS, format_names
+from ..mesh.mesh import Placement
+from ..options import option, options_of, parse_value
+from ..slicing.params import SliceParams
+
+__all__ = ["BatchOptions", "raster_option_fields", "typed_raster_options"]
+
+#: the SliceParams fields of an adaptive schedule (recorded in the manifest only when one is asked for)
+_SCHEDULE_FIELDS = ("adaptive", "max_cusp", "max_area", "min_height", "max_height", "smooth", "roi_ladder",
+                    "roi_threshold", "roi_quantile", "roi_windows")
+
+
+def _resin_names() -> tuple[str, ...]:
+    from ..raster.outputs import resin_format_names
+
+    return tuple(resin_format_names())
+
+
+def raster_option_fields() -> dict[str, Any]:
+    """``--raster-opt`` keys → their :class:`~gpuslice.options.OptionInfo`: the fields of
+    :class:`~gpuslice.raster.spec.RasterSpec` and :class:`~gpuslice.raster.spec.ResinOptions`."""
+    from ..raster.spec import RasterSpec, ResinOptions
+
+    return {i.name: i for cls in (RasterSpec, ResinOptions) for i in options_of(cls)}
+
+
+def typed_raster_options(pairs: dict[str, Any] | tuple[tuple[str, Any], ...]) -> tuple[tuple[str, Any], ...]:
+    """``(key, value)`` pairs with text values typed by their fields (``resolution=3840x2400`` → (3840, 2400),
+    ``pixel=0.05`` → 0.05, ``mirror_x=true`` → True); :class:`ParameterError` for an unknown key."""
+    known = raster_option_fields()
+    out = []
+    for key, value in (pairs.items() if isinstance(pairs, dict) else pairs):
+        key = key.strip().replace("-", "_")
+        if key not in known:
+            raise ParameterError(f"unknown --raster-opt {key} (use {', '.join(known)})")
+        try:
+            out.append((key, parse_value(known[key], value)))
+        except ParameterError as exc:
+            raise ParameterError(f"--raster-opt {exc}") from None
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class BatchOptions:
+    """The options every model of a batch is sliced with, picklable for the workers.
+
+    params, placement : the slicing options and the scaling, as for ``gpuslice slice``.
+    fmt : the contour output format (a :mod:`gpuslice.formats` name: ``npz``, ``svg``, ``cli``).
+    raster : a resin output (:mod:`gpuslice.raster.outputs` name: ``sl1``, ``png``) instead of contours, with
+        ``raster_options``: (name, value) pairs of :class:`~gpuslice.raster.spec.RasterSpec` and
+        :class:`~gpuslice.raster.spec.ResinOptions` fields (``printer``, ``resolution``, ``gamma``, …).
+    """
+
+    params: SliceParams = SliceParams()
+    placement: Placement = Placement()
+    fmt: str = option("npz", "Result format of each model", flags=("--format",), choices=format_names)
+    raster: str | None = option(None, "Rasterise each model to a resin output instead (a file, or a folder for png)",
+                                choices=_resin_names)
+    raster_options: tuple[tuple[str, Any], ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.fmt not in CONTOUR_FORMATS:
+            raise ParameterError(f"unknown output format '{self.fmt}' (use {', '.join(format_names())})", param="fmt")
+        if self.raster is not None:
+            if self.raster not in _resin_names():
+                raise ParameterError(f"unknown raster output '{self.raster}' (use {', '.join(_resin_names())})",
+                                     param="raster")
+            self.resin()  # validates the display and resin options now, before any model is sliced
+        elif self.raster_options:
+            raise ParameterError("--raster-opt needs --raster")
+
+    def resin(self):
+        """(:class:`RasterSpec`, :class:`ResinOptions`) of ``raster_options``."""
+        from ..raster.spec import RasterSpec, ResinOptions
+
+        given = dict(typed_raster_options(self.raster_options))
+        resin_keys = {f.name for f in fields(ResinOptions)}
+        ropts = ResinOptions(**{k: v for k, v in given.items() if k in resin_keys})
+        display = {f.name: given.get(f.name) for f in fields(RasterSpec)}
+        return ropts.spec(**display), ropts
+
+    @property
+    def suffix(self) -> str:
+        """The suffix of each model's output (``""`` for a folder output such as a PNG stack)."""
+        if self.raster is not None:
+            from ..raster.outputs import RESIN_FORMATS
+
+            return RESIN_FORMATS[self.raster].suffix
+        return CONTOUR_FORMATS[self.fmt].suffix
+
+    def job(self, source: str, target: Path, *, name: str, label: str, data: bytes | None = None,
+            workers: int | None = None):
+        """The :class:`~gpuslice.pipeline.Job` of one model: read ``source`` (or ``data``), write ``target``;
+        portable (no device or backend in the output)."""
+        from dataclasses import replace
+
+        from ..pipeline import Job, ResinOutput
+
+        resin = None
+        if self.raster is not None:
+            spec, ropts = self.resin()
+            resin = ResinOutput(str(target), self.raster, spec, replace(ropts, workers=ropts.workers or workers))
+        return Job(source=source, name=name, label=label, data=data, placement=self.placement, params=self.params,
+                   contours=None if resin is not None else str(target), resin=resin, portable=True)
+
+    def shaping(self) -> dict[str, Any]:
+        """The options that shape output bytes (not the backend or device: both give bit-identical results), as the
+        output folder's manifest records them."""
+        p = self.params
+        d: dict[str, Any] = {k: getattr(p, k) for k in ("thickness", "first_layer", "z_mode", "fill_rule", "max_gap")}
+        d.update(asdict(self.placement))
+        d.update(fmt=self.fmt, raster=self.raster, raster_options=[list(kv) for kv in self.raster_options])
+        d["schedule"] = {k: list(v) if isinstance(v, tuple) else v for k, v in
+                         ((k, getattr(p, k)) for k in _SCHEDULE_FIELDS)} if p.adaptive else {}
+        return d
+
+    def fingerprint(self) -> str:
+        return hashlib.sha256(json.dumps(self.shaping(), sort_keys=True).encode()).hexdigest()[:16]

@@ -1,0 +1,32 @@
+"""The batch summary table printed by ``gpuslice batch``."""
+
+from __future__ import annotations
+
+from typing import Any
+
+__all__ = ["format_summary"]
+
+
+def format_summary(report: dict[str, Any], max_rows: int = 40) -> str:
+    """A plain-text summary table of a batch report: one row per model (failed ones first; at most
+    ``max_rows``), then the totals."""
+    rows = sorted(report["models"], key=lambda r: (r["status"] != "failed", r["model"]))
+    width = min(60, max([len(r["model"]) for r in rows] + [5]))
+    lines = [f"{'model':{width}s} {'status':8s} {'facets':>9s} {'layers':>7s} {'time s':>8s}  error"]
+    for r in rows[:max_rows]:
+        t = r.get("timings_s", {}).get("total")
+        name = r["model"] if len(r["model"]) <= width else "…" + r["model"][-width + 1:]
+        lines.append(f"{name:{width}s} {r['status']:8s} {r.get('facets', ''):>9} {r.get('layers', ''):>7} "
+                     f"{'' if t is None else f'{t:.3f}':>8s}  {r.get('error') or ''}")
+    if len(rows) > max_rows:
+        lines.append(f"… {len(rows) - max_rows} more in the JSON report")
+    s = report["summary"]
+    rate = s["models_per_s"]
+    lines.append(
+        f"{s['models']} models: {s['done']} done, {s['skipped']} skipped, {s['failed']} failed"
+        + (f", {s['not_run']} not run" if s["not_run"] else "")
+        + f"; {s['wall_s']:.2f} s wall, {rate:.2f} models/s ({s['mode']}, {s.get('workers', 0)} workers"
+        + (f", {s['workers_lost']} lost" if s["workers_lost"] else "")
+        + (f", {s['retries']} retries" if s["retries"] else "") + ")"
+    )
+    return "\n".join(lines)

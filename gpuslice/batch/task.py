@@ -1,0 +1,156 @@
+"""The batch task: one model read, sliced and written through the one pipeline (:func:`gpuslice.pipeline.run_job`),
+in whatever process runs it (this one, a local worker, a Dask worker). :func:`run_model` never raises: it returns a
+JSON-able record. Outputs are written atomically and their bytes depend only on the model and the options (no
+timings, device names or paths of the machine in the file), so a task can be re-run anywhere: tasks are idempotent.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import socket
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from ..errors import BatchError, GpusliceError
+from .discover import Model
+from .options import BatchOptions
+
+__all__ = ["connect", "init_worker", "pocl_thread_env", "run_model"]
+
+_WORKER: dict[str, Any] = {}
+
+
+def pocl_thread_env(threads: int) -> dict[str, str]:
+    """Environment that limits PoCL's CPU driver to ``threads`` threads in a process (PoCL 3 reads
+    ``POCL_MAX_PTHREAD_COUNT``; PoCL 4+ ``POCL_CPU_MAX_CU_COUNT``; both are set)."""
+    n = str(max(1, int(threads)))
+    return {"POCL_MAX_PTHREAD_COUNT": n, "POCL_CPU_MAX_CU_COUNT": n}
+
+
+def _worker_device(spec: str | None):
+    """The OpenCL device of this process with every kernel built, made once per process; (device, seconds)."""
+    key = ("device", spec)
+    if key not in _WORKER:
+        from ..device import get_device
+
+        t = time.perf_counter()
+        dev = get_device(spec)
+        dev.program("crossings.cl")  # builds every kernels/*.cl (one program)
+        _WORKER[key] = dev
+        _WORKER["init_s"] = _WORKER.get("init_s", 0.0) + time.perf_counter() - t
+    return _WORKER[key]
+
+
+def init_worker(env: dict[str, str] | None = None, device: str | None = None, backend: str = "opencl") -> None:
+    """Initializer of a local worker process: PoCL threads, signals, the OpenCL device and kernels (built once).
+
+    Ctrl-C goes to the whole process group; the workers ignore it (the driver stops them), and SIGTERM unwinds
+    the worker (``SystemExit``) so a half-written temporary output is removed.
+    """
+    os.environ.update(env or {})
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    t = time.perf_counter()
+    if backend == "opencl":
+        with contextlib.suppress(GpusliceError):  # reported by the first task instead
+            _worker_device(device)
+    _WORKER["started"] = time.perf_counter() - t
+
+
+def connect(address: str):
+    """A ``distributed.Client`` for the Dask scheduler at ``address``; one-line :class:`BatchError` otherwise."""
+    try:
+        from distributed import Client
+    except ImportError:
+        raise BatchError("--scheduler needs Dask: pip install 'gpuslice[batch]'") from None
+    try:
+        return Client(address, timeout="10s")
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise BatchError(f"{address}: cannot reach the Dask scheduler ({_one_line(exc)})") from None
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) if str(exc).strip() else ""
+    if isinstance(exc, GpusliceError):
+        return text or type(exc).__name__
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def _collect(path: Path) -> bytes | dict[str, bytes]:
+    if path.is_dir():
+        return {p.relative_to(path).as_posix(): p.read_bytes() for p in sorted(path.rglob("*")) if p.is_file()}
+    return path.read_bytes()
+
+
+def run_model(model: Model, opts: BatchOptions, out_root: str | None, data: bytes | None = None) -> dict[str, Any]:
+    """Slice one model and write its output; never raises.
+
+    Parameters
+    ----------
+    model : the model (``src`` is read unless ``data`` is given).
+    opts : the batch options.
+    out_root : the output folder, reachable from this process (a shared file system); ``None``: the output is
+        returned as bytes in the record's ``"payload"`` (a dict of relative path → bytes for a folder output).
+    data : the model file's bytes, when the inputs travel as bytes instead of through a shared file system.
+
+    Returns
+    -------
+    dict
+        ``model``, ``output``, ``status`` (``"done"`` or ``"failed"``), ``error`` (one line naming the file, or
+        None), ``facets``, ``layers``, ``loops``, ``points``, ``open_chains``, ``device``, ``pid``, ``host``,
+        ``timings_s`` (the pipeline's stages, :mod:`gpuslice.pipeline`, and ``total``; s), ``worker_init_s``
+        (the worker's one-off device and kernel set-up, on the first
+        task a worker runs, else 0).
+    """
+    t0 = time.perf_counter()
+    rec: dict[str, Any] = {"model": model.rel, "output": model.out, "status": "failed", "error": None,
+                           "pid": os.getpid(), "host": socket.gethostname()}
+    timings: dict[str, float] = {}
+    try:
+        from ..pipeline import run_job
+
+        dev = None
+        if opts.params.backend == "opencl":
+            t = time.perf_counter()
+            dev = _worker_device(opts.params.device)
+            timings["device"] = time.perf_counter() - t
+        threads = int(os.environ.get("POCL_MAX_PTHREAD_COUNT", "0")) or None  # this worker's share of the cores
+
+        def run(target: Path):
+            job = opts.job(model.location, target, name=model.rel, label=model.src, data=data, workers=threads)
+            return run_job(job, device=dev)
+
+        if out_root is not None:
+            target = Path(out_root) / model.out
+            target.parent.mkdir(parents=True, exist_ok=True)
+            done = run(target)
+        else:
+            with tempfile.TemporaryDirectory(prefix="gpuslice-batch-") as tmp:
+                target = Path(tmp) / (Path(model.out).name or "out")
+                done = run(target)
+                rec["payload"] = _collect(target)
+        meta = done.result.meta
+        for k, v in done.timings.items():
+            if k != "device":
+                timings[k] = v
+        rec.update(facets=meta["facets"], layers=meta["layers"], loops=meta["loops"], points=meta["points"],
+                   open_chains=meta["open_chains"],
+                   device=done.device.name if done.device is not None else "numpy (reference)")
+        rec["status"] = "done"
+    except Exception as exc:  # a failing model must not stop the batch: one line in its record
+        msg = _one_line(exc)
+        rec["error"] = msg if model.src in msg or model.rel in msg else f"{model.src}: {msg}"
+    timings["total"] = time.perf_counter() - t0
+    rec["timings_s"] = timings
+    if "distributed" in sys.modules:  # on a Dask worker: its address, so a retry can avoid it
+        with contextlib.suppress(Exception):
+            from distributed import get_worker
+
+            rec["worker"] = get_worker().address
+    rec["worker_init_s"] = _WORKER.pop("init_s", 0.0)
+    return rec

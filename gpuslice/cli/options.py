@@ -1,0 +1,168 @@
+"""Click options generated from the option dataclasses (:mod:`gpuslice.options`), and the way back: click's values
+into those dataclasses, library errors into flags.
+
+``click_options(SliceParams)`` makes one click option per declared field: its flags, type, choices, default and help
+come from the field, never from here. ``build(SliceParams, kwargs)`` takes those fields back out of a command's
+keyword arguments (parsing ``1,0.5,0.1`` or ``3840x2400``) into the dataclass, which validates them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from typing import Any
+
+import click
+
+from ..errors import ParameterError
+from ..options import OptionInfo, options_of
+
+__all__ = ["click_options", "with_options", "build", "values", "flag_for", "cli_message", "fail", "EXIT_USAGE",
+           "option_classes", "slicing_options", "slicing_values"]
+
+EXIT_USAGE = 2
+
+
+def fail(message: str, code: int = EXIT_USAGE) -> None:
+    """Print ``gpuslice: error: <message>`` on stderr and exit with ``code`` (2: user error)."""
+    click.echo(f"gpuslice: error: {message}", err=True)
+    raise SystemExit(code)
+
+
+def _click_option(info: OptionInfo, defaults: bool, default: Any) -> Callable:
+    help_text = info.describe()
+    kw: dict[str, Any] = {"help": help_text}
+    if info.metavar:
+        kw["metavar"] = info.metavar
+    names = list(info.flags)
+    if info.type is bool:
+        if info.negatable:
+            if "/" not in names[-1]:
+                names[-1] = f"{names[-1]}/--no-{names[-1][2:]}"
+            kw["default"] = default if defaults else None
+            if defaults:
+                kw["show_default"] = True
+            else:
+                on, off = names[-1].split("/")
+                kw["help"] = f"{help_text} [default: {on if default else off}]"
+        else:
+            kw["is_flag"] = True
+            kw["default"] = False
+        return click.option(*names, info.name, **kw)
+    if info.choices is not None:
+        kw["type"] = click.Choice([str(c) for c in info.choices])
+    elif info.parse is not None or info.type not in (int, float):
+        kw["type"] = str
+    else:
+        kw["type"] = info.type
+    shown = None if default is None else info.text(default)
+    if defaults and info.parse is None:
+        kw["default"] = default
+        kw["show_default"] = shown is not None
+    else:  # None unless given: the dataclass default applies (shown in the help)
+        kw["default"] = None
+        if shown is not None:
+            kw["help"] = f"{help_text} [default: {shown}]"
+    return click.option(*names, info.name, **kw)
+
+
+def click_options(cls: type, *, only: Iterable[str] | None = None, exclude: Iterable[str] = (), defaults: bool = True,
+                  overrides: dict[str, Any] | None = None) -> list[Callable]:
+    """Click option decorators for the declared fields of ``cls`` (those with flags), in declaration order.
+
+    only / exclude : field names to keep / leave out. defaults : show each field's default as the option's
+    default (False: every value is None unless given, so a command can tell what the user gave; defaults named in
+    the help). overrides : a command's own defaults for some fields (e.g. ``raster``'s 0.05 mm layers).
+    """
+    keep = set(only) if only is not None else None
+    out = []
+    for info in options_of(cls):
+        if not info.flags or info.name in exclude or (keep is not None and info.name not in keep):
+            continue
+        default = (overrides or {}).get(info.name, info.default)
+        out.append(_click_option(info, defaults, default))
+    return out
+
+
+def with_options(options: list[Callable]) -> Callable:
+    """Apply a list of click option decorators (the first listed comes first in ``--help``)."""
+
+    def deco(f):
+        for opt in reversed(options):
+            f = opt(f)
+        return f
+
+    return deco
+
+
+def values(cls: type, kwargs: dict[str, Any], *, pop: bool = True) -> dict[str, Any]:
+    """The values given for ``cls``'s fields among a command's ``kwargs`` (removed from them when ``pop``), parsed;
+    None values (not given) are left out."""
+    out = {}
+    for info in options_of(cls):
+        if info.name not in kwargs:
+            continue
+        value = kwargs.pop(info.name) if pop else kwargs[info.name]
+        if value is None:
+            continue
+        if isinstance(value, str) and info.parse is not None:
+            try:
+                value = info.parse(value)
+            except ParameterError as exc:
+                raise ParameterError(f"{info.name}: {exc}", param=info.name) from None
+        out[info.name] = value
+    return out
+
+
+def build(cls: type, kwargs: dict[str, Any], **extra: Any):
+    """``cls(**values(cls, kwargs), **extra)``: the dataclass from a command's arguments (taken out of them)."""
+    return cls(**{**values(cls, kwargs), **extra})
+
+
+def option_classes() -> list[type]:
+    """Every dataclass whose fields are command-line options (for mapping error messages to flags)."""
+    from ..batch.options import BatchOptions
+    from ..mesh.mesh import Placement
+    from ..raster.spec import RasterSpec, ResinOptions
+    from ..slicing.params import SliceParams
+
+    return [SliceParams, Placement, RasterSpec, ResinOptions, BatchOptions]
+
+
+def flag_for(param: str) -> str | None:
+    """The command-line flag of option field ``param`` (``max_gap`` → ``--max-gap``)."""
+    for cls in option_classes():
+        for info in options_of(cls):
+            if info.name == param and info.flags:
+                return info.flag.split("/")[0]
+    return None
+
+
+def cli_message(exc: ParameterError) -> str:
+    """``exc``'s message with the option fields it names written as the command line's flags."""
+    import re
+
+    text = str(exc)
+    for param in getattr(exc, "params", ()):
+        flag = flag_for(param)
+        if flag:
+            text = re.sub(rf"(?<![\w-]){re.escape(param)}(?![\w-])", flag, text)
+    return text
+
+
+def slicing_options(*, defaults: bool = True, overrides: dict[str, Any] | None = None) -> list[Callable]:
+    """The options every slicing command shares: :class:`SliceParams`' fields, then :class:`Placement`'s."""
+    from ..mesh.mesh import Placement
+    from ..slicing.params import SliceParams
+
+    return [*click_options(SliceParams, defaults=defaults, overrides=overrides),
+            *click_options(Placement, defaults=defaults)]
+
+
+def slicing_values(kwargs: dict[str, Any], overrides: dict[str, Any] | None = None):
+    """(:class:`SliceParams`, :class:`Placement`) from a command's arguments (taken out of them); ``overrides``:
+    the command's own defaults (as given to :func:`slicing_options`)."""
+    from ..mesh.mesh import Placement
+    from ..slicing.params import SliceParams
+
+    given = {**(overrides or {}), **values(SliceParams, kwargs)}
+    return SliceParams(**given), build(Placement, kwargs)

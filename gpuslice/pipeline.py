@@ -1,0 +1,256 @@
+"""One pipeline: a :class:`Job` (what to read, placement, schedule and slicing parameters, outputs) and the one
+function that runs it, :func:`run_job`. ``gpuslice slice``, ``raster``, ``view``, ``bench`` and the batch workers
+all run jobs through here, with the same stage names and timings:
+
+``device`` (OpenCL context and kernels) → ``load`` (read the file) → ``topology`` (weld, edge ids, placement) →
+``schedule``, ``crossings``, ``chaining``, ``nesting`` (the slicer's own) → ``mesh_check`` (defect counts) →
+``write`` (the contour file) → ``cusp`` (schedule quality, for the report) → ``raster`` (masks, encoding and the
+archive) → ``view`` (the viewer page; ``masks`` when it shows resin masks).
+
+Timings are seconds, in :attr:`JobResult.timings`; nothing else of a run depends on the machine unless asked
+(``Job.portable`` leaves the device and backend out of the result's meta, so outputs are the same anywhere).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from .mesh.mesh import Placement
+from .slicing.params import SliceParams
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from .mesh.mesh import Mesh
+    from .raster.spec import RasterSpec, ResinOptions
+    from .slicing.result import SliceResult
+
+__all__ = ["Job", "JobResult", "ResinOutput", "ViewOutput", "prepare_device", "load_job_mesh", "run_job"]
+
+
+@dataclass(frozen=True)
+class ResinOutput:
+    """Rasterise the layers onto ``spec``'s display and write them to ``path`` as the resin output ``format``
+    (a name of :data:`gpuslice.raster.outputs.RESIN_FORMATS`), with ``options``."""
+
+    path: str
+    format: str
+    spec: RasterSpec
+    options: ResinOptions
+
+
+@dataclass(frozen=True)
+class ViewOutput:
+    """Write the HTML layer viewer to ``path``; ``masks``: also draw each ``mask_every``-th layer's resin mask on
+    this display; ``title`` (default: the model's file name)."""
+
+    path: str
+    title: str | None = None
+    masks: RasterSpec | None = None
+    mask_every: int = 1
+
+
+@dataclass(frozen=True)
+class Job:
+    """What to slice and what to write (lengths in mm).
+
+    source : the model file; for ``view``, a saved ``.npz`` result may stand in for a mesh (no slicing then).
+    name : how outputs and the result's meta name the model (default: ``source``); label : how messages name the
+        file (default: ``source``).
+    data : the file's bytes, when they travel instead of a path (batch over Dask); ``source`` still names it.
+    placement, params : :class:`~gpuslice.mesh.mesh.Placement` and :class:`~gpuslice.slicing.params.SliceParams`.
+    contours : a contour file to write (format by suffix, :mod:`gpuslice.formats`), or None.
+    resin, view : a :class:`ResinOutput` / :class:`ViewOutput`, or None.
+    mesh_check : count the mesh's defects into ``meta["repairs"]`` (:func:`gpuslice.mesh.defects.mesh_repairs`).
+    cusp : add the schedule's cusp heights to the meta (:func:`gpuslice.bench.quality.cusp_summary`).
+    portable : leave the device and backend out of the meta, so output bytes do not depend on the machine.
+    """
+
+    source: str
+    name: str | None = None
+    label: str | None = None
+    data: bytes | None = field(default=None, repr=False)
+    placement: Placement = Placement()
+    params: SliceParams = SliceParams()
+    contours: str | None = None
+    resin: ResinOutput | None = None
+    view: ViewOutput | None = None
+    mesh_check: bool = True
+    cusp: bool = False
+    portable: bool = False
+
+    @property
+    def model_name(self) -> str:
+        return self.name if self.name is not None else str(self.source)
+
+    @property
+    def is_saved_result(self) -> bool:
+        return self.data is None and Path(self.source).suffix.lower() == ".npz"
+
+
+@dataclass
+class JobResult:
+    """What a job made: the ``mesh`` (None for a saved result), the ``result``, the OpenCL ``device`` used (None on
+    the numpy backend), per-stage ``timings`` (s) and output ``stats`` (e.g. ``png_bytes``, ``view_bytes``)."""
+
+    mesh: Mesh | None
+    result: SliceResult
+    device: Any
+    timings: dict[str, float]
+    stats: dict[str, Any] = field(default_factory=dict)
+
+
+def prepare_device(params: SliceParams, device=None, timings: dict[str, float] | None = None):
+    """The OpenCL device of ``params`` with every kernel built (one program), or ``device`` when given; None on the
+    numpy backend. Its time goes to ``timings["device"]``."""
+    if params.backend != "opencl" or device is not None:
+        return device
+    from .device import get_device
+
+    t = time.perf_counter()
+    dev = get_device(params.device)
+    dev.program("crossings.cl")  # builds every kernels/*.cl (one program)
+    if timings is not None:
+        timings["device"] = timings.get("device", 0.0) + time.perf_counter() - t
+    return dev
+
+
+def load_job_mesh(job: Job, device=None, timings: dict[str, float] | None = None) -> Mesh:
+    """Read ``job.source`` (or ``job.data``) and build its mesh, placed on the bed (stages ``load``, ``topology``)."""
+    from .io.meshfile import read_mesh_source
+    from .mesh.mesh import mesh_from_triangles
+
+    timings = timings if timings is not None else {}
+    t = time.perf_counter()
+    raw = read_mesh_source(job.source, job.data, job.label)
+    timings["load"] = time.perf_counter() - t
+    t = time.perf_counter()
+    mesh = mesh_from_triangles(raw.triangles, raw.normals, scale=job.placement.scale, fit=job.placement.fit,
+                               name=job.model_name, source_format=raw.source_format, solids=raw.solids, device=device)
+    timings["topology"] = time.perf_counter() - t
+    return mesh
+
+
+def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | None = None) -> JobResult:
+    """Run ``job``: the device, the mesh, the slices, then every output it names (see the module docstring).
+
+    ``device``: an OpenCL device already made (batch workers keep one); ``progress(k, n)``: called as resin layers
+    are written (k of n). Raises :class:`~gpuslice.errors.GpusliceError` subclasses with one-line messages naming
+    the file.
+    """
+    timings: dict[str, float] = {}
+    stats: dict[str, Any] = {}
+    if job.is_saved_result:
+        from .slicing.result import SliceResult
+
+        t = time.perf_counter()
+        result = SliceResult.load(job.source)
+        timings["load"] = time.perf_counter() - t
+        mesh, dev = None, None
+    else:
+        dev = prepare_device(job.params, device, timings)
+        mesh = load_job_mesh(job, dev, timings)
+        result = _slice(job, mesh, dev, timings)
+    out = JobResult(mesh, result, dev, timings, stats)
+    if job.contours is not None:
+        from .formats import export
+
+        t = time.perf_counter()
+        export(result, job.contours)
+        timings["write"] = time.perf_counter() - t
+    if job.cusp and mesh is not None:  # the schedule's cusp heights, for the report (not in the written file)
+        from .bench.quality import cusp_summary
+
+        t = time.perf_counter()
+        result.meta.update(cusp_summary(mesh, result, dev))
+        timings["cusp"] = time.perf_counter() - t
+    if job.resin is not None:
+        _write_resin(job, out, progress)
+    if job.view is not None:
+        _write_view(job, out)
+    return out
+
+
+def _slice(job: Job, mesh: Mesh, dev, timings: dict[str, float]) -> SliceResult:
+    from .slicing.slicer import slice_mesh
+
+    result = slice_mesh(mesh, job.params)
+    meta = result.meta
+    stage = meta.pop("timings_s", {})
+    if job.mesh_check:  # what the mesh needed: flipped facets, non-manifold edges, ... (mesh/defects.py)
+        from .mesh.defects import mesh_repairs
+
+        t = time.perf_counter()
+        meta["repairs"] = {**mesh_repairs(mesh), **meta["repairs"]}
+        timings["mesh_check"] = time.perf_counter() - t
+    for key, value in stage.items():
+        timings[key] = timings.get(key, 0.0) + value
+    if job.portable:  # output bytes depend on the model and the options only
+        meta.pop("device", None)
+        meta.pop("backend", None)
+        meta["params"] = {k: v for k, v in meta["params"].items() if k not in ("backend", "device")}
+    meta["timings_s"] = timings
+    return result
+
+
+def _bounds(mesh: Mesh | None) -> tuple[float, float, float, float] | None:
+    """(xmin, ymin, xmax, ymax) of the mesh, mm: what is centred on a resin display."""
+    if mesh is None:
+        return None
+    b = mesh.bounds
+    return float(b[0, 0]), float(b[0, 1]), float(b[1, 0]), float(b[1, 1])
+
+
+def _write_resin(job: Job, out: JobResult, progress) -> None:
+    from .raster.coverage import check_fits, choose_backend, iter_tiles
+    from .raster.outputs import RESIN_FORMATS, ResinTarget, source_date
+
+    r = job.resin
+    t = time.perf_counter()
+    backend = choose_backend(r.options.raster_backend)
+    dev = out.device
+    if dev is None and backend == "opencl":  # numpy slicing, OpenCL rasterising
+        from .device import get_device
+
+        dev = get_device(job.params.device)
+    bounds = _bounds(out.mesh)
+    check_fits(out.result, r.spec, bounds, name=job.model_name)
+    tiles = iter_tiles(out.result, r.spec, backend=backend, device=dev, bounds=bounds,
+                       supersample=r.options.supersample)
+    name = r.options.job_name or Path(job.model_name).stem
+    n = out.result.n_layers
+    tick = (lambda k: progress(k, n)) if progress is not None else None
+    target = ResinTarget(Path(r.path.rstrip("/\\") or "."), r.spec, r.options, out.result, name, source_date(),
+                         r.options.workers, tick)
+    out.stats.update(RESIN_FORMATS[r.format].load()(tiles, target))
+    out.stats["raster_backend"] = backend
+    out.timings["raster"] = time.perf_counter() - t
+
+
+def _write_view(job: Job, out: JobResult) -> None:
+    from .view.page import raster_masks, write_view
+
+    v = job.view
+    t = time.perf_counter()
+    masks = None
+    if v.masks is not None:
+        backend = "numpy" if job.params.backend == "numpy" else "auto"
+        masks = raster_masks(out.result, v.masks, every=v.mask_every, bounds=_bounds(out.mesh), backend=backend,
+                             device=out.device, name=job.model_name)
+        out.timings["masks"] = time.perf_counter() - t
+        out.stats["masks"] = masks
+    src = Path(job.source)
+    if v.title is not None:
+        title = v.title
+    elif job.is_saved_result:
+        sliced = out.result.meta.get("file")
+        title = f"{Path(str(sliced)).name} ({src.name})" if sliced else src.name
+    else:
+        title = src.name
+    t = time.perf_counter()
+    out.stats["view_bytes"] = write_view(out.result, v.path, title=title, masks=masks)
+    out.timings["view"] = time.perf_counter() - t
+

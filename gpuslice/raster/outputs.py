@@ -1,0 +1,124 @@
+"""Resin outputs, behind one registry: ``suffix → archive writer``.
+
+Each output is one module of :mod:`gpuslice.raster` with a function ``write_target(tiles, target) -> stats`` that
+encodes the layers' tiles (in order) into ``target.path`` atomically, and one :class:`ResinFormat` entry in
+:data:`RESIN_FORMATS` below. ``gpuslice raster -o`` (suffix dispatch), ``batch --raster``, the messages and the docs
+read this registry; writer modules are imported only when used.
+
+Adding an archive format (say ``.goo``): write ``gpuslice/raster/goo.py`` with ``write_target(tiles, target)``, then
+add ``ResinFormat("goo", (".goo",), "goo:write_target", "…")`` to ``RESIN_FORMATS``.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import importlib
+import os
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from ..errors import ParameterError
+from .spec import RasterSpec, ResinOptions
+
+if TYPE_CHECKING:
+    from ..slicing.result import SliceResult
+    from .coverage import Tile
+
+__all__ = ["RESIN_FORMATS", "ResinFormat", "ResinTarget", "resin_format_for", "resin_format_names", "resin_usage",
+           "source_date"]
+
+
+@dataclass(frozen=True)
+class ResinTarget:
+    """Everything an archive writer needs besides the tiles: where (``path``), the display (``spec``), the job's
+    options, the sliced ``result`` (layer heights, areas for the resin volume, count), the job ``name`` (SL1 jobDir,
+    PNG prefix), the archive date ``now`` (None: the current time), encoder ``workers`` and a ``progress(k)``
+    callback."""
+
+    path: Path
+    spec: RasterSpec
+    options: ResinOptions
+    result: SliceResult
+    name: str
+    now: dt.datetime | None = None
+    workers: int | None = None
+    progress: Callable[[int], None] | None = None
+
+
+@dataclass(frozen=True)
+class ResinFormat:
+    """One resin output: ``name`` (``--raster`` value), ``suffixes`` (lower case; empty for a folder output),
+    ``writer`` as ``"module:function"`` inside :mod:`gpuslice.raster`, ``help``, ``title`` (its name in messages),
+    and ``folder`` (the output is a directory, named ``DIR/`` on the command line)."""
+
+    name: str
+    suffixes: tuple[str, ...]
+    writer: str
+    help: str
+    title: str
+    folder: bool = False
+
+    @property
+    def suffix(self) -> str:
+        """What batch appends to a model's output name (``""`` for a folder)."""
+        return self.suffixes[0] if self.suffixes else ""
+
+    def load(self) -> Callable[[Iterable[Tile], ResinTarget], dict[str, Any]]:
+        module, func = self.writer.split(":")
+        return getattr(importlib.import_module(f"{__package__}.{module}"), func)
+
+
+#: the registry, in the order the help lists them
+RESIN_FORMATS: dict[str, ResinFormat] = {
+    f.name: f
+    for f in (
+        ResinFormat("sl1", (".sl1",), "sl1:write_target", "Prusa SL1 archive (PNG layers, config.ini, thumbnails)",
+                    "SL1 archive"),
+        ResinFormat("png", (), "pngstack:write_target", "a folder of 8-bit PNGs, one per layer", "PNG stack",
+                    folder=True),
+    )
+}
+
+
+def resin_format_names() -> list[str]:
+    return list(RESIN_FORMATS)
+
+
+def _usage() -> str:
+    files = [f"FILE{s}" for f in RESIN_FORMATS.values() for s in f.suffixes]
+    folders = [f"DIR/ for a {f.title}" for f in RESIN_FORMATS.values() if f.folder]
+    return ", ".join(files) + (", or " + ", ".join(folders) if folders else "")
+
+
+def resin_usage() -> str:
+    """How ``-o`` names each resin output: ``FILE.sl1, or DIR/ for a PNG stack``."""
+    return _usage()
+
+
+def resin_format_for(path: str | os.PathLike) -> ResinFormat:
+    """The resin output that ``path`` names: a registered suffix (any case), or a folder (``DIR/`` or an existing
+    directory) for the folder output; :class:`ParameterError` naming ``path`` otherwise."""
+    text = os.fspath(path)
+    p = Path(text)
+    if text.endswith(("/", "\\")) or p.is_dir():
+        for f in RESIN_FORMATS.values():
+            if f.folder:
+                return f
+    kind = p.suffix.lower()
+    for f in RESIN_FORMATS.values():
+        if kind and kind in f.suffixes:
+            return f
+    raise ParameterError(f"{text}: unknown output format '{p.suffix}' (use {_usage()})")
+
+
+def source_date() -> dt.datetime | None:
+    """``SOURCE_DATE_EPOCH`` (reproducible builds) as a naive UTC datetime, or None when unset: archive dates."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH")
+    if not epoch:
+        return None
+    try:
+        return dt.datetime.fromtimestamp(int(epoch), dt.timezone.utc).replace(tzinfo=None)
+    except (ValueError, OverflowError, OSError):
+        raise ParameterError(f"SOURCE_DATE_EPOCH must be an integer number of seconds, got '{epoch}'") from None

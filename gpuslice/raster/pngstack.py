@@ -1,0 +1,56 @@
+"""The PNG stack: one greyscale PNG per layer in a folder (``<prefix>00000.png`` upward), written atomically."""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+from ..errors import ParameterError
+from ..io.atomic import atomic_path
+from .coverage import Tile
+from .png import PngEncoder, encode_all
+from .spec import RasterSpec
+
+__all__ = ["write_png_stack", "write_target"]
+
+
+def write_png_stack(
+    tiles: Iterable[Tile],
+    spec: RasterSpec,
+    directory: str | os.PathLike,
+    *,
+    prefix: str = "",
+    digits: int = 5,
+    level: int = 1,
+    deflater: str = "auto",
+    workers: int | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> dict[str, float]:
+    """Write one greyscale PNG per tile into ``directory`` (``<prefix>00000.png`` upward), atomically: the
+    directory is built under a temporary name and renamed over ``directory`` when complete. An existing
+    ``directory`` is replaced only when it holds nothing but ``<prefix>NNNNN.png`` files (an earlier run)."""
+    out = Path(os.fspath(directory))
+    if out.exists() and not out.is_dir():
+        raise ParameterError(f"{out}: exists and is not a directory")
+    if out.is_dir():  # replaced as a whole: only if it holds nothing but an earlier stack of this name
+        layer = re.compile(re.escape(prefix) + r"\d+\.png")
+        others = [p.name for p in out.iterdir() if not (p.is_file() and layer.fullmatch(p.name))]
+        if others:
+            raise ParameterError(f"{out}: directory holds other files ({others[0]}, ...); give a new or empty one")
+    enc = PngEncoder(*spec.png_size, level, deflater)
+    with atomic_path(out) as tmp:
+        tmp.mkdir()
+
+        def sink(k: int, data: bytes) -> None:
+            (tmp / f"{prefix}{k:0{digits}d}.png").write_bytes(data)
+
+        stats = encode_all(tiles, enc, sink, workers, progress=progress)
+    return stats
+
+
+def write_target(tiles: Iterable[Tile], target) -> dict[str, float]:
+    """The registry's writer (:mod:`gpuslice.raster.outputs`): a PNG stack named after ``target.name``."""
+    return write_png_stack(tiles, target.spec, target.path, prefix=target.name, level=target.options.png_level,
+                           workers=target.workers, progress=target.progress)

@@ -1,0 +1,199 @@
+"""What a resin printer's display is and how a model is placed on it (:class:`RasterSpec`), the printer presets
+(:data:`PRINTERS`), the grey levels (:func:`gamma_lut`) and the options of a resin job (:class:`ResinOptions`): each
+option declared once (:mod:`gpuslice.options`). The mapping model XY → pixels is described in
+:mod:`gpuslice.raster.coverage`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..errors import ParameterError
+from ..options import option, parse_resolution
+
+__all__ = ["RasterSpec", "ResinOptions", "PRINTERS", "BACKENDS", "gamma_lut", "with_printer"]
+
+#: rasterisers: ``auto`` (GL on a hardware GPU, else OpenCL), ``opencl``, ``numpy`` (the twin), ``gl`` (moderngl)
+BACKENDS = ("auto", "opencl", "numpy", "gl")
+
+
+@dataclass(frozen=True)
+class RasterSpec:
+    """A resin printer's display and how the model is placed on it (lengths in mm).
+
+    resolution : (nx, ny) pixels: the PNG's width and height.
+    pixel : pixel width px, mm; ``pixel_y`` its height py (default: square, = px).
+    mirror_x, mirror_y, portrait : display orientation (module docstring).
+    keep_xy : keep the model's own XY (bed = model coordinates) instead of centring its bbox on the bed.
+    gamma : PrusaSlicer's gamma correction: 1 linear coverage, 0 hard threshold at 50 % coverage.
+    """
+
+    resolution: tuple[int, int] = option(
+        (3840, 2400), "Display pixels NXxNY along X and Y; PNGs are NXxNY (landscape) or NYxNX (portrait)",
+        parse=parse_resolution, metavar="NXxNY", show=lambda r: f"{r[0]}x{r[1]}")
+    pixel: float = option(0.05, "Pixel size along X (the display's width)", unit="mm")
+    pixel_y: float | None = option(None, "Pixel size along Y (default: square)", unit="mm")
+    mirror_x: bool = option(False, "Mirror the columns", negatable=True)
+    mirror_y: bool = option(False, "Mirror the rows", negatable=True)
+    portrait: bool = option(False, "Display orientation: portrait or landscape", flags=("--portrait/--landscape",),
+                            negatable=True)
+    keep_xy: bool = option(False, "Keep the model's own XY instead of centring it on the display")
+    gamma: float = option(1.0, "Antialiasing gamma (PrusaSlicer's): 1 linear coverage, 0 hard threshold at 50 %")
+
+    def __post_init__(self) -> None:
+        nx, ny = self.resolution
+        if not (isinstance(nx, int | np.integer) and isinstance(ny, int | np.integer) and nx > 0 and ny > 0):
+            raise ParameterError(f"resolution must be two positive integers NXxNY, got {self.resolution}",
+                                 param="resolution")
+        if nx * ny > 2**31 - 1:
+            raise ParameterError(f"resolution {nx}x{ny} is too large", param="resolution")
+        for name, v in (("pixel", self.pixel), ("pixel_y", self.py)):
+            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
+                raise ParameterError(f"{name} must be a positive number of mm, got {v}", param=name)
+        if not (math.isfinite(self.gamma) and self.gamma >= 0):
+            raise ParameterError(f"gamma must be >= 0, got {self.gamma}", param="gamma")
+
+    @property
+    def nx(self) -> int:
+        return int(self.resolution[0])
+
+    @property
+    def ny(self) -> int:
+        return int(self.resolution[1])
+
+    @property
+    def px(self) -> float:
+        return float(self.pixel)
+
+    @property
+    def py(self) -> float:
+        return float(self.pixel if self.pixel_y is None else self.pixel_y)
+
+    @property
+    def png_size(self) -> tuple[int, int]:
+        """(width, height) of a layer's PNG in pixels: (nx, ny) in landscape, (ny, nx) in portrait."""
+        return (self.ny, self.nx) if self.portrait else (self.nx, self.ny)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(rows, cols) of a mask: the PNG's (height, width)."""
+        w, h = self.png_size
+        return h, w
+
+    @property
+    def display_mm(self) -> tuple[float, float]:
+        """(display_width, display_height) in mm, PrusaSlicer's names: nx·px, ny·py."""
+        return self.nx * self.px, self.ny * self.py
+
+    @property
+    def bed_mm(self) -> tuple[float, float]:
+        """(X, Y) extent of the printable bed in model axes, mm: the display's (width, height) in both orientations."""
+        return self.display_mm
+
+    def offset_for(self, bounds: Sequence[float] | None) -> tuple[float, float]:
+        """(dx, dy) mm added to model XY to get bed XY: centres ``bounds`` = (xmin, ymin, xmax, ymax) on the bed."""
+        if self.keep_xy or bounds is None:
+            return 0.0, 0.0
+        xmin, ymin, xmax, ymax = (float(b) for b in bounds)
+        bx, by = self.bed_mm
+        return bx / 2 - (xmin + xmax) / 2, by / 2 - (ymin + ymax) / 2
+
+    def affine(self, bounds: Sequence[float] | None = None) -> np.ndarray:
+        """(2, 3) float64 matrix A with (u, v) = A @ (x, y, 1): model mm → continuous pixel coordinates."""
+        dx, dy = self.offset_for(bounds)
+        w, h = self.display_mm
+        if self.portrait:  # u = (h - Y)/py, v = (w - X)/px
+            a = np.array([[0.0, -1.0 / self.py, (h - dy) / self.py], [-1.0 / self.px, 0.0, (w - dx) / self.px]])
+        else:  # u = X/px, v = (h - Y)/py
+            a = np.array([[1.0 / self.px, 0.0, dx / self.px], [0.0, -1.0 / self.py, (h - dy) / self.py]])
+        cols, rows = self.png_size
+        if self.mirror_x:
+            a[0] = -a[0]
+            a[0, 2] += cols
+        if self.mirror_y:
+            a[1] = -a[1]
+            a[1, 2] += rows
+        return a
+
+    def to_pixels(self, xy: np.ndarray, bounds: Sequence[float] | None = None) -> np.ndarray:
+        """(n, 2) float64 continuous pixel coordinates (u = column, v = row) of model points ``xy`` (mm)."""
+        a = self.affine(bounds)
+        x = np.asarray(xy[:, 0], dtype=np.float64)
+        y = np.asarray(xy[:, 1], dtype=np.float64)
+        out = np.empty((x.size, 2), np.float64)
+        out[:, 0] = a[0, 0] * x + a[0, 1] * y + a[0, 2]  # one of a[0, :2] is 0: exact as a matrix product
+        out[:, 1] = a[1, 0] * x + a[1, 1] * y + a[1, 2]
+        return out
+
+    def pixel_centres(self, bounds: Sequence[float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Model (x, y) in mm of every pixel centre, two (ny, nx) arrays (inverse of :meth:`affine`)."""
+        a = self.affine(bounds)
+        inv = np.linalg.inv(np.vstack([a, [0, 0, 1]]))
+        v, u = np.mgrid[0 : self.shape[0], 0 : self.shape[1]].astype(np.float64) + 0.5
+        return inv[0, 0] * u + inv[0, 1] * v + inv[0, 2], inv[1, 0] * u + inv[1, 1] * v + inv[1, 2]
+
+
+#: display presets: name -> RasterSpec keyword arguments (nominal panel figures; check your printer)
+PRINTERS: dict[str, dict] = {
+    "generic-4k": {"resolution": (3840, 2400), "pixel": 0.05},  # 192 x 120 mm, e.g. 8.9" 4K monochrome LCDs
+    "generic-2k": {"resolution": (2560, 1440), "pixel": 0.04725},  # 120.96 x 68.04 mm, 5.5" 2K LCDs
+    # the display values of PrusaSlicer's Original Prusa SL1 profile (68.04 x 120.96 mm, portrait, mirrored X)
+    "prusa-sl1": {"resolution": (1440, 2560), "pixel": 0.04725, "portrait": True, "mirror_x": True},
+    "elegoo-mars": {"resolution": (1440, 2560), "pixel": 0.04725},  # 5.5" 2K, 68.04 x 120.96 mm
+    "elegoo-saturn": {"resolution": (3840, 2400), "pixel": 0.05},  # 8.9" 4K
+    "anycubic-photon-mono-x": {"resolution": (3840, 2400), "pixel": 0.05},  # 8.9" 4K
+}
+
+
+def gamma_lut(gamma: float) -> np.ndarray:
+    """(256,) uint8: grey for ``k = min(255, floor(256·coverage))``, as agg's ``gamma_power``/``gamma_threshold``."""
+    k = np.arange(256, dtype=np.float64) / 255.0
+    if gamma == 0:
+        return np.where(k >= 0.5, 255, 0).astype(np.uint8)
+    return np.floor(255.0 * k**gamma + 0.5).astype(np.uint8)
+
+
+def with_printer(name: str, **overrides) -> RasterSpec:
+    """A :class:`RasterSpec` from the preset ``name`` (:data:`PRINTERS`) with ``overrides``."""
+    if name not in PRINTERS:
+        raise ParameterError(f"unknown printer '{name}' (use {', '.join(sorted(PRINTERS))})")
+    return replace(RasterSpec(**PRINTERS[name]), **overrides)
+
+
+@dataclass(frozen=True)
+class ResinOptions:
+    """How a resin job is rasterised and encoded, besides the display (:class:`RasterSpec`); times in s."""
+
+    printer: str | None = option(None, "Display preset, one of gpuslice.raster.PRINTERS; the display options "
+                                 "override it")
+    raster_backend: str = option("auto", "Rasteriser: auto is GL on a hardware GPU, else OpenCL", choices=BACKENDS)
+    supersample: int = option(8, "GL backend: samples per pixel side (1-16)")
+    png_level: int = option(1, "Deflate level of each layer's non-blank rows (0-9)")
+    exposure: float = option(10.0, "Exposure time (config.ini)", unit="s")
+    exposure_first: float = option(15.0, "First layers' exposure", unit="s")
+    job_name: str | None = option(None, "SL1 jobDir and PNG prefix (default: the model's file name)")
+    workers: int | None = option(None, "PNG encoding threads (default: the CPUs)")
+
+    def __post_init__(self) -> None:
+        if self.printer is not None and self.printer not in PRINTERS:
+            raise ParameterError(f"unknown printer '{self.printer}' (use {', '.join(sorted(PRINTERS))})",
+                                 param="printer")
+        if self.raster_backend not in BACKENDS:
+            raise ParameterError(f"unknown raster backend '{self.raster_backend}' (use {', '.join(BACKENDS)})",
+                                 param="raster_backend")
+        if not 1 <= self.supersample <= 16:
+            raise ParameterError(f"supersample must be from 1 to 16, got {self.supersample}", param="supersample")
+        if not 0 <= self.png_level <= 9:
+            raise ParameterError(f"png_level must be from 0 to 9, got {self.png_level}", param="png_level")
+        if self.workers is not None and not 1 <= self.workers <= 256:
+            raise ParameterError(f"workers must be from 1 to 256, got {self.workers}", param="workers")
+
+    def spec(self, **display) -> RasterSpec:
+        """The :class:`RasterSpec`: the preset's values (if any) overridden by ``display`` values that are not None."""
+        kw = dict(PRINTERS[self.printer]) if self.printer is not None else {}
+        kw.update({k: v for k, v in display.items() if v is not None})
+        return RasterSpec(**kw)

@@ -1,0 +1,78 @@
+"""The slicing options, declared once (:mod:`gpuslice.options`): :class:`SliceParams`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..errors import ParameterError
+from ..options import option, parse_floats
+from ..schedule.adaptive import ADAPTIVE_MODES
+from .nest import FILL_RULES
+
+__all__ = ["SliceParams", "BACKENDS", "Z_MODES"]
+
+#: the slicing backends: the OpenCL kernels, or their numpy reference twins
+BACKENDS = ("opencl", "numpy")
+#: where a uniform layer is cut: the middle of its slab, or the paper's Z_i = i*h
+Z_MODES = ("mid", "paper")
+
+
+@dataclass(frozen=True)
+class SliceParams:
+    """Every slicing option in one place (lengths in mm); each field's help is its documentation.
+
+    thickness : uniform layer thickness h (ignored when a schedule or z values are given).
+    first_layer : thickness of the first layer (default: h).
+    z_mode : ``"mid"`` (planes at the middle of each slab, z_i = (i + 0.5)·h) or ``"paper"`` (Z_i = i·h).
+    fill_rule : ``"nonzero"``, ``"evenodd"`` or ``"positive"``.
+    max_gap : open chain ends closer than this are joined (PrusaSlicer's default: 2 mm); 0 disables.
+    backend : ``"opencl"`` (default) or ``"numpy"`` (the reference implementation of every kernel).
+    device : OpenCL device spec (see :mod:`gpuslice.device`); None for the default.
+    max_segments_per_batch : layers are processed in batches of at most about this many segments.
+    adaptive : None (uniform), ``"roi"``, ``"cusp"`` or ``"area"``: an adaptive schedule
+        (:mod:`gpuslice.schedule.adaptive`).
+    max_cusp : cusp mode: the largest cusp height t·|n_z|, mm. max_area : area mode: the largest staircase error
+        area per unit length, mm². min_height, max_height : cusp/area modes: thickness clamp, mm. smooth : cusp/area
+        modes: the thickness changes by at most this many mm per mm of height (0: no smoothing).
+    roi_ladder : roi mode: thicknesses, coarse to fine, mm. roi_threshold : roi mode: points per layer (one value,
+        or one per refinement step); None: the ``roi_quantile`` of each level's signal. roi_windows : windows kept per
+        level (0: all).
+    """
+
+    thickness: float = option(0.1, "Layer thickness", unit="mm", flags=("-t", "--thickness"))
+    first_layer: float | None = option(None, "First layer thickness (default: -t)", unit="mm")
+    z_mode: str = option("mid", "mid: cut at the middle of each layer, z=(i+0.5)h; paper: Z_i = i*h",
+                         choices=Z_MODES)
+    fill_rule: str = option("nonzero", "Which loops bound material", choices=FILL_RULES)
+    max_gap: float = option(2.0, "Join open chain ends closer than this (0: never); chains left open are not filled",
+                            unit="mm")
+    backend: str = option("opencl", "The OpenCL kernels, or their numpy reference twins", choices=BACKENDS)
+    device: str | None = option(None, "OpenCL device: 'P:D' index or a name piece (env GPUSLICE_DEVICE)")
+    max_segments_per_batch: int = option(8_000_000, "Layers are sliced in batches of at most about this many "
+                                         "segments (bounds memory)", flags=())
+    adaptive: str | None = option(None, "Adaptive layers: roi (the paper's ladder), cusp (t*|n_z| <= --max-cusp), "
+                                  "area (error area)", choices=ADAPTIVE_MODES)
+    max_cusp: float = option(0.05, "cusp: largest cusp height", unit="mm")
+    max_area: float = option(0.0025, "area: largest staircase error area per mm of surface", unit="mm^2")
+    min_height: float = option(0.05, "cusp/area: thinnest layer", unit="mm")
+    max_height: float = option(0.3, "cusp/area: thickest layer", unit="mm")
+    smooth: float = option(0.0, "cusp/area: thickness may change by at most this many mm per mm of height (0: off)")
+    roi_ladder: tuple[float, ...] = option((1.0, 0.5, 0.1), "roi: thicknesses, coarse to fine", unit="mm",
+                                           parse=parse_floats)
+    roi_threshold: tuple[float, ...] | None = option(
+        None, "roi: points per layer marking the region of interest (one value, or one per step)", parse=parse_floats)
+    roi_quantile: float = option(0.75, "roi: without --roi-threshold, this quantile of each level's points per layer")
+    roi_windows: int = option(1, "roi: windows kept per level (0: all)")
+
+    def __post_init__(self) -> None:
+        if self.adaptive not in (None, *ADAPTIVE_MODES):
+            raise ParameterError(f"unknown adaptive mode '{self.adaptive}' (use roi, cusp or area)", param="adaptive")
+        if self.fill_rule not in FILL_RULES:
+            raise ParameterError(f"unknown fill rule '{self.fill_rule}' (use {', '.join(FILL_RULES)})",
+                                 param="fill_rule")
+        if self.backend not in BACKENDS:
+            raise ParameterError(f"unknown backend '{self.backend}' (use opencl or numpy)", param="backend")
+        if not (self.max_gap >= 0):
+            raise ParameterError(f"max_gap must be >= 0 mm, got {self.max_gap}", param="max_gap")
+        if self.max_segments_per_batch < 1:
+            raise ParameterError("max_segments_per_batch must be positive", param="max_segments_per_batch")
