@@ -37,8 +37,10 @@ class InvalidGeometryError(MeshFileError):
 class ParameterError(GpusliceError):
     """An option out of range: a non-positive thickness, unsorted z values, an unknown fill rule.
 
-    ``param``: the option field(s) the message names (``"max_gap"``, or a tuple), as declared in the options'
-    dataclasses (:mod:`gpuslice.options`); the command line shows them as its flags (``--max-gap``).
+    ``param``: the option field(s) the message names by their field names (``"max_gap must be >= 0 mm"``; a name or
+    a tuple), as declared in the options' dataclasses (:mod:`gpuslice.options`); the command line writes those
+    names as its flags (``--max-gap must be >= 0 mm``). Messages that use a plain word instead ("unknown printer")
+    name no ``param``.
     """
 
     def __init__(self, message: str, *, param: str | tuple[str, ...] | None = None) -> None:

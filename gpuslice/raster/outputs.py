@@ -34,8 +34,8 @@ __all__ = ["RESIN_FORMATS", "ResinFormat", "ResinTarget", "resin_format_for", "r
 class ResinTarget:
     """Everything an archive writer needs besides the tiles: where (``path``), the display (``spec``), the job's
     options, the sliced ``result`` (layer heights, areas for the resin volume, count), the job ``name`` (SL1 jobDir,
-    PNG prefix), the archive date ``now`` (None: the current time), encoder ``workers`` and a ``progress(k)``
-    callback."""
+    PNG prefix), the archive date ``now`` (None: the current time; given: a reproducible build, see
+    :attr:`deflater`), encoder ``workers`` and a ``progress(k)`` callback."""
 
     path: Path
     spec: RasterSpec
@@ -45,6 +45,13 @@ class ResinTarget:
     now: dt.datetime | None = None
     workers: int | None = None
     progress: Callable[[int], None] | None = None
+
+    @property
+    def deflater(self) -> str:
+        """``"zlib"`` for a reproducible build (``now`` given, from ``SOURCE_DATE_EPOCH``), else ``"auto"`` (ISA-L
+        where installed). ISA-L's deflate is not byte-deterministic from run to run (the same pixels, other LZ77
+        matches now and then: ``scripts/compare_outputs.py`` found it), zlib's is."""
+        return "zlib" if self.now is not None else "auto"
 
 
 @dataclass(frozen=True)

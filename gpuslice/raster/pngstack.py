@@ -53,4 +53,4 @@ def write_png_stack(
 def write_target(tiles: Iterable[Tile], target) -> dict[str, float]:
     """The registry's writer (:mod:`gpuslice.raster.outputs`): a PNG stack named after ``target.name``."""
     return write_png_stack(tiles, target.spec, target.path, prefix=target.name, level=target.options.png_level,
-                           workers=target.workers, progress=target.progress)
+                           deflater=target.deflater, workers=target.workers, progress=target.progress)

@@ -287,4 +287,4 @@ def write_target(tiles: Iterable[Tile], target) -> dict[str, float]:
     values = {"exposure_time": o.exposure, "initial_exposure_time": o.exposure_first}
     info = info_from(target.result, target.name, values)
     return write_sl1(tiles, target.spec, target.path, info, target.result.n_layers, level=o.png_level,
-                     workers=target.workers, progress=target.progress, now=target.now)
+                     deflater=target.deflater, workers=target.workers, progress=target.progress, now=target.now)

@@ -180,8 +180,7 @@ class ResinOptions:
 
     def __post_init__(self) -> None:
         if self.printer is not None and self.printer not in PRINTERS:
-            raise ParameterError(f"unknown printer '{self.printer}' (use {', '.join(sorted(PRINTERS))})",
-                                 param="printer")
+            raise ParameterError(f"unknown printer '{self.printer}' (use {', '.join(sorted(PRINTERS))})")
         if self.raster_backend not in BACKENDS:
             raise ParameterError(f"unknown raster backend '{self.raster_backend}' (use {', '.join(BACKENDS)})",
                                  param="raster_backend")

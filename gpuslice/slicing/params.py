@@ -66,12 +66,12 @@ class SliceParams:
 
     def __post_init__(self) -> None:
         if self.adaptive not in (None, *ADAPTIVE_MODES):
-            raise ParameterError(f"unknown adaptive mode '{self.adaptive}' (use roi, cusp or area)", param="adaptive")
+            raise ParameterError(f"unknown adaptive mode '{self.adaptive}' (use roi, cusp or area)")
         if self.fill_rule not in FILL_RULES:
             raise ParameterError(f"unknown fill rule '{self.fill_rule}' (use {', '.join(FILL_RULES)})",
                                  param="fill_rule")
         if self.backend not in BACKENDS:
-            raise ParameterError(f"unknown backend '{self.backend}' (use opencl or numpy)", param="backend")
+            raise ParameterError(f"unknown backend '{self.backend}' (use opencl or numpy)")
         if not (self.max_gap >= 0):
             raise ParameterError(f"max_gap must be >= 0 mm, got {self.max_gap}", param="max_gap")
         if self.max_segments_per_batch < 1:

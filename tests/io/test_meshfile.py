@@ -21,7 +21,7 @@ from gpuslice.errors import EmptyMeshError, GpusliceError, InvalidGeometryError,
 from gpuslice.io import meshfile as stl_module
 from gpuslice.io.meshfile import RawMesh, read_mesh_file, read_stl_bytes
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
+SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "meshes"
 SHARED_MISSING = f"../shared/meshes not found: {SHARED} (the shared mesh corpus beside the repository)"
 
 # --------------------------------------------------------------------------------------------------------
@@ -462,7 +462,7 @@ def test_import_does_not_import_trimesh() -> None:
         "new = sorted(m for m in set(sys.modules) - before if m.split('.')[0] in ('trimesh', 'scipy'))\n"
         "assert not new, new\n"
     )
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")]))
     subprocess.run([sys.executable, "-c", code], check=True, cwd=root, env=env)
 

@@ -38,10 +38,10 @@ from gpuslice.errors import (
 from gpuslice.mesh.defects import mesh_repairs, outward_facets
 from gpuslice.slicing.result import SliceResult
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
 import peers  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 MESHES = REPO.parent / "shared" / "meshes"
 NO_MESHES = "../shared/meshes not found: the problem-mesh tests need the shared data folder beside the repo"
 needs_meshes = pytest.mark.skipif(not (MESHES / "catalog.csv").is_file(), reason=NO_MESHES)

@@ -43,7 +43,7 @@ GENERATED = {
     "cone": lambda: shapes.cone(n=24),
     "ico": lambda: shapes.icosphere(subdivisions=2),
 }
-SHARED_MESHES = Path(__file__).resolve().parents[2] / "shared" / "meshes"
+SHARED_MESHES = Path(__file__).resolve().parents[3] / "shared" / "meshes"
 OPTS = BatchOptions(SliceParams(thickness=0.5), Placement(fit=25.0))
 BROKEN = "broken/garbage.stl"
 

@@ -25,7 +25,7 @@ from gpuslice.errors import GpusliceError  # noqa: E402
 from gpuslice.io.meshfile import read_stl_bytes  # noqa: E402
 from gpuslice.slicing.result import SliceResult  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
 import fuzz_stl  # noqa: E402
 
 SEEDS = [(p.name, p.read_bytes()) for p in fuzz_stl.seed_files() if p.stat().st_size <= 60_000] \

@@ -7,7 +7,7 @@ section at 0 < z < 20 is exactly 400 mm^2 (300 mm^2 with the hole).  Peers that 
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
 
 import numpy as np  # noqa: E402
 import peers  # noqa: E402

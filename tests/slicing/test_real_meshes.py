@@ -24,10 +24,10 @@ from conftest import read_catalog
 import gpuslice
 from gpuslice.errors import MeshFileError
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
 import peers  # noqa: E402
 
-MESHES = Path(__file__).resolve().parents[2] / "shared" / "meshes"
+MESHES = Path(__file__).resolve().parents[3] / "shared" / "meshes"
 NO_MESHES = "../shared/meshes not found: real-mesh tests need the shared data folder"
 NO_SLIC3R = "slic3r not installed: run ../shared/peers/setup-peers.sh"
 

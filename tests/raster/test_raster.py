@@ -30,7 +30,7 @@ from gpuslice.raster.png import PngEncoder
 from gpuslice.raster.pngstack import write_png_stack
 from gpuslice.raster.sl1 import read_sl1_config, write_sl1
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
 
 Image = pytest.importorskip("PIL.Image")
 PIXEL_AREA = 0.05 * 0.05
@@ -351,3 +351,24 @@ def test_sl1_bytes_reproducible_with_a_fixed_date(tmp_path):
     assert digests[0] == digests[1]
     cfg, _, _ = read_sl1_config(tmp_path / "a0.sl1")
     assert cfg["fileCreationTimestamp"] == "2024-01-02 at 03:04:05 UTC"
+
+
+def test_source_date_epoch_makes_raster_archives_reproducible(tmp_path, device, monkeypatch):
+    """With SOURCE_DATE_EPOCH, `gpuslice raster` writes the same SL1 and PNG-stack bytes run after run, dated then."""
+    stl = _torus_stl(tmp_path)
+    args = ["raster", str(stl), "-t", "0.5", "--resolution", "700x700", "--no-progress", "-q"]
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")  # 2023-11-14 22:13:20 UTC
+    runs = []
+    for k in range(2):
+        assert main([*args, "-o", str(tmp_path / f"p{k}.sl1")]) == 0
+        assert main([*args, "-o", f"{tmp_path / f's{k}'}/"]) == 0
+        stack = {p.name: p.read_bytes() for p in sorted((tmp_path / f"s{k}").iterdir())}
+        runs.append(((tmp_path / f"p{k}.sl1").read_bytes(), stack))
+    assert runs[0][0] == runs[1][0] and runs[0][1] == runs[1][1]
+    assert len(runs[0][1]) == 40
+    with zipfile.ZipFile(tmp_path / "p0.sl1") as z:
+        assert {i.date_time for i in z.infolist()} == {(2023, 11, 14, 22, 13, 20)}
+        assert "2023-11-14" in z.read("config.ini").decode()
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "soon")
+    assert main([*args, "-o", str(tmp_path / "bad.sl1")]) == 2
+    assert not (tmp_path / "bad.sl1").exists()

@@ -1,0 +1,126 @@
+"""One job through every entry point: ``slice``, ``raster``, ``view``, ``batch`` (in this process, on local workers
+and on a Dask cluster) and ``bench`` all run :func:`gpuslice.pipeline.run_job`'s stages, so they must agree on the
+layers: the same cutting planes, areas and points per layer, and the same masks."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from gpuslice import Placement, SliceParams
+from gpuslice.batch import BatchOptions, run_batch
+from gpuslice.cli import main
+from gpuslice.pipeline import Job, ResinOutput, ViewOutput, run_job
+from gpuslice.raster import RasterSpec, ResinOptions, masks
+from gpuslice.slicing.result import SliceResult
+from gpuslice.view.page import read_view_data
+
+ARGS = ["-t", "0.25", "--fit", "30"]
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("entry")
+    (folder / "models").mkdir()
+    stl = folder / "models" / "torus.stl"
+    assert main(["shape", "torus", "-o", str(stl)]) == 0
+    return stl
+
+
+@pytest.fixture(scope="module")
+def reference(model, tmp_path_factory):
+    """``gpuslice slice`` of the model: the layers every other entry point must reproduce."""
+    out = tmp_path_factory.mktemp("ref") / "ref.npz"
+    assert main(["slice", str(model), *ARGS, "-o", str(out), "-q"]) == 0
+    res = SliceResult.load(out)
+    assert res.n_layers > 20 and res.points.shape[0] > 1000  # a real job, not an empty one
+    return res
+
+
+def _same_layers(a: SliceResult, b: SliceResult) -> None:
+    np.testing.assert_array_equal(a.z, b.z)
+    np.testing.assert_array_equal(a.thickness, b.thickness)
+    np.testing.assert_array_equal(a.area, b.area)
+    np.testing.assert_array_equal(a.points_per_layer, b.points_per_layer)
+    np.testing.assert_array_equal(a.points, b.points)
+
+
+def test_library_job_equals_slice_command(model, reference, device):
+    done = run_job(Job(source=str(model), placement=Placement(fit=30.0), params=SliceParams(thickness=0.25)))
+    _same_layers(done.result, reference)
+    assert {"device", "load", "topology", "schedule", "crossings", "chaining", "nesting", "mesh_check"} <= set(
+        done.timings)
+
+
+def test_view_agrees(model, reference, tmp_path):
+    page = tmp_path / "v.html"
+    assert main(["view", str(model), *ARGS, "-o", str(page), "-q"]) == 0
+    arrays = read_view_data(page)["arrays"]
+    np.testing.assert_array_equal(arrays["z"], reference.z)
+    np.testing.assert_array_equal(arrays["area"], reference.area)
+    np.testing.assert_array_equal(arrays["layer_points"], reference.points_per_layer)
+    np.testing.assert_array_equal(arrays["points"].reshape(-1, 2), reference.points)
+
+
+def test_raster_agrees(model, reference, tmp_path):
+    """The PNG stack of ``gpuslice raster`` equals the masks of the reference layers on the same display."""
+    stack = tmp_path / "stack"
+    disp = ["--resolution", "200x160", "--pixel", "0.25", "--raster-backend", "opencl"]
+    assert main(["raster", str(model), *ARGS, *disp, "-o", f"{stack}/", "-q", "--no-progress"]) == 0
+    files = sorted(stack.glob("*.png"))
+    assert len(files) == reference.n_layers
+    spec = RasterSpec(resolution=(200, 160), pixel=0.25)
+    done = run_job(Job(source=str(model), placement=Placement(fit=30.0), params=SliceParams(thickness=0.25),
+                       resin=ResinOutput(str(tmp_path / "b.sl1"), "sl1", spec, ResinOptions(raster_backend="opencl"))))
+    mesh_bounds = done.mesh.bounds
+    bounds = (mesh_bounds[0, 0], mesh_bounds[0, 1], mesh_bounds[1, 0], mesh_bounds[1, 1])
+    want = masks(reference, spec, backend="opencl", bounds=bounds)
+    got = np.stack([np.asarray(Image.open(f)) for f in files])
+    np.testing.assert_array_equal(got, want)
+    assert want.max() == 255 and (want > 0).sum() > 1000
+
+
+def test_batch_local_and_dask_agree(model, reference, tmp_path):
+    """batch in this process, on local workers and on a Dask cluster: npz outputs with the reference's layers."""
+    opts = BatchOptions(SliceParams(thickness=0.25), Placement(fit=30.0))
+    outs = {}
+    for workers in (0, 2):
+        out = tmp_path / f"local{workers}"
+        report = run_batch([model.parent], out, opts, workers=workers)
+        assert report["summary"]["done"] == 1, report["models"]
+        outs[workers] = (out / "torus.npz").read_bytes()
+        _same_layers(SliceResult.load(out / "torus.npz"), reference)
+    assert outs[0] == outs[2]
+    distributed = pytest.importorskip("distributed", reason="dask.distributed not installed (gpuslice[batch])")
+    cluster = distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0",
+                                       host="127.0.0.1")
+    try:
+        with distributed.Client(cluster) as client:
+            out = tmp_path / "dask"
+            report = run_batch([model.parent], out, opts, client=client)
+            assert report["summary"]["done"] == 1 and report["summary"]["mode"] == "dask", report["models"]
+            assert (out / "torus.npz").read_bytes() == outs[0]
+    finally:
+        cluster.close()
+
+
+def test_bench_agrees(model, reference, capsys):
+    assert main(["bench", str(model), *ARGS, "--repeat", "1", "--no-quality", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)["rows"]
+    assert len(rows) == 1
+    assert rows[0]["layers"] == reference.n_layers
+    assert rows[0]["points"] == int(reference.points.shape[0])
+
+
+def test_view_job_with_masks(model, reference, tmp_path):
+    """The view stage with resin masks, from the library: the page's layers are the reference's."""
+    spec = RasterSpec(resolution=(200, 160), pixel=0.25)
+    done = run_job(Job(source=str(model), placement=Placement(fit=30.0), params=SliceParams(thickness=0.25),
+                       mesh_check=False, view=ViewOutput(str(tmp_path / "m.html"), masks=spec, mask_every=5)))
+    data = read_view_data(tmp_path / "m.html")
+    np.testing.assert_array_equal(data["arrays"]["area"], reference.area)
+    assert sorted(data["masks"]["png"]) == list(range(0, reference.n_layers, 5))
+    assert done.stats["view_bytes"] == (tmp_path / "m.html").stat().st_size
