@@ -356,7 +356,7 @@ def test_sl1_bytes_reproducible_with_a_fixed_date(tmp_path):
 def test_source_date_epoch_makes_raster_archives_reproducible(tmp_path, device, monkeypatch):
     """With SOURCE_DATE_EPOCH, `gpuslice raster` writes the same SL1 and PNG-stack bytes run after run, dated then."""
     stl = _torus_stl(tmp_path)
-    args = ["raster", str(stl), "-t", "0.5", "--resolution", "700x700", "--no-progress", "-q"]
+    args = ["raster", str(stl), "-t", "0.5", "--resolution", "900x900", "--no-progress", "-q"]
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")  # 2023-11-14 22:13:20 UTC
     runs = []
     for k in range(2):
