@@ -15,6 +15,8 @@ __all__ = [
     "ParameterError",
     "DeviceError",
     "BatchError",
+    "flatten",
+    "one_line",
 ]
 
 
@@ -54,3 +56,21 @@ class DeviceError(GpusliceError):
 
 class BatchError(GpusliceError):
     """A batch cannot start: no models found, clashing outputs, options differing from the output folder's."""
+
+
+def flatten(text: str, limit: int | None = None) -> str:
+    """``text`` on one line (every run of whitespace, newlines included, becomes one space), cut to ``limit``
+    characters with ``...`` when longer."""
+    out = " ".join(str(text).split())
+    if limit is not None and len(out) > limit:
+        out = out[: limit - 3] + "..."
+    return out
+
+
+def one_line(exc: BaseException) -> str:
+    """The one-line message of ``exc`` for a user: a :class:`GpusliceError`'s own message (it names the file and the
+    problem), any other exception's as ``Type: message``; the type name alone when the message is empty."""
+    text = flatten(str(exc))
+    if isinstance(exc, GpusliceError):
+        return text or type(exc).__name__
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__

@@ -25,10 +25,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..errors import BatchError
+from ..errors import BatchError, one_line
 from .discover import Model, discover
 from .options import BatchOptions
-from .task import _one_line, _worker_device, init_worker, pocl_thread_env, run_model
+from .task import _worker_device, init_worker, pocl_thread_env, run_model
 
 __all__ = ["BatchRunner", "MANIFEST_NAME", "default_workers", "run_batch"]
 
@@ -272,7 +272,7 @@ class BatchRunner:
                         except Exception as exc:  # pickling trouble and the like: the model's failure
                             m = self.models[task.index]
                             rec = {"model": m.rel, "output": m.out, "status": "failed",
-                                   "error": f"{m.src}: {_one_line(exc)}"}
+                                   "error": f"{m.src}: {one_line(exc)}"}
                         retry = self._outcome(task, rec, slot.name, workers)
                         if retry is not None:
                             queue.appendleft(retry)
@@ -338,7 +338,7 @@ class BatchRunner:
                     worker = rec.get("worker") or f"{rec.get('host')}:{rec.get('pid')}"
                 except Exception as exc:  # KilledWorker (the task killed its workers), a lost connection
                     rec = {"model": m.rel, "output": m.out, "status": "failed",
-                           "error": f"{m.src}: {_one_line(exc)}"}
+                           "error": f"{m.src}: {one_line(exc)}"}
                     worker = "?"
                 fut.release()
                 if rec["status"] == "done" and "payload" in rec:

@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ..errors import BatchError, GpusliceError
+from ..errors import BatchError, GpusliceError, one_line
 from .discover import Model
 from .options import BatchOptions
 
@@ -71,14 +71,7 @@ def connect(address: str):
     try:
         return Client(address, timeout="10s")
     except (OSError, TimeoutError, ValueError) as exc:
-        raise BatchError(f"{address}: cannot reach the Dask scheduler ({_one_line(exc)})") from None
-
-
-def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split()) if str(exc).strip() else ""
-    if isinstance(exc, GpusliceError):
-        return text or type(exc).__name__
-    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+        raise BatchError(f"{address}: cannot reach the Dask scheduler ({one_line(exc)})") from None
 
 
 def _collect(path: Path) -> bytes | dict[str, bytes]:
@@ -143,7 +136,7 @@ def run_model(model: Model, opts: BatchOptions, out_root: str | None, data: byte
                    device=done.device.name if done.device is not None else "numpy (reference)")
         rec["status"] = "done"
     except Exception as exc:  # a failing model must not stop the batch: one line in its record
-        msg = _one_line(exc)
+        msg = one_line(exc)
         rec["error"] = msg if model.src in msg or model.rel in msg else f"{model.src}: {msg}"
     timings["total"] = time.perf_counter() - t0
     rec["timings_s"] = timings

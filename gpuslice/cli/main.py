@@ -16,7 +16,7 @@ import sys
 import click
 
 from .. import __version__
-from ..errors import GpusliceError, ParameterError
+from ..errors import GpusliceError, ParameterError, flatten, one_line
 from .options import EXIT_USAGE
 
 __all__ = ["main", "cli", "COMMANDS"]
@@ -87,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
     except GpusliceError as exc:
         if debug:
             raise
-        click.echo(f"gpuslice: error: {_message(exc)}", err=True)
+        click.echo(f"gpuslice: error: {flatten(_message(exc))}", err=True)
         return EXIT_USAGE
     except KeyboardInterrupt:
         click.echo("gpuslice: interrupted", err=True)
@@ -100,14 +100,13 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:  # an output that cannot be written (disk full, permission denied): the user's to fix
         if debug:
             raise
-        reason = exc.strerror or " ".join(str(exc).split()) or type(exc).__name__
+        reason = exc.strerror or flatten(str(exc)) or type(exc).__name__
         click.echo(f"gpuslice: error: {exc.filename}: {reason}" if exc.filename else f"gpuslice: error: {reason}",
                    err=True)
         return EXIT_USAGE
     except Exception as exc:  # never a traceback for users; --debug shows it
         if debug:
             raise
-        message = " ".join(str(exc).split())  # one line
-        click.echo(f"gpuslice: internal error: {type(exc).__name__}: {message} (run with --debug)", err=True)
+        click.echo(f"gpuslice: internal error: {one_line(exc)} (run with --debug)", err=True)
         return 1
     return 0

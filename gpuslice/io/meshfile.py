@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import EmptyMeshError, GpusliceError, MeshFileError
+from ..errors import EmptyMeshError, GpusliceError, MeshFileError, flatten
 from .rawmesh import BINARY_STL_RECORD, MAX_COORDINATE, TRIMESH_EXTENSIONS, RawMesh, check_coordinates
 from .stl import _os_reason, read_stl_bytes
 
@@ -132,9 +132,7 @@ def _read_with_trimesh(name: str, file_type: str) -> RawMesh:
         mesh = trimesh.load(name, force="mesh", process=False)
         triangles = np.asarray(mesh.triangles, dtype=np.float64)
     except Exception as exc:  # any trimesh failure means a file it cannot read: one line for the user
-        reason = " ".join(str(exc).split()) or type(exc).__name__
-        if len(reason) > 200:
-            reason = reason[:197] + "..."
+        reason = flatten(str(exc), 200) or type(exc).__name__
         raise MeshFileError(
             f"{name}: cannot read {file_type.upper()} file: {type(exc).__name__}: {reason}"
         ) from None
