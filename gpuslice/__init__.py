@@ -58,7 +58,15 @@ __all__ = [
 _LAZY = {"BatchOptions": "batch.options", "run_batch": "batch.runner"}  # heavier modules, imported on first use
 
 
+#: sub-packages reachable as attributes (``gpuslice.formats.export(...)``), imported on first use
+_SUBPACKAGES = ("batch", "bench", "formats", "io", "pipeline", "raster", "view")
+
+
 def __getattr__(name: str):
+    if name in _SUBPACKAGES:
+        import importlib
+
+        return importlib.import_module(f".{name}", __name__)
     if name in _LAZY:
         import importlib
 
