@@ -1,0 +1,474 @@
+"""Resin layers as run-length runs, never a bitmap: the same greys as :mod:`gpuslice.raster.coverage`'s OpenCL
+rasteriser, byte for byte.
+
+A layer's grey at pixel (row i, column j) is ``lut[min(255, |S| >> 8)]`` where S is the running sum along row i of
+16.16 fixed-point area contributions (``kernels/raster.cl``). Only cells that an edge piece touches have a
+contribution, so S is constant between two touched cells of a row: a row is a few runs. Both backends here compute
+the touched cells' integer contributions with the float32 formulas and ``rint`` of ``raster.cl`` (so the integers are
+identical), sum them per cell, order them by column, prefix-sum them and emit runs; blank rows and the blank ends of
+rows are never visited. Coordinates are display pixels (the tile offsets of :func:`gpuslice.raster.layer_edges`
+are added back); pixels outside a layer's tile are 0, as in the raster path.
+
+**Layout** (:class:`Runs`, one batch of layers, columnar)::
+
+    layers         (L,) int64     the SliceResult layer index of each entry
+    layer_offsets  (L + 1,) int64 entry k owns runs layer_offsets[k]:layer_offsets[k + 1]
+    row            (N,) int32     display row (0 = top row of the PNG)
+    x              (N,) int32     first display column of the run
+    length         (N,) int32     pixels in the run (>= 1)
+    grey           (N,) uint8     grey of every pixel of the run (never 0: blank pixels have no run)
+    shape          (rows, cols)   of the display (RasterSpec.shape)
+
+Runs are ordered by (layer, row, x); two runs of one row never touch with the same grey (they are merged).
+
+Backends: ``"numpy"`` (:func:`runs_numpy`, the vectorised reference) and ``"opencl"`` (``kernels/runs.cl``,
+:class:`RunsKernel`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..device import KernelDriver, get_device
+from ..errors import ParameterError
+from ..ragged import expand_ranges
+from .coverage import LayerEdges, layer_edges
+from .spec import RasterSpec, gamma_lut
+
+__all__ = ["Runs", "runs_numpy", "RunsKernel", "layer_runs", "iter_runs", "runs_to_mask", "BACKENDS"]
+
+BACKENDS = ("opencl", "numpy")
+_ONE = np.float32(65536.0)  # raster.cl's RASTER_ONE: 16.16 fixed point
+_F0, _F1, _FH = np.float32(0.0), np.float32(1.0), np.float32(0.5)
+
+
+@dataclass
+class Runs:
+    """Run-length greys of a batch of layers; see the module docstring for the layout and conventions."""
+
+    layers: np.ndarray
+    layer_offsets: np.ndarray
+    row: np.ndarray
+    x: np.ndarray
+    length: np.ndarray
+    grey: np.ndarray
+    shape: tuple[int, int]
+
+    @property
+    def n_runs(self) -> int:
+        return int(self.row.shape[0])
+
+    def layer(self, k: int) -> Runs:
+        """Entry ``k`` (a position in :attr:`layers`, not a layer index) as a one-layer :class:`Runs` of views."""
+        a, b = int(self.layer_offsets[k]), int(self.layer_offsets[k + 1])
+        return Runs(self.layers[k : k + 1], np.array([0, b - a], np.int64), self.row[a:b], self.x[a:b],
+                    self.length[a:b], self.grey[a:b], self.shape)
+
+    def to_mask(self, k: int) -> np.ndarray:
+        """The full (rows, cols) uint8 mask of entry ``k``."""
+        return runs_to_mask(self, k)
+
+    def to_masks(self) -> np.ndarray:
+        """(L, rows, cols) uint8 masks of every entry (beware: rows·cols bytes per layer)."""
+        out = np.zeros((len(self.layers), *self.shape), np.uint8)
+        for k in range(len(self.layers)):
+            out[k] = runs_to_mask(self, k)
+        return out
+
+    @staticmethod
+    def concat(parts: Sequence[Runs], shape: tuple[int, int]) -> Runs:
+        """The batches ``parts`` one after another as one :class:`Runs`."""
+        if not parts:
+            z = np.zeros(0, np.int32)
+            return Runs(np.zeros(0, np.int64), np.zeros(1, np.int64), z, z, z, np.zeros(0, np.uint8), shape)
+        offs = [np.zeros(1, np.int64)]
+        base = 0
+        for p in parts:
+            offs.append(p.layer_offsets[1:] + base)
+            base += p.n_runs
+        cat = lambda name: np.concatenate([getattr(p, name) for p in parts])  # noqa: E731
+        return Runs(cat("layers"), np.concatenate(offs), cat("row"), cat("x"), cat("length"), cat("grey"), shape)
+
+
+def runs_to_mask(runs: Runs, k: int) -> np.ndarray:
+    """The full (rows, cols) uint8 mask of entry ``k`` of ``runs`` (0 outside its runs)."""
+    rows, cols = runs.shape
+    a, b = int(runs.layer_offsets[k]), int(runs.layer_offsets[k + 1])
+    out = np.zeros(rows * cols, np.uint8)
+    start = runs.row[a:b].astype(np.int64) * cols + runs.x[a:b]
+    _, idx = expand_ranges(start, runs.length[a:b])
+    out[idx] = np.repeat(runs.grey[a:b], runs.length[a:b])
+    return out.reshape(rows, cols)
+
+
+# ---- the shared back half: sorted, summed cells of rows -> runs --------------------------------------------------
+@dataclass
+class _Rows:
+    """The rows of a batch of layers: global row g (tile rows of the batch's layers one after another)."""
+
+    layer: np.ndarray  # (G,) int64 batch position of each row's layer
+    drow: np.ndarray  # (G,) int64 display row
+    col0: np.ndarray  # (G,) int64 display column of the tile's column 0
+    width: np.ndarray  # (G,) int64 tile columns
+    tile_row_off: np.ndarray  # (L + 1,) int64 first global row of each layer
+
+
+def _rows(tiles: np.ndarray) -> _Rows:
+    h = tiles[:, 2].astype(np.int64)
+    off = np.zeros(len(h) + 1, np.int64)
+    np.cumsum(h, out=off[1:])
+    layer, r = expand_ranges(np.zeros(len(h), np.int64), h)
+    return _Rows(layer, tiles[layer, 0] + r, tiles[layer, 1].astype(np.int64), tiles[layer, 3].astype(np.int64), off)
+
+
+def _cells_to_runs(g: np.ndarray, col: np.ndarray, s: np.ndarray, rows: _Rows, lut: np.ndarray):
+    """Runs of rows from their touched cells: ``g`` (global row) and ``col`` (tile column) sorted by (g, col) and
+    unique, ``s`` each cell's summed contribution. Returns (g, x tile-local, length, grey) of the non-blank runs."""
+    if g.size == 0:
+        z = np.zeros(0, np.int64)
+        return z, z, z, np.zeros(0, np.uint8)
+    new_row = np.empty(g.size, bool)
+    new_row[0] = True
+    np.not_equal(g[1:], g[:-1], out=new_row[1:])
+    cs = np.cumsum(s)
+    starts = np.flatnonzero(new_row)
+    base = cs[starts] - s[starts]
+    S = cs - np.repeat(base, np.diff(np.append(starts, g.size)))
+    grey = lut[np.minimum(np.abs(S) >> 8, 255)]
+    prev = np.empty_like(grey)
+    prev[1:] = grey[:-1]
+    prev[new_row] = lut[0]
+    idx = np.flatnonzero(grey != prev)  # grey changes: where runs (blank ones too) begin
+    gi = g[idx]
+    end = np.empty(idx.size, np.int64)
+    end[:-1] = col[idx[1:]]
+    last = np.ones(idx.size, bool)
+    np.not_equal(gi[1:], gi[:-1], out=last[:-1])
+    end[last] = rows.width[gi[last]]
+    keep = grey[idx] != lut[0]
+    idx, gi, end = idx[keep], gi[keep], end[keep]
+    return gi, col[idx], end - col[idx], grey[idx]
+
+
+def _assemble(parts, rows: _Rows, layers: np.ndarray, shape) -> Runs:
+    """One :class:`Runs` from (g, x, length, grey) pieces whose rows ascend from piece to piece."""
+    g, x, n, grey = (np.concatenate([p[i] for p in parts]) for i in range(4))
+    if g.size > 1 and np.any(g[1:] < g[:-1]):  # pieces overlap in rows (host-finished rows): restore order
+        o = np.lexsort((x, g))
+        g, x, n, grey = g[o], x[o], n[o], grey[o]
+    lay = rows.layer[g]
+    off = np.zeros(len(layers) + 1, np.int64)
+    np.cumsum(np.bincount(lay, minlength=len(layers)), out=off[1:])
+    return Runs(np.asarray(layers, np.int64), off, rows.drow[g].astype(np.int32), (x + rows.col0[g]).astype(np.int32),
+                n.astype(np.int32), grey.astype(np.uint8), shape)
+
+
+def _sum_cells(g: np.ndarray, col: np.ndarray, v: np.ndarray, width: int):
+    """Sort records by (g, col) and sum duplicates: unique (g, col) and int64 sums."""
+    key = g * (width + 1) + col
+    o = np.argsort(key, kind="stable")
+    key, v = key[o], v[o]
+    first = np.empty(key.size, bool)
+    if key.size:
+        first[0] = True
+        np.not_equal(key[1:], key[:-1], out=first[1:])
+    starts = np.flatnonzero(first)
+    s = np.add.reduceat(v, starts) if starts.size else np.zeros(0, np.int64)
+    uk = key[starts]
+    return uk // (width + 1), uk % (width + 1), s
+
+
+# ---- numpy twin ---------------------------------------------------------------------------------------------------
+def _records_numpy(e: np.ndarray, edge_h: np.ndarray, edge_w: np.ndarray, edge_g0: np.ndarray):
+    """Every (global row, tile column, int contribution) that ``raster_accumulate`` adds, in float32 as there.
+
+    e (E, 4) float32 tile-local edges; edge_h, edge_w, edge_g0: each edge's tile rows, columns, first global row."""
+    u0, v0, u1, v1 = (np.ascontiguousarray(e[:, i]) for i in range(4))
+    k = v0 != v1
+    u0, v0, u1, v1, eh, ew, eg = u0[k], v0[k], u1[k], v1[k], edge_h[k], edge_w[k], edge_g0[k]
+    sgn = np.where(v1 > v0, _F1, -_F1)
+    va, vb = np.minimum(v0, v1), np.maximum(v0, v1)
+    dudv = (u1 - u0) / (v1 - v0)
+    ra = np.maximum(np.floor(va).astype(np.int64), 0)
+    rb = np.minimum(eh - 1, np.ceil(vb).astype(np.int64) - 1)
+    ei, r = expand_ranges(ra, np.maximum(rb - ra + 1, 0))
+    ys = np.maximum(va[ei], r.astype(np.float32))
+    ye = np.minimum(vb[ei], (r + 1).astype(np.float32))
+    ok = ye > ys
+    ei, r, ys, ye = ei[ok], r[ok], ys[ok], ye[ok]
+    xs = u0[ei] + (ys - v0[ei]) * dudv[ei]
+    xe = u0[ei] + (ye - v0[ei]) * dudv[ei]
+    dy = (ye - ys) * sgn[ei]
+    umin, umax = np.minimum(xs, xe), np.maximum(xs, xe)
+    w = ew[ei]
+    g = eg[ei] + r
+    out_g, out_c, out_a = [], [], []
+
+    def add(gg, cc, aa, ww):
+        keep = cc < ww
+        out_g.append(gg[keep])
+        out_c.append(cc[keep])
+        out_a.append(aa[keep])
+
+    left = umax <= _F0
+    add(g[left], np.zeros(int(left.sum()), np.int64), dy[left], w[left])
+    live = ~left & (umin < w.astype(np.float32))
+    g, w, dy, umin, umax = g[live], w[live], dy[live], umin[live], umax[live]
+    vert = umin == umax
+    c = np.floor(umin[vert]).astype(np.int64)
+    xm = umin[vert] - c.astype(np.float32)
+    add(g[vert], c, dy[vert] * (_F1 - xm), w[vert])
+    add(g[vert], c + 1, dy[vert] * xm, w[vert])
+    sl = ~vert
+    g, w, dy, umin, umax = g[sl], w[sl], dy[sl], umin[sl], umax[sl]
+    slope = dy / (umax - umin)
+    part = umin < _F0
+    add(g[part], np.zeros(int(part.sum()), np.int64), (_F0 - umin[part]) * slope[part], w[part])
+    ca = np.maximum(np.floor(umin).astype(np.int64), 0)
+    cb = np.minimum(w - 1, np.ceil(umax).astype(np.int64) - 1)
+    pi, c = expand_ranges(ca, np.maximum(cb - ca + 1, 0))
+    cf = c.astype(np.float32)
+    a = np.maximum(umin[pi], cf)
+    b = np.minimum(umax[pi], (c + 1).astype(np.float32))
+    d = (b - a) * slope[pi]
+    xm = (a + b) * _FH - cf
+    add(g[pi], c, d * (_F1 - xm), w[pi])
+    add(g[pi], c + 1, d * xm, w[pi])
+    vals = np.rint(np.concatenate(out_a) * _ONE).astype(np.int64)
+    return np.concatenate(out_g), np.concatenate(out_c), vals
+
+
+def _batch_arrays(le: LayerEdges, batch: range):
+    t = le.tiles[batch.start : batch.stop]
+    e0, e1 = int(le.edge_offsets[batch.start]), int(le.edge_offsets[batch.stop])
+    counts = np.diff(le.edge_offsets[batch.start : batch.stop + 1])
+    rows = _rows(t)
+    edge_k = np.repeat(np.arange(len(t)), counts)
+    return t, e0, e1, edge_k, rows
+
+
+def runs_numpy(le: LayerEdges, lut: np.ndarray, shape: tuple[int, int], batch: range | None = None,
+               layers: np.ndarray | None = None) -> Runs:
+    """The numpy twin of :class:`RunsKernel`: runs of the layers ``batch`` (positions in ``le``, default all);
+    ``layers`` the SliceResult indices to record (default the positions); ``shape`` (rows, cols) of the display."""
+    batch = range(len(le.tiles)) if batch is None else batch
+    t, e0, e1, edge_k, rows = _batch_arrays(le, batch)
+    e = le.edges[e0:e1].astype(np.float32)
+    g, c, v = _records_numpy(e, t[edge_k, 2], t[edge_k, 3], rows.tile_row_off[edge_k])
+    g, c, s = _sum_cells(g, c, v, int(t[:, 3].max()) if len(t) else 0)
+    lay = np.asarray(batch, np.int64) if layers is None else np.asarray(layers, np.int64)
+    return _assemble([_cells_to_runs(g, c, s, rows, np.asarray(lut, np.uint8))], rows, lay, shape)
+
+
+# ---- OpenCL -------------------------------------------------------------------------------------------------------
+_INT_MIN, _INT_MAX = -(2**31), 2**31 - 1
+
+
+def _units(e: np.ndarray, edge_h: np.ndarray, edge_w: np.ndarray, rows_max: int, cells_max: int):
+    """Work units of ``runs_pieces``: (edge, first row, last row, c0, c1), each at most ``rows_max`` rows and about
+    ``cells_max`` cells: a steep edge gets several row bands, a flat one (more than ``cells_max`` cells per row) one
+    unit per row and column range; only the first column range (c0 = INT_MIN) has the cells outside the loop."""
+    u0, v0, u1, v1 = (e[:, i] for i in range(4))
+    va, vb = np.minimum(v0, v1), np.maximum(v0, v1)
+    ra = np.maximum(np.floor(va).astype(np.int64), 0)
+    rb = np.minimum(edge_h - 1, np.ceil(vb).astype(np.int64) - 1)
+    nr = np.where(v0 != v1, np.maximum(rb - ra + 1, 0), 0)
+    du = np.abs(u1.astype(np.float64) - u0)
+    per_row = np.minimum(du, du / np.maximum(vb.astype(np.float64) - va, 1e-30)) + 2.0
+    rpu = np.clip(cells_max // per_row, 1, rows_max).astype(np.int64)
+    lo = np.clip(np.floor(np.minimum(u0, u1)).astype(np.int64), 0, edge_w - 1)
+    hi = np.clip(np.ceil(np.maximum(u0, u1)).astype(np.int64), 0, edge_w - 1)
+    ncc = np.where(per_row > cells_max, (hi - lo) // cells_max + 1, 1)
+    nur = (nr + rpu - 1) // rpu
+    one = (nur == 1) & (ncc == 1)  # most edges: one unit, no expansion
+    s = np.flatnonzero(one)
+    ue, j = expand_ranges(np.zeros(len(e), np.int64), np.where(one, 0, nur * ncc))
+    rk, ck = j // ncc[ue], j % ncc[ue]
+    r0 = ra[ue] + rk * rpu[ue]
+    n1 = s.size
+    units = np.zeros((n1 + ue.size, 4), np.int32)
+    units[:n1, 0], units[:n1, 1], units[:n1, 2] = s, ra[s], rb[s]
+    units[n1:, 0], units[n1:, 1], units[n1:, 2] = ue, r0, np.minimum(r0 + rpu[ue] - 1, rb[ue])
+    cols = np.empty((n1 + ue.size, 2), np.int32)
+    cols[:n1, 0], cols[:n1, 1] = _INT_MIN, _INT_MAX
+    cols[n1:, 0] = np.where(ck == 0, _INT_MIN, lo[ue] + ck * cells_max)
+    cols[n1:, 1] = np.where(ck == ncc[ue] - 1, _INT_MAX, lo[ue] + (ck + 1) * cells_max - 1)
+    return units, cols
+
+
+class RunsKernel(KernelDriver):
+    """Driver of ``kernels/runs.cl`` (see the comment at its top): pieces counted and written per row, rows sorted
+    and resolved on the device; rows with more than ``RUNS_CH`` (256) records are finished on the host by the
+    numpy back half. Host work: the units, two prefix sums over rows, the read-back."""
+
+    CH = 256
+    ROWS_PER_UNIT = 16
+    CELLS_PER_UNIT = 256
+
+    def __init__(self, device) -> None:
+        super().__init__(device)
+        prog = device.program("runs.cl")
+        self._pieces, self._rows_k, self._emit = prog.runs_pieces, prog.runs_rows, prog.runs_emit
+        #: set to a dict to get seconds per stage added up in it (the queue is then drained after each stage)
+        self.timings: dict[str, float] | None = None
+        self._t = 0.0
+
+    def _mark(self, name: str | None) -> None:
+        if self.timings is None:
+            return
+        import time
+
+        self.device.queue.finish()
+        now = time.perf_counter()
+        if name is not None:
+            self.timings[name] = self.timings.get(name, 0.0) + now - self._t
+        self._t = now
+
+    def run(self, le: LayerEdges, batch: range, lut: np.ndarray, shape: tuple[int, int],
+            layers: np.ndarray | None = None) -> Runs:
+        """Runs of the layers ``batch`` (positions in ``le``); ``layers`` their SliceResult indices."""
+        import pyopencl as cl
+
+        q = self.device.queue
+        lut = np.ascontiguousarray(lut, np.uint8)
+        t, e0, e1, edge_k, rows = _batch_arrays(le, batch)
+        lay = np.asarray(batch, np.int64) if layers is None else np.asarray(layers, np.int64)
+        n_rows = int(rows.tile_row_off[-1])
+        if n_rows == 0 or e1 == e0:
+            return _assemble([_cells_to_runs(*(np.zeros(0, np.int64),) * 3, rows, lut)], rows, lay, shape)
+        self._mark(None)
+        e = le.edges[e0:e1].astype(np.float32)
+        units, ucols = _units(e, t[edge_k, 2], t[edge_k, 3], self.ROWS_PER_UNIT, self.CELLS_PER_UNIT)
+        self._mark("host: units")
+        tiles = np.zeros((len(t), 4), np.int32)
+        tiles[:, 0], tiles[:, 1], tiles[:, 2], tiles[:, 3] = rows.tile_row_off[:-1], t[:, 3], t[:, 0], t[:, 1]
+        b_units, b_ucols = self._put("units", units), self._put("ucols", ucols)
+        b_edges, b_et = self._put("edges", e), self._put("edge_tile", edge_k.astype(np.int32))
+        b_tiles, b_lut = self._put("tiles", tiles), self._put("lut", lut)
+        b_cnt = self._fill("row_count", 4 * n_rows, np.int32(0))
+        b_off = self._buffer("row_off", 4 * (n_rows + 1))
+        b_recs = self._buffer("recs", 8)
+        gu, lu = self._grid(len(units))
+        self._pieces(q, gu, lu, np.int32(len(units)), np.int32(0), b_units, b_ucols, b_edges, b_et, b_tiles, b_cnt,
+                     b_off, b_recs)
+        cnt = np.empty(n_rows, np.int32)
+        cl.enqueue_copy(q, cnt, b_cnt, is_blocking=True)
+        self._mark("pieces: count")
+        row_off = np.zeros(n_rows + 1, np.int64)
+        np.cumsum(cnt, out=row_off[1:])
+        if row_off[-1] >= 2**31:
+            raise ParameterError("too many pieces in one batch of layers: lower max_batch_pieces")
+        b_off = self._put("row_off", row_off.astype(np.int32))
+        b_recs = self._buffer("recs", 8 * max(int(row_off[-1]), 1))
+        self._fill("row_count", 4 * n_rows, np.int32(0))
+        self._pieces(q, gu, lu, np.int32(len(units)), np.int32(1), b_units, b_ucols, b_edges, b_et, b_tiles, b_cnt,
+                     b_off, b_recs)
+        self._mark("pieces: write")
+        b_m, b_runs = self._buffer("row_m", 4 * n_rows), self._buffer("row_runs", 4 * n_rows)
+        gr, lr = self._grid(n_rows)
+        self._rows_k(q, gr, lr, np.int32(n_rows), np.int32(min(self.CH, 256)), b_off, b_recs, b_lut, b_m, b_runs)
+        row_runs = np.empty(n_rows, np.int32)
+        cl.enqueue_copy(q, row_runs, b_runs, is_blocking=True)
+        self._mark("rows: sort, count")
+        long_rows = np.flatnonzero(cnt > min(self.CH, 256))
+        host = None
+        if long_rows.size:  # rows too long for one work-item's private sort: the numpy back half
+            recs = np.empty((int(row_off[-1]), 2), np.int32)
+            cl.enqueue_copy(q, recs, b_recs, is_blocking=True)
+            owner, idx = expand_ranges(row_off[long_rows], cnt[long_rows])
+            g, c, s = _sum_cells(long_rows[owner], recs[idx, 0].astype(np.int64), recs[idx, 1].astype(np.int64),
+                                 int(t[:, 3].max()))
+            host = _cells_to_runs(g, c, s, rows, lut)
+            row_runs[long_rows] = np.bincount(host[0], minlength=n_rows)[long_rows]
+        self._mark("host: long rows")
+        run_off = np.zeros(n_rows + 1, np.int64)
+        np.cumsum(row_runs, out=run_off[1:])
+        n_runs = int(run_off[-1])
+        b_ro = self._put("run_off", run_off[:-1].astype(np.int32))
+        b_rt = self._put("row_tile", rows.layer.astype(np.int32))
+        outs = [self._buffer(f"out_{k}", max(n_runs, 1) * s) for k, s in (("row", 4), ("x", 4), ("len", 4), ("g", 1))]
+        self._emit(q, gr, lr, np.int32(n_rows), b_off, b_recs, b_m, b_rt, b_tiles, b_lut, b_ro, *outs)
+        arrs = [np.empty(n_runs, d) for d in (np.int32, np.int32, np.int32, np.uint8)]
+        for a, b in zip(arrs, outs, strict=True):
+            cl.enqueue_copy(q, a, b, is_blocking=False)
+        q.finish()
+        row, x, length, grey = arrs
+        if host is not None:
+            pos = run_off[host[0]] + _rank_in_group(host[0])
+            row[pos], x[pos] = rows.drow[host[0]], host[1] + rows.col0[host[0]]
+            length[pos], grey[pos] = host[2], host[3]
+        off = np.zeros(len(t) + 1, np.int64)
+        off[1:] = run_off[rows.tile_row_off[1:]]
+        self._mark("emit, read back")
+        return Runs(lay, off, row, x, length, grey, shape)
+
+
+def _rank_in_group(g: np.ndarray) -> np.ndarray:
+    """0, 1, 2, ... within each group of equal consecutive values of ``g``."""
+    if g.size == 0:
+        return g
+    start = np.empty(g.size, bool)
+    start[0] = True
+    np.not_equal(g[1:], g[:-1], out=start[1:])
+    first = np.flatnonzero(start)
+    return np.arange(g.size) - np.repeat(first, np.diff(np.append(first, g.size)))
+
+
+# ---- public entry points ------------------------------------------------------------------------------------------
+def _batches(le: LayerEdges, max_pieces: int) -> Iterator[range]:
+    """Consecutive layer ranges of at most about ``max_pieces`` cell records each (at least one layer)."""
+    e = le.edges
+    est = np.abs(e[:, 3] - e[:, 1]) + np.abs(e[:, 2] - e[:, 0]) + 2.0  # cells an edge touches, roughly
+    cum = np.concatenate(([0.0], np.cumsum(est)))[le.edge_offsets]  # per layer boundary
+    cum += np.arange(len(cum)) * 64.0  # a floor per layer: rows and bookkeeping
+    start, n = 0, len(le.tiles)
+    while start < n:
+        stop = int(np.searchsorted(cum, cum[start] + max_pieces, side="right")) - 1
+        stop = min(max(stop, start + 1), n)
+        yield range(start, stop)
+        start = stop
+
+
+def iter_runs(
+    result,
+    spec: RasterSpec | None = None,
+    *,
+    backend: str = "opencl",
+    device=None,
+    bounds=None,
+    layers: Sequence[int] | None = None,
+    max_batch_pieces: int = 1 << 22,
+    edges: LayerEdges | None = None,
+) -> Iterator[Runs]:
+    """Yield one :class:`Runs` per batch of consecutive layers (``layers``, default all, in order).
+
+    backend : ``"opencl"`` (:class:`RunsKernel`) or ``"numpy"`` (:func:`runs_numpy`); device : the OpenCL device
+    (default :func:`get_device`); bounds : the (xmin, ymin, xmax, ymax) mm centred on the bed (default: the
+    result's points), as :func:`gpuslice.raster.iter_tiles`. max_batch_pieces : about how many cell records
+    (touched pixel cells) one batch may hold; memory is about 30 bytes per record on either backend.
+    edges : the :func:`layer_edges` of exactly these arguments, when the caller already has them.
+    """
+    if backend not in BACKENDS:
+        raise ParameterError(f"unknown runs backend '{backend}' (use {', '.join(BACKENDS)})")
+    spec = spec or RasterSpec()
+    le = edges if edges is not None else layer_edges(result, spec, bounds, layers)
+    index = np.arange(result.n_layers) if layers is None else np.asarray(layers, dtype=np.int64)
+    lut = gamma_lut(spec.gamma)
+    if lut[0] != 0:  # pragma: no cover - gamma_lut maps no coverage to black for every gamma
+        raise ParameterError("the gamma table must map coverage 0 to grey 0")
+    kern = RunsKernel.of(device if device is not None else get_device()) if backend == "opencl" else None
+    for batch in _batches(le, max_batch_pieces):
+        sel = index[batch.start : batch.stop]
+        if kern is None:
+            yield runs_numpy(le, lut, spec.shape, batch, sel)
+        else:
+            yield kern.run(le, batch, lut, spec.shape, sel)
+
+
+def layer_runs(result, spec: RasterSpec | None = None, **options) -> Runs:
+    """Every selected layer's runs as one :class:`Runs` (options as :func:`iter_runs`)."""
+    spec = spec or RasterSpec()
+    return Runs.concat(list(iter_runs(result, spec, **options)), spec.shape)

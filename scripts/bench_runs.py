@@ -1,0 +1,117 @@
+"""Micro-benchmark of resin layers as runs (gpuslice.raster.runs) on the armadillo job, against the bitmap raster path.
+
+The job (docs: ../shared/PERFORMANCE-NOTES.md): ``../shared/meshes/armadillo.stl`` after one
+``trimesh.remesh.subdivide_loop`` (345,928 facets), stood upright, scaled to 95 mm tall, 0.05 mm layers (1,900),
+an 11520x5120 display of 0.019 mm pixels, gamma 0 and gamma 1. The file's tallest axis is Y (extents 0.84 x 1.00 x
+0.76), so it is rotated +90 degrees about X, (x, y, z) -> (x, -z, y), to make Y the height; then ``fit=95``.
+
+In-process, warm (one warm-up run first), median of ``--repeat``: ``layer_edges``; runs with the numpy twin and
+with OpenCL (given the edges; the OpenCL stages split out); the old path ``iter_tiles(backend="opencl")`` with
+every tile consumed (its own ``layer_edges`` included). Prints layers/s and the process's peak RSS after each stage.
+
+Usage: ``python scripts/bench_runs.py [--repeat 3] [--gammas 0,1] [--skip-numpy] [--skip-raster]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+MESH = REPO.parent / "shared" / "meshes" / "armadillo.stl"
+
+
+def peak_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def timed(fn, repeat: int) -> tuple[float, object]:
+    out = fn()  # warm-up
+    times = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times), out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--gammas", default="0,1")
+    ap.add_argument("--skip-numpy", action="store_true")
+    ap.add_argument("--skip-raster", action="store_true")
+    args = ap.parse_args(argv)
+    if not MESH.is_file():
+        print(f"{MESH} not found", file=sys.stderr)
+        return 2
+    import trimesh
+
+    from gpuslice import mesh_from_triangles, slice_mesh
+    from gpuslice.device import get_device
+    from gpuslice.raster import RasterSpec, iter_tiles, layer_edges
+    from gpuslice.raster.runs import RunsKernel, iter_runs
+
+    dev = get_device()
+    m = trimesh.load(MESH, force="mesh")
+    v, f = trimesh.remesh.subdivide_loop(m.vertices, m.faces, iterations=1)
+    v = np.stack([v[:, 0], -v[:, 2], v[:, 1]], axis=1)  # Y up -> Z up (a rotation, det +1)
+    mesh = mesh_from_triangles(v[f], fit=95.0, device=dev, name="armadillo")
+    t = time.perf_counter()
+    res = slice_mesh(mesh, thickness=0.05, backend="opencl")
+    t_slice = time.perf_counter() - t
+    ext = mesh.vertices.max(axis=0) - mesh.vertices.min(axis=0)
+    print(f"armadillo Loop x1: {mesh.n_faces} facets, {ext[0]:.1f} x {ext[1]:.1f} x {ext[2]:.1f} mm, "
+          f"{res.n_layers} layers, {res.points.shape[0]} points; slice {t_slice:.2f} s (cold); device {dev.name}")
+    n = res.n_layers
+    kern = RunsKernel.of(dev)
+    rows = []
+
+    def row(name, sec, extra=""):
+        rows.append((name, sec))
+        print(f"| {name} | {sec * 1000:.0f} ms | {n / sec:.0f} layers/s | peak RSS {peak_mb():.0f} MB | {extra}")
+
+    for gamma in (float(g) for g in args.gammas.split(",")):
+        spec = RasterSpec(resolution=(11520, 5120), pixel=0.019, gamma=gamma)
+        print(f"\n### gamma {gamma:g}, 11520x5120 @ 0.019 mm")
+        print("| stage | median | rate | memory | notes |\n|---|---|---|---|---|")
+        sec, le = timed(lambda spec=spec: layer_edges(res, spec), args.repeat)
+        row("layer_edges", sec, f"{le.edges.shape[0]} edges")
+
+        def runs(backend, le=le, spec=spec):
+            count = 0
+            for r in iter_runs(res, spec, backend=backend, device=dev, edges=le):
+                count += r.n_runs
+            return count
+
+        sec, count = timed(lambda: runs("opencl"), args.repeat)
+        row("runs, OpenCL (given the edges)", sec, f"{count} runs")
+        kern.timings = {}
+        runs("opencl")
+        split = ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in kern.timings.items())
+        print(f"|  stages (queue drained after each) | {sum(kern.timings.values()) * 1000:.0f} ms | | | {split}")
+        kern.timings = None
+        if not args.skip_numpy:
+            sec, count = timed(lambda: runs("numpy"), args.repeat)
+            row("runs, numpy twin (given the edges)", sec, f"{count} runs")
+        if not args.skip_raster:
+            def raster(spec=spec):
+                px = 0
+                for tile in iter_tiles(res, spec, backend="opencl", device=dev):
+                    px += tile.data.size
+                return px
+
+            sec, px = timed(raster, args.repeat)
+            row("old raster: iter_tiles opencl (+ its layer_edges)", sec, f"{px / 1e9:.2f} G tile pixels")
+    print(f"\npeak RSS of the process: {peak_mb():.0f} MB")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,281 @@
+"""Resin layers as run-length runs (gpuslice.raster.runs): the raster path's greys byte for byte, and corner cases
+checked against an independent rasterisation (exact pixel coverage with shapely, pixel centres in polygons)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gpuslice import mesh_from_triangles, slice_mesh
+from gpuslice.mesh import shapes
+from gpuslice.raster import RasterSpec, gamma_lut, layer_edges, masks
+from gpuslice.raster.runs import Runs, RunsKernel, _units, iter_runs, layer_runs, runs_numpy, runs_to_mask
+from gpuslice.slicing.result import SliceResult
+
+FIELDS = ("layers", "layer_offsets", "row", "x", "length", "grey")
+SPEC4K = RasterSpec(resolution=(3840, 2400), pixel=0.05)
+
+
+def assert_runs_equal(a: Runs, b: Runs) -> None:
+    for f in FIELDS:
+        assert np.array_equal(getattr(a, f), getattr(b, f)), f
+    assert a.shape == b.shape
+
+
+def assert_well_formed(r: Runs) -> None:
+    assert r.row.dtype == np.int32 and r.x.dtype == np.int32 and r.length.dtype == np.int32
+    assert r.grey.dtype == np.uint8 and r.layer_offsets.dtype == np.int64
+    assert np.all(r.length >= 1) and np.all(r.grey > 0)
+    rows, cols = r.shape
+    assert np.all((r.row >= 0) & (r.row < rows) & (r.x >= 0) & (r.x + r.length <= cols))
+    for k in range(len(r.layers)):
+        a, b = r.layer_offsets[k], r.layer_offsets[k + 1]
+        key = r.row[a:b].astype(np.int64) * cols + r.x[a:b]
+        assert np.all(np.diff(key) > 0)  # sorted by (row, x), no overlap:
+        end = key[:-1] + r.length[a : b - 1]
+        same_row = r.row[a + 1 : b] == r.row[a : b - 1]
+        assert np.all(end[same_row] <= key[1:][same_row])
+        touching = same_row & (end == key[1:])  # adjacent runs of a row differ in grey
+        assert np.all(r.grey[a + 1 : b][touching] != r.grey[a : b - 1][touching])
+
+
+def check_against_raster(res, spec, layers, device, backends=("numpy", "opencl"), **kw):
+    """Masks from runs of every backend == the OpenCL raster masks byte for byte; OpenCL runs == numpy runs."""
+    ref = masks(res, spec, backend="opencl", device=device, layers=layers, bounds=kw.get("bounds"))
+    got = {}
+    for be in backends:
+        r = layer_runs(res, spec, backend=be, device=device, layers=layers, **kw)
+        assert_well_formed(r)
+        assert list(r.layers) == list(layers)
+        for k in range(len(layers)):
+            m = runs_to_mask(r, k)
+            assert np.array_equal(m, ref[k]), (be, layers[k], np.count_nonzero(m != ref[k]))
+        got[be] = r
+    if len(got) == 2:
+        assert_runs_equal(got["numpy"], got["opencl"])
+    return got, ref
+
+
+# ---- built-in solids and shared meshes ---------------------------------------------------------------------------
+SOLIDS = {
+    "torus": lambda: shapes.torus(40.0, 15.0, 96, 48),
+    "hollow_box": lambda: shapes.hollow_box(60.0, 30.0),
+    "icosphere": lambda: shapes.icosphere(45.0, 4),
+}
+
+
+@pytest.fixture(scope="module", params=sorted(SOLIDS))
+def solid(request):
+    return slice_mesh(mesh_from_triangles(SOLIDS[request.param]()), thickness=2.0, backend="numpy")
+
+
+def _spread(res, n):
+    return sorted({int(i) for i in np.linspace(0, res.n_layers - 1, n)})
+
+
+@pytest.mark.parametrize("gamma", [1.0, 0.0])
+def test_solids_match_raster(device, solid, gamma):
+    spec = RasterSpec(resolution=(3840, 2400), pixel=0.05, gamma=gamma)
+    check_against_raster(solid, spec, _spread(solid, 6), device)
+
+
+@pytest.mark.parametrize("gamma", [1.0, 0.0])
+def test_solids_all_layers_opencl_equals_numpy(device, solid, gamma):
+    spec = RasterSpec(resolution=(3840, 2400), pixel=0.05, gamma=gamma)
+    a = layer_runs(solid, spec, backend="numpy")
+    b = layer_runs(solid, spec, backend="opencl", device=device, max_batch_pieces=20_000)  # several batches
+    assert_runs_equal(a, b)
+    assert np.array_equal(a.layers, np.arange(solid.n_layers))
+
+
+def _shared(shared_meshes, name, fit):
+    import trimesh
+
+    m = trimesh.load(shared_meshes / f"{name}.stl", force="mesh")
+    return mesh_from_triangles(m.vertices[m.faces], fit=fit)
+
+
+@pytest.mark.parametrize("name", ["cow", "nefertiti", "benchy"])
+@pytest.mark.parametrize("gamma", [1.0, 0.0])
+def test_shared_meshes_match_raster(device, shared_meshes, name, gamma):
+    if not (shared_meshes / f"{name}.stl").is_file():
+        pytest.skip(f"{name}.stl not in the shared meshes")
+    res = slice_mesh(_shared(shared_meshes, name, 60.0), thickness=0.05, backend="opencl")
+    spec = RasterSpec(resolution=(3840, 2400), pixel=0.05, gamma=gamma)
+    check_against_raster(res, spec, _spread(res, 5), device)
+    # every layer: the OpenCL runs equal the numpy twin's
+    assert_runs_equal(layer_runs(res, spec, backend="numpy"), layer_runs(res, spec, backend="opencl", device=device))
+
+
+@pytest.mark.parametrize("gamma", [1.0, 0.0])
+def test_12k_display(device, shared_meshes, gamma):
+    res = slice_mesh(_shared(shared_meshes, "nefertiti", 80.0), thickness=0.05, backend="opencl")
+    spec = RasterSpec(resolution=(11520, 5120), pixel=0.019, gamma=gamma)
+    check_against_raster(res, spec, _spread(res, 3), device)
+
+
+# ---- corner cases: hand-made layers -------------------------------------------------------------------------------
+def _ring(x0, y0, x1, y1, hole=False):
+    p = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], np.float32)
+    return p[::-1].copy() if hole else p
+
+
+def make_result(layers) -> SliceResult:
+    """A SliceResult from ``layers``: each a list of (points (n, 2) mm, is_hole, parent index within the layer,
+    closed); outer loops counter-clockwise, holes clockwise."""
+    pts, loff, lay, hole, par, closed = [], [0], [], [], [], []
+    base = 0
+    for i, loops in enumerate(layers):
+        for p, is_hole, parent, is_closed in loops:
+            pts.append(np.asarray(p, np.float32))
+            loff.append(loff[-1] + len(p))
+            lay.append(i)
+            hole.append(is_hole)
+            par.append(base + parent if parent >= 0 else -1)
+            closed.append(is_closed)
+        base += len(loops)
+    n = len(layers)
+    layer_offsets = np.zeros(n + 1, np.int64)
+    np.cumsum(np.bincount(np.asarray(lay, np.int64), minlength=n), out=layer_offsets[1:])
+    return SliceResult(
+        np.concatenate(pts), np.asarray(loff, np.int64), layer_offsets, np.asarray(lay, np.int32),
+        np.asarray(hole, bool), np.asarray(par, np.int32), np.asarray(closed, bool),
+        np.arange(n, dtype=np.float64) + 0.5, np.ones(n), np.zeros(n),
+    )
+
+
+# a 64 x 48 px display of 1 mm pixels at the model's own XY: u = x, v = 48 - y
+SMALL = RasterSpec(resolution=(64, 48), pixel=1.0, keep_xy=True)
+
+CORNERS = {
+    # one-pixel-wide holes, aligned to the pixel grid and straddling two pixels
+    "hole_one_pixel": [(_ring(5, 5, 40, 30), False, -1, True), (_ring(20, 8, 21, 27, True), True, 0, True),
+                       (_ring(30.5, 8.25, 31.5, 27.75, True), True, 0, True)],
+    # vertices on row boundaries (integer v) and on pixel-centre lines (v = k + 0.5, u = k + 0.5)
+    "vertices_on_lines": [(np.array([[20, 10], [30.5, 20.5], [20, 31], [9.5, 20.5]]), False, -1, True)],
+    # horizontal edges lying on row lines, a slanted edge through pixel corners
+    "horizontal_on_row_line": [(np.array([[3, 4], [50, 4], [50, 17], [30, 17], [3, 40]]), False, -1, True)],
+    # a loop touching the display's left, top and right edges
+    "touching_display_edge": [(np.array([[0, 30], [64, 30], [64, 48], [0, 48]]), False, -1, True),
+                              (np.array([[0, 0], [10.3, 0], [0, 12.7]]), False, -1, True)],
+    # an island inside a hole inside a part
+    "island_in_hole": [(_ring(4, 4, 44, 44), False, -1, True), (_ring(10.2, 10.7, 38.4, 37.9, True), True, 0, True),
+                       (_ring(18.5, 19.25, 30.75, 29.5), False, -1, True)],
+    # an open chain is not filled (layer_edges drops it): same as the square alone
+    "open_chain": [(_ring(4, 4, 20, 20), False, -1, True),
+                   (np.array([[30, 5], [50, 5], [50, 40], [30.5, 40.2]]), False, -1, False)],
+    # a thin sliver whose single row piece spans 60 columns: split into column ranges of work units
+    "flat_sliver": [(np.array([[1.0, 20.1], [63.0, 20.6], [1.0, 20.35]]), False, -1, True)],
+}
+
+
+def exact_coverage(res: SliceResult, layer: int, spec: RasterSpec) -> np.ndarray:
+    """(rows, cols) exact covered fraction of every pixel, by shapely polygon intersection (independent)."""
+    shapely = pytest.importorskip("shapely")
+    poly = shapely.union_all([shapely.Polygon(o, h) for o, h in res.layer(layer).polygons()])
+    a = spec.affine(None)
+    rows, cols = spec.shape
+    jj, ii = np.meshgrid(np.arange(cols), np.arange(rows))
+    # pixel (i, j) covers u in [j, j+1), v in [i, i+1): back to mm with the inverse affine (keep_xy, landscape)
+    x0, x1 = (jj - a[0, 2]) / a[0, 0], (jj + 1 - a[0, 2]) / a[0, 0]
+    y0, y1 = (ii - a[1, 2]) / a[1, 1], (ii + 1 - a[1, 2]) / a[1, 1]
+    boxes = shapely.box(np.minimum(x0, x1), np.minimum(y0, y1), np.maximum(x0, x1), np.maximum(y0, y1))
+    return shapely.area(shapely.intersection(poly, boxes)) / (spec.px * spec.py)
+
+
+def check_independent(res: SliceResult, spec: RasterSpec, runs1: Runs, runs0: Runs, layer: int = 0):
+    cov = exact_coverage(res, layer, spec)
+    soft = runs_to_mask(runs1, 0).astype(np.int64)  # the runs hold just this layer
+    hard = runs_to_mask(runs0, 0)
+    k = np.minimum(np.floor(256 * cov + 1e-9), 255)
+    assert np.abs(soft - k).max() <= 1  # float32 16.16 sums: at most one grey step from exact
+    clear = np.abs(cov - 0.5) > 2e-3
+    assert np.array_equal(hard[clear] == 255, cov[clear] >= 0.5)
+    # pixel centres: where a pixel is wholly in or out, its centre says the same
+    from matplotlib.path import Path
+
+    xs, ys = spec.pixel_centres(None)
+    inside = np.zeros(cov.shape, bool)
+    for outer, holes in res.layer(layer).polygons():
+        inside ^= Path(outer).contains_points(np.c_[xs.ravel(), ys.ravel()]).reshape(cov.shape)
+        for h in holes:
+            inside ^= Path(h).contains_points(np.c_[xs.ravel(), ys.ravel()]).reshape(cov.shape)
+    full = (cov > 1 - 1e-9) | (cov < 1e-9)
+    assert np.array_equal(inside[full], cov[full] > 0.5)
+
+
+@pytest.mark.parametrize("case", sorted(CORNERS))
+def test_corner_cases(device, case):
+    res = make_result([CORNERS[case]])
+    spec0 = RasterSpec(resolution=(64, 48), pixel=1.0, keep_xy=True, gamma=0.0)
+    got1, _ = check_against_raster(res, SMALL, [0], device)
+    got0, _ = check_against_raster(res, spec0, [0], device)
+    check_independent(res, SMALL, got1["numpy"], got0["numpy"])
+    assert got1["numpy"].n_runs > 0
+    if case == "open_chain":
+        closed_only = make_result([CORNERS[case][:1]])
+        assert_runs_equal(layer_runs(closed_only, SMALL, backend="numpy"), got1["numpy"])
+
+
+def test_overlapping_bodies(device):
+    """Two overlapping boxes: nesting resolves the union (winding 0/1), the runs cover it once."""
+    tri = np.concatenate([shapes.box((0, 0, 0), (20, 12, 4)), shapes.box((10.5, 6.3, 0), (30.2, 25.1, 4))])
+    res = slice_mesh(mesh_from_triangles(tri, solids=2), thickness=1.0, backend="numpy")
+    spec = RasterSpec(resolution=(64, 48), pixel=1.0, keep_xy=True)
+    spec0 = RasterSpec(resolution=(64, 48), pixel=1.0, keep_xy=True, gamma=0.0)
+    got1, ref = check_against_raster(res, spec, [1], device)
+    got0, _ = check_against_raster(res, spec0, [1], device)
+    assert ref.max() == 255 and np.all(ref[0][37:41, 11:20] == 255)  # the overlap: full, once
+    check_independent(res, spec, got1["numpy"], got0["numpy"], layer=1)
+
+
+def comb(teeth: int, width: float = 2000.0, y0: float = 10.2, y1: float = 13.7) -> np.ndarray:
+    """A comb: a spine from y0 - 2 to y0 and ``teeth`` triangular teeth up to y1 (counter-clockwise)."""
+    x = np.linspace(1.0, width - 1.0, 2 * teeth + 1)
+    top = np.stack([x, np.where(np.arange(x.size) % 2 == 1, y1, y0)], axis=1)[::-1]
+    return np.concatenate([[[1.0, y0 - 2.0], [width - 1.0, y0 - 2.0]], top])
+
+
+@pytest.mark.parametrize("teeth", [3000])
+def test_row_with_thousands_of_pieces(device, teeth):
+    """Every row the teeth cross holds ~2·teeth pieces: far more than one work-item's share (RUNS_CH records); a
+    flat sliver's one row piece spans 1,990 columns: its edges are cut into column ranges of work units."""
+    spec = RasterSpec(resolution=(2000, 20), pixel=1.0, keep_xy=True)
+    sliver = np.array([[2.0, 10.1], [1995.0, 10.6], [2.0, 10.35]])
+    res = make_result([[(comb(teeth), False, -1, True)], [(sliver, False, -1, True)]])
+    le = layer_edges(res, spec)
+    e = le.edges.astype(np.float32)
+    _, ucols = _units(e, np.full(len(e), 20), np.full(len(e), 2000), RunsKernel.ROWS_PER_UNIT, 256)
+    assert np.count_nonzero(ucols[:, 0] != np.iinfo(np.int32).min) >= 7  # the sliver's flat edges: 8 ranges each
+    a = runs_numpy(le, gamma_lut(1.0), spec.shape)
+    b = RunsKernel.of(device).run(le, range(2), gamma_lut(1.0), spec.shape)
+    assert_runs_equal(a, b)
+    ref = masks(res, spec, backend="opencl", device=device)
+    assert np.array_equal(b.to_masks(), ref)
+    # the host finishes the long rows, the device the others: force both in one batch with a tiny share
+    kern = RunsKernel.of(device)
+    kern.CH, ch = 4, kern.CH
+    try:
+        assert_runs_equal(a, kern.run(le, range(2), gamma_lut(1.0), spec.shape))
+    finally:
+        kern.CH = ch
+    spec0 = RasterSpec(resolution=(2000, 20), pixel=1.0, keep_xy=True, gamma=0.0)
+    check_against_raster(res, spec0, [0, 1], device)
+
+
+def test_iter_runs_batches_and_empty_layers(device):
+    res = slice_mesh(mesh_from_triangles(shapes.torus(15.0, 5.0, 48, 24)), z=np.array([-1.0, 2.0, 5.0, 50.0]),
+                     backend="numpy")
+    spec = RasterSpec(resolution=(900, 900), pixel=0.05)
+    for be in ("numpy", "opencl"):
+        parts = list(iter_runs(res, spec, backend=be, device=device, max_batch_pieces=1))
+        assert len(parts) == 4 and [int(p.layers[0]) for p in parts] == [0, 1, 2, 3]
+        assert parts[0].n_runs == 0 and parts[3].n_runs == 0 and parts[1].n_runs > 0
+        whole = Runs.concat(parts, spec.shape)
+        assert_runs_equal(whole, layer_runs(res, spec, backend=be, device=device))
+        assert np.array_equal(whole.to_masks(), masks(res, spec, backend="opencl", device=device))
+        one = whole.layer(2)
+        assert one.layers.tolist() == [2] and np.array_equal(one.to_mask(0), whole.to_mask(2))
+    sub = layer_runs(res, spec, backend="numpy", layers=[2, 1])
+    assert sub.layers.tolist() == [2, 1]
+    assert np.array_equal(sub.to_mask(0), masks(res, spec, backend="opencl", layers=[2])[0])
