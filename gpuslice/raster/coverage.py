@@ -25,9 +25,13 @@ resolved under its fill rule, so their winding number is 0 or 1 everywhere and t
 rows and columns); :func:`iter_tiles` yields them, :func:`iter_masks` full (ny, nx) masks, :func:`masks` a
 (layers, rows, cols) uint8 array (beware: 1,600 layers of 3840×2400 are 14.7 GB; pass ``layers=``).
 
-Backends: ``"opencl"`` (``kernels/raster.cl``, :class:`RasterKernel`), ``"numpy"`` (:func:`coverage_numpy`, its
-twin), ``"gl"`` (moderngl/EGL, :mod:`gpuslice.raster_gl`, supersampled). ``"auto"`` takes GL on a hardware GPU and
-OpenCL otherwise (llvmpipe, Mesa's software GL, is slower than the OpenCL pass on a CPU: docs/BENCHMARKS.md).
+Backends: ``"opencl"`` (run-length runs, :mod:`gpuslice.raster.runs` + ``kernels/runs.cl``: the greys of
+``kernels/raster.cl`` byte for byte, 10x faster, never a display-sized bitmap; tiles are filled from the runs),
+``"opencl-bitmap"`` (``kernels/raster.cl``, :class:`RasterKernel`: the bitmap accumulator the runs replaced, kept for
+benchmarks), ``"numpy"`` (:func:`coverage_numpy`, the bitmap kernel's float64 twin; it may differ from it by one grey
+level on a few pixels), ``"gl"`` (moderngl/EGL, :mod:`gpuslice.raster.gl`, supersampled). ``"auto"`` takes GL on a
+hardware GPU and OpenCL otherwise (llvmpipe, Mesa's software GL, is slower than the OpenCL pass on a CPU:
+docs/BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -359,11 +363,35 @@ def iter_tiles(
     from ..device import get_device
 
     dev = device if device is not None else get_device()
-    kern = RasterKernel.of(dev)
-    for batch in _batches(le.tiles, max_batch_pixels):
-        datas = kern.run(le, batch, lut)
-        for k, data in zip(batch, datas, strict=True):
-            yield Tile(int(index[k]), int(le.tiles[k, 0]), int(le.tiles[k, 1]), data)
+    if backend == "opencl-bitmap":  # the bitmap kernel the runs replaced (kept for benchmarks and tests)
+        kern = RasterKernel.of(dev)
+        for batch in _batches(le.tiles, max_batch_pixels):
+            datas = kern.run(le, batch, lut)
+            for k, data in zip(batch, datas, strict=True):
+                yield Tile(int(index[k]), int(le.tiles[k, 0]), int(le.tiles[k, 1]), data)
+        return
+    from .runs import iter_runs
+
+    k = 0
+    for runs in iter_runs(result, spec, backend="opencl", device=dev, layers=layers, edges=le):
+        for j in range(len(runs.layers)):
+            r0, c0, h, w = (int(x) for x in le.tiles[k])
+            yield Tile(int(index[k]), r0, c0, tile_from_runs(runs, j, r0, c0, h, w))
+            k += 1
+
+
+def tile_from_runs(runs, j: int, row0: int, col0: int, rows: int, cols: int) -> np.ndarray:
+    """The (rows, cols) uint8 bitmap at (``row0``, ``col0``) of the display of entry ``j`` of ``runs``
+    (:class:`gpuslice.raster.runs.Runs`): what a PNG row encoder needs, in time proportional to the covered
+    pixels (never the display)."""
+    out = np.zeros(rows * cols, np.uint8)
+    a, b = int(runs.layer_offsets[j]), int(runs.layer_offsets[j + 1])
+    if b > a:
+        length = runs.length[a:b].astype(np.int64)
+        start = (runs.row[a:b].astype(np.int64) - row0) * cols + (runs.x[a:b].astype(np.int64) - col0)
+        _, idx = expand_ranges(start, length)
+        out[idx] = np.repeat(runs.grey[a:b], length)
+    return out.reshape(rows, cols)
 
 
 def iter_masks(result: SliceResult, spec: RasterSpec | None = None, **options) -> Iterator[np.ndarray]:

@@ -17,8 +17,9 @@ from ..options import option, parse_resolution
 
 __all__ = ["RasterSpec", "ResinOptions", "PRINTERS", "BACKENDS", "gamma_lut", "with_printer"]
 
-#: rasterisers: ``auto`` (GL on a hardware GPU, else OpenCL), ``opencl``, ``numpy`` (the twin), ``gl`` (moderngl)
-BACKENDS = ("auto", "opencl", "numpy", "gl")
+#: rasterisers: ``auto`` (GL on a hardware GPU, else OpenCL), ``opencl`` (runs), ``numpy`` (the twin), ``gl``
+#: (moderngl), ``opencl-bitmap`` (the bitmap kernel runs replaced)
+BACKENDS = ("auto", "opencl", "numpy", "gl", "opencl-bitmap")
 
 
 @dataclass(frozen=True)

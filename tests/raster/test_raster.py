@@ -372,3 +372,15 @@ def test_source_date_epoch_makes_raster_archives_reproducible(tmp_path, device, 
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "soon")
     assert main([*args, "-o", str(tmp_path / "bad.sl1")]) == 2
     assert not (tmp_path / "bad.sl1").exists()
+
+
+@pytest.mark.parametrize("gamma", [1.0, 0.0])
+def test_opencl_runs_equal_the_bitmap_kernel(torus, device, gamma):
+    """The default OpenCL rasteriser makes its tiles from runs (raster/runs.py); they equal the bitmap kernel's."""
+    spec = RasterSpec(resolution=SMALL.resolution, pixel=SMALL.pixel, gamma=gamma)
+    a = masks(torus, spec, backend="opencl", device=device)
+    b = masks(torus, spec, backend="opencl-bitmap", device=device)
+    assert np.array_equal(a, b) and a.max() == 255 and (a > 0).sum() > 100
+    tiles = list(iter_tiles(torus, spec, backend="opencl", device=device))
+    ref = list(iter_tiles(torus, spec, backend="opencl-bitmap", device=device))
+    assert [(t.row0, t.col0, t.data.shape) for t in tiles] == [(t.row0, t.col0, t.data.shape) for t in ref]

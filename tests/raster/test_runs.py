@@ -41,7 +41,7 @@ def assert_well_formed(r: Runs) -> None:
 
 def check_against_raster(res, spec, layers, device, backends=("numpy", "opencl"), **kw):
     """Masks from runs of every backend == the OpenCL raster masks byte for byte; OpenCL runs == numpy runs."""
-    ref = masks(res, spec, backend="opencl", device=device, layers=layers, bounds=kw.get("bounds"))
+    ref = masks(res, spec, backend="opencl-bitmap", device=device, layers=layers, bounds=kw.get("bounds"))
     got = {}
     for be in backends:
         r = layer_runs(res, spec, backend=be, device=device, layers=layers, **kw)
@@ -250,7 +250,7 @@ def test_row_with_thousands_of_pieces(device, teeth):
     a = runs_numpy(le, gamma_lut(1.0), spec.shape)
     b = RunsKernel.of(device).run(le, range(2), gamma_lut(1.0), spec.shape)
     assert_runs_equal(a, b)
-    ref = masks(res, spec, backend="opencl", device=device)
+    ref = masks(res, spec, backend="opencl-bitmap", device=device)
     assert np.array_equal(b.to_masks(), ref)
     # the host finishes the long rows, the device the others: force both in one batch with a tiny share
     kern = RunsKernel.of(device)
@@ -273,9 +273,9 @@ def test_iter_runs_batches_and_empty_layers(device):
         assert parts[0].n_runs == 0 and parts[3].n_runs == 0 and parts[1].n_runs > 0
         whole = Runs.concat(parts, spec.shape)
         assert_runs_equal(whole, layer_runs(res, spec, backend=be, device=device))
-        assert np.array_equal(whole.to_masks(), masks(res, spec, backend="opencl", device=device))
+        assert np.array_equal(whole.to_masks(), masks(res, spec, backend="opencl-bitmap", device=device))
         one = whole.layer(2)
         assert one.layers.tolist() == [2] and np.array_equal(one.to_mask(0), whole.to_mask(2))
     sub = layer_runs(res, spec, backend="numpy", layers=[2, 1])
     assert sub.layers.tolist() == [2, 1]
-    assert np.array_equal(sub.to_mask(0), masks(res, spec, backend="opencl", layers=[2])[0])
+    assert np.array_equal(sub.to_mask(0), masks(res, spec, backend="opencl-bitmap", layers=[2])[0])
