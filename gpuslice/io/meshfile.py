@@ -1,22 +1,11 @@
-"""Read mesh files into a raw triangle array, with strict validation.
+"""Read mesh files into a raw triangle array (:class:`~gpuslice.io.rawmesh.RawMesh`), with strict validation.
 
-The slicer works on a triangle soup: an ``(F, 3, 3)`` float32 array holding the three corners of every facet
-in file order and file units (STL has no units; for 3D printing they are millimetres by convention). This
-module reads that array from files (STL parsing itself is :mod:`gpuslice.io.stl`)
-
-* binary STL (one ``np.frombuffer`` over the 50-byte records),
-* ASCII STL (a vectorised tokeniser: no Python loop per vertex on the normal path),
-* OBJ, PLY, OFF and 3MF by extension, through :mod:`trimesh`, which is imported lazily.
-
-Every problem a user can cause raises a :class:`~gpuslice.errors.MeshFileError` (or its subclasses
-:class:`~gpuslice.errors.EmptyMeshError` and :class:`~gpuslice.errors.InvalidGeometryError`) whose message is
-one line naming the file and the problem, e.g.
-``model.stl: truncated binary STL: header declares 1200 facets (60084 bytes) but the file has 3000 bytes``.
-
-Binary or ASCII is decided by size, not by the first bytes: a file is a binary STL when
-``84 + 50 * count == file size`` (``count`` = little-endian uint32 at byte 80), even when its 80-byte header
-starts with ``solid`` as many exporters write. A file that starts with ``solid`` and does not match that size
-is parsed as ASCII.
+The slicer works on a triangle soup: an ``(F, 3, 3)`` float32 array holding the three corners of every facet in
+file order and file units (STL has no units; for 3D printing they are millimetres by convention). Files named
+``.obj``, ``.ply``, ``.off`` or ``.3mf`` are read through :mod:`trimesh` (imported lazily); every other file is
+parsed as STL, binary or ASCII (:mod:`gpuslice.io.stl`). :func:`read_mesh_source` also reads a file's bytes sent
+elsewhere (a batch worker). Every problem a user can cause raises a :class:`~gpuslice.errors.MeshFileError` (or a
+subclass) whose message is one line naming the file and the problem.
 """
 
 from __future__ import annotations
