@@ -38,6 +38,7 @@ import struct
 import numpy as np
 
 from ..errors import ParameterError
+from ..ragged import expand_ranges
 from .png import png_chunk
 from .runs import Runs
 
@@ -60,12 +61,12 @@ _FIXED_LENGTHS = np.array([8] * 144 + [9] * 112 + [7] * 24 + [8] * 8)
 _CL_ORDER = [16, 17, 18, 0, 8, 7, 9, 6, 10, 5, 11, 4, 12, 3, 13, 2, 14, 1, 15]
 
 
+_REV15 = sum(((np.arange(1 << 15) >> b) & 1) << (14 - b) for b in range(15))  # [c]: c's 15 bits reversed
+
+
 def _reverse(code: np.ndarray, length: np.ndarray) -> np.ndarray:
-    """``code`` with its ``length`` low bits reversed (Huffman codes are sent most significant bit first)."""
-    out = np.zeros(code.shape, np.int64)
-    for b in range(int(length.max(initial=0))):
-        out |= np.where(b < length, ((code >> b) & 1) << np.maximum(length - 1 - b, 0), 0)
-    return out
+    """``code`` with its ``length`` (≤ 15) low bits reversed (Huffman codes are sent most significant bit first)."""
+    return _REV15[code] >> (15 - length)
 
 
 def _canonical(lengths: np.ndarray) -> np.ndarray:
@@ -80,9 +81,12 @@ def _canonical(lengths: np.ndarray) -> np.ndarray:
     return out
 
 
+_FIXED_CODE = _canonical(_FIXED_LENGTHS)
+
+
 def _huffman_lengths(freq: np.ndarray, limit: int = 15) -> np.ndarray:
     """Huffman code lengths of ``freq`` (0 for unused symbols), at most ``limit`` bits: the counts are halved
-    (nonzero ones kept ≥ 1) until the tree is shallow enough."""
+    (nonzero ones kept ≥ 1) until the tree is shallow enough. Heap items are ``count << 10 | node`` (ints)."""
     f = np.asarray(freq, np.int64)
     out = np.zeros(f.size, np.int64)
     while True:
@@ -91,15 +95,14 @@ def _huffman_lengths(freq: np.ndarray, limit: int = 15) -> np.ndarray:
         if n == 1:
             out[syms] = 1
             return out
-        heap = [(int(c), i) for i, c in enumerate(f[syms])]
+        heap = ((f[syms] << 10) | np.arange(n)).tolist()
         heapq.heapify(heap)
         parent = [0] * (2 * n - 1)
-        node = n
-        while len(heap) > 1:
-            (ca, a), (cb, b) = heapq.heappop(heap), heapq.heappop(heap)
-            parent[a] = parent[b] = node
-            heapq.heappush(heap, (ca + cb, node))
-            node += 1
+        for node in range(n, 2 * n - 1):
+            a = heapq.heappop(heap)
+            b = heap[0]
+            parent[a & 1023] = parent[b & 1023] = node
+            heapq.heapreplace(heap, (((a >> 10) + (b >> 10)) << 10) | node)
         depth = [0] * (2 * n - 1)
         for i in range(2 * n - 3, -1, -1):
             depth[i] = depth[parent[i]] + 1
@@ -144,13 +147,12 @@ def _pack(val: np.ndarray, nb: np.ndarray, body: np.ndarray, pattern: int, pbits
     off = np.cumsum(nb) - nb
     total = int(off[-1] + nb[-1])
     words = np.zeros(total // 64 + 2, _U64)
-    reg = np.flatnonzero(~body)
-    o, v, bits = off[reg], val[reg], nb[reg]
-    w, s = o >> 6, (o & 63).astype(_U64)
+    val = np.where(body, _U64(0), val)  # bodies add nothing here (zero value, and zero spill)
+    w, s = off >> 6, (off & 63).astype(_U64)
     first = np.flatnonzero(np.concatenate(([True], w[1:] != w[:-1])))
-    words[w[first]] = np.bitwise_or.reduceat(v << s, first)
-    sp = np.flatnonzero(s + bits.astype(_U64) > 64)
-    words[w[sp] + 1] |= v[sp] >> (_U64(64) - s[sp])
+    words[w[first]] = np.bitwise_or.reduceat(val << s, first)
+    sp = np.flatnonzero((s + nb.astype(_U64) > 64) & ~body)
+    words[w[sp] + 1] |= val[sp] >> (_U64(64) - s[sp])
     bi = np.flatnonzero(body)
     if bi.size:
         i = np.arange(64)
@@ -161,7 +163,7 @@ def _pack(val: np.ndarray, nb: np.ndarray, body: np.ndarray, pattern: int, pbits
         single = w0 == w1
         head = tape[0] << (o & 63).astype(_U64)
         head[single] &= (_ONES >> (64 - ln[single]).astype(_U64)) << (o[single] & 63).astype(_U64)
-        owner, wi = _expand(w0 + 1, w1 - w0)
+        owner, wi = expand_ranges(w0 + 1, w1 - w0)
         part = tape[(64 * wi - o[owner]) % pbits]
         last = wi == w1[owner]
         end = (o + ln)[owner[last]] - 64 * wi[last]
@@ -172,11 +174,6 @@ def _pack(val: np.ndarray, nb: np.ndarray, body: np.ndarray, pattern: int, pbits
     return words.astype("<u8", copy=False).view(np.uint8)[: (total + 7) // 8].tobytes()
 
 
-def _expand(starts: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    owner = np.repeat(np.arange(counts.size), counts)
-    return owner, np.arange(owner.size) - np.repeat(np.cumsum(counts) - counts - starts, counts)
-
-
 def _deflate(seg_v: np.ndarray, seg_n: np.ndarray, huffman: str) -> bytes:
     """One final deflate block of the segments (module docstring)."""
     m = seg_n - 1
@@ -184,7 +181,7 @@ def _deflate(seg_v: np.ndarray, seg_n: np.ndarray, huffman: str) -> bytes:
     has_body, has_tail = q > 0, r > 0
     tail_match = r >= 3
     if huffman == "fixed":
-        lengths, dist_bits = _FIXED_LENGTHS, 5
+        lengths, code, dist_bits = _FIXED_LENGTHS, _FIXED_CODE, 5
         hdr_val, hdr_nb = np.array([3]), np.array([3])  # BFINAL 1, BTYPE 01
     else:
         freq = np.zeros(286, np.int64)
@@ -193,12 +190,12 @@ def _deflate(seg_v: np.ndarray, seg_n: np.ndarray, huffman: str) -> bytes:
         freq[_LSYM[_MAXLEN]] += int(q.sum())
         np.add.at(freq, _LSYM[r[tail_match]], 1)
         lengths, dist_bits = _huffman_lengths(freq), 1
+        code = _canonical(lengths)
         nlit = int(np.flatnonzero(lengths)[-1]) + 1
         cl = [4 * (s < 16) for s in _CL_ORDER]  # the code-length code: symbols 0..15, 4 bits each
         code_lens = np.concatenate((lengths[:nlit], [1]))  # then one distance code of 1 bit
         hdr_val = np.concatenate(([5, nlit - 257, 0, 15], cl, _reverse(code_lens, np.full(code_lens.size, 4))))
         hdr_nb = np.concatenate(([3, 5, 5, 4], [3] * 19, np.full(code_lens.size, 4)))
-    code = _canonical(lengths)
     lit_val, lit_nb = code[:256], lengths[:256]
     mval = code[_LSYM] | (_LXVAL << lengths[_LSYM])  # then the distance code: dist_bits zeros
     mnb = lengths[_LSYM] + _LXBITS + dist_bits
