@@ -218,14 +218,19 @@ def _write_resin(job: Job, out: JobResult, progress) -> None:
         dev = get_device(job.params.device)
     bounds = _bounds(out.mesh)
     check_fits(out.result, r.spec, bounds, name=job.model_name)
-    tiles = iter_tiles(out.result, r.spec, backend=backend, device=dev, bounds=bounds,
-                       supersample=r.options.supersample)
+    if backend == "opencl":  # runs all the way to the PNGs: no bitmap of a layer is ever made
+        from .raster.layers import iter_run_layers
+
+        layers = iter_run_layers(out.result, r.spec, device=dev, bounds=bounds)
+    else:
+        layers = iter_tiles(out.result, r.spec, backend=backend, device=dev, bounds=bounds,
+                            supersample=r.options.supersample)
     name = r.options.job_name or Path(job.model_name).stem
     n = out.result.n_layers
     tick = (lambda k: progress(k, n)) if progress is not None else None
     target = ResinTarget(Path(r.path.rstrip("/\\") or "."), r.spec, r.options, out.result, name, source_date(),
                          r.options.workers, tick)
-    out.stats.update(RESIN_FORMATS[r.format].load()(tiles, target))
+    out.stats.update(RESIN_FORMATS[r.format].load()(layers, target))
     out.stats["raster_backend"] = backend
     out.timings["raster"] = time.perf_counter() - t
 

@@ -1,7 +1,8 @@
 """Resin outputs, behind one registry: ``suffix → archive writer``.
 
-Each output is one module of :mod:`gpuslice.raster` with a function ``write_target(tiles, target) -> stats`` that
-encodes the layers' tiles (in order) into ``target.path`` atomically, and one :class:`ResinFormat` entry in
+Each output is one module of :mod:`gpuslice.raster` with a function ``write_target(layers, target) -> stats`` that
+encodes the layers (in order; each a tile or runs, :mod:`gpuslice.raster.layers`) into ``target.path`` atomically,
+and one :class:`ResinFormat` entry in
 :data:`RESIN_FORMATS` below. ``gpuslice raster -o`` (suffix dispatch), ``batch --raster``, the messages and the docs
 read this registry; writer modules are imported only when used.
 

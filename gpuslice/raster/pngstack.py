@@ -10,6 +10,7 @@ from pathlib import Path
 from ..errors import ParameterError
 from ..io.atomic import atomic_path
 from .coverage import Tile
+from .layers import encode_png
 from .png import PngEncoder, encode_all
 from .spec import RasterSpec
 
@@ -28,9 +29,10 @@ def write_png_stack(
     workers: int | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> dict[str, float]:
-    """Write one greyscale PNG per tile into ``directory`` (``<prefix>00000.png`` upward), atomically: the
-    directory is built under a temporary name and renamed over ``directory`` when complete. An existing
-    ``directory`` is replaced only when it holds nothing but ``<prefix>NNNNN.png`` files (an earlier run)."""
+    """Write one greyscale PNG per layer (a tile or runs, :mod:`gpuslice.raster.layers`) into ``directory``
+    (``<prefix>00000.png`` upward), atomically: the directory is built under a temporary name and renamed over
+    ``directory`` when complete. An existing ``directory`` is replaced only when it holds nothing but
+    ``<prefix>NNNNN.png`` files (an earlier run)."""
     out = Path(os.fspath(directory))
     if out.exists() and not out.is_dir():
         raise ParameterError(f"{out}: exists and is not a directory")
@@ -46,7 +48,7 @@ def write_png_stack(
         def sink(k: int, data: bytes) -> None:
             (tmp / f"{prefix}{k:0{digits}d}.png").write_bytes(data)
 
-        stats = encode_all(tiles, enc, sink, workers, progress=progress)
+        stats = encode_all(tiles, lambda item: encode_png(item, enc), sink, workers, progress=progress)
     return stats
 
 

@@ -23,6 +23,7 @@ import numpy as np
 from ..errors import ParameterError
 from ..io.atomic import atomic_path
 from .coverage import Tile
+from .layers import RunLayer, encode_png, sample
 from .png import PngEncoder, encode_all
 from .spec import RasterSpec
 
@@ -147,17 +148,12 @@ class _Thumb:
         rows, cols = spec.shape
         self.img = np.zeros(((rows + step - 1) // step, (cols + step - 1) // step), np.uint8)
 
-    def add(self, tile: Tile) -> None:
-        s = self.step
-        h, w = tile.data.shape
-        if not h or not w:
-            return
-        dr, dc = (-tile.row0) % s, (-tile.col0) % s
-        level = np.uint8(1 + (254 * tile.index) // self.n)
-        sub = np.where(tile.data[dr::s, dc::s] >= 128, level, np.uint8(0))
-        r, c = (tile.row0 + dr) // s, (tile.col0 + dc) // s
-        view = self.img[r : r + sub.shape[0], c : c + sub.shape[1]]
-        np.maximum(view, sub, out=view)
+    def add(self, item: Tile | RunLayer) -> None:
+        """Raise the height map where the layer (a tile or runs) covers a sampled pixel at least half."""
+        r, c = sample(item, self.step)
+        if r.size:
+            level = np.uint8(1 + (254 * item.index) // self.n)
+            np.maximum.at(self.img, (r, c), level)
 
     def png(self, size: tuple[int, int]) -> bytes:
         from PIL import Image
@@ -243,8 +239,8 @@ def write_sl1(
         z.writestr(entry("config.ini"), config_ini(info, n_layers, now))
         z.writestr(entry("prusaslicer.ini"), prusaslicer_ini(info, spec))
 
-        def encode(tile: Tile) -> tuple[bytes, bytes]:  # on a worker: the PNG and its deflated zip member
-            png = enc.encode(tile)
+        def encode(item: Tile | RunLayer) -> tuple[bytes, bytes]:  # on a worker: the PNG and its deflated member
+            png = encode_png(item, enc)
             c = enc.z.compressobj(1, enc.z.DEFLATED, -15)
             return png, c.compress(png) + c.flush()
 

@@ -1,0 +1,70 @@
+"""One resin layer in flight, as the archive writers take it: a :class:`~gpuslice.raster.coverage.Tile` (a bitmap
+of the layer's bounding box: the numpy, GL and bitmap-kernel rasterisers) or a :class:`RunLayer` (the layer's
+run-length runs: the default OpenCL rasteriser, never a bitmap). :func:`encode_png` and :func:`sample` serve both,
+so a writer never asks which it got.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..ragged import expand_ranges
+from .coverage import Tile
+from .png import PngEncoder
+from .runs import Runs
+
+__all__ = ["RunLayer", "iter_run_layers", "encode_png", "sample"]
+
+
+@dataclass(frozen=True)
+class RunLayer:
+    """Layer ``index`` of a result: entry ``j`` of the batch ``runs`` (display pixels)."""
+
+    index: int
+    runs: Runs
+    j: int
+
+
+def iter_run_layers(result, spec, *, device=None, bounds=None, layers: Sequence[int] | None = None
+                    ) -> Iterator[RunLayer]:
+    """Every selected layer's runs, in order, one batch of layers in flight (:func:`gpuslice.raster.runs.iter_runs`
+    on the OpenCL device)."""
+    from .runs import iter_runs
+
+    for runs in iter_runs(result, spec, backend="opencl", device=device, bounds=bounds, layers=layers):
+        for j in range(len(runs.layers)):
+            yield RunLayer(int(runs.layers[j]), runs, j)
+
+
+def encode_png(item: Tile | RunLayer, encoder: PngEncoder) -> bytes:
+    """The layer's PNG: a tile through ``encoder`` (ISA-L or zlib), runs straight to deflate
+    (:func:`gpuslice.raster.deflate_runs.encode_png_from_runs`, same pixels, ~10x faster at 12K)."""
+    if isinstance(item, Tile):
+        return encoder.encode(item)
+    from .deflate_runs import encode_png_from_runs
+
+    return encode_png_from_runs(item.runs, item.j, encoder.nx, encoder.ny)
+
+
+def sample(item: Tile | RunLayer, step: int, threshold: int = 128) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) of the display pixels at multiples of ``step`` (in rows and columns) whose grey is at least
+    ``threshold``, divided by ``step``: a coarse top view, in time proportional to the layer's tile or runs."""
+    if isinstance(item, Tile):
+        h, w = item.data.shape
+        if not h or not w:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        dr, dc = (-item.row0) % step, (-item.col0) % step
+        r, c = np.nonzero(item.data[dr::step, dc::step] >= threshold)
+        return (item.row0 + dr) // step + r, (item.col0 + dc) // step + c
+    runs, j = item.runs, item.j
+    a, b = int(runs.layer_offsets[j]), int(runs.layer_offsets[j + 1])
+    row, x = runs.row[a:b].astype(np.int64), runs.x[a:b].astype(np.int64)
+    end = x + runs.length[a:b]
+    keep = (row % step == 0) & (runs.grey[a:b] >= threshold)
+    first = -(-x[keep] // step)  # the first sampled column of each run, in units of step
+    count = np.maximum((end[keep] - 1) // step - first + 1, 0)
+    owner, cols = expand_ranges(first, count)
+    return row[keep][owner] // step, cols
