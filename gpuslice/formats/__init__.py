@@ -59,6 +59,10 @@ CONTOUR_FORMATS: dict[str, ContourFormat] = {
         ContourFormat("npz", (".npz",), "npz:write_npz", "every array of the result (numpy .npz)"),
         ContourFormat("svg", (".svg",), "svg:write_svg", "all layers in one SVG, a <g> per layer, 1 unit = 1 mm"),
         ContourFormat("cli", (".cli",), "commonlayer:write_cli", "Common Layer Interface 2.0, ASCII"),
+        ContourFormat("dxf", (".dxf",), "dxf:write_dxf", "a DXF layer per slice, closed LWPOLYLINEs, mm (ezdxf)"),
+        ContourFormat("geojson", (".geojson",), "geojson:write_geojson",
+                      "a FeatureCollection, one MultiPolygon Feature per layer (z, thickness, area), mm"),
+        ContourFormat("3mf", (".3mf",), "threemf:write_3mf_slices", "3MF Slice Extension slice stack, mm"),
     )
 }
 

@@ -10,9 +10,12 @@ subclass) whose message is one line naming the file and the problem.
 
 from __future__ import annotations
 
+import io
 import os
 import stat
 import tempfile
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +32,21 @@ __all__ = [
     "BINARY_STL_RECORD",
     "MAX_COORDINATE",
     "TRIMESH_EXTENSIONS",
+    "ZIP_MAX_INFLATED",
+    "ZIP_MAX_RATIO",
+    "ZIP_RATIO_FLOOR",
+    "inflate_3mf",
+    "zip_inflate_limit",
 ]
+
+#: Zipped inputs (3MF) are refused when their members inflate to more than ``zip_inflate_limit(file size)`` bytes:
+#: at most ``ZIP_MAX_INFLATED`` (1 GiB) and at most ``ZIP_MAX_RATIO`` (200) times the zip's own size, though
+#: ``ZIP_RATIO_FLOOR`` (64 MiB) is always allowed. Checked first on the sizes the members declare
+#: (``ZipInfo.file_size``), then as a hard cap on the bytes actually inflated.
+ZIP_MAX_INFLATED = 1 << 30
+ZIP_MAX_RATIO = 200
+ZIP_RATIO_FLOOR = 64 << 20
+_INFLATE_CHUNK = 1 << 20
 
 
 def read_mesh_file(path: str | os.PathLike[str]) -> RawMesh:
@@ -111,14 +128,64 @@ def _file_error(name: str, exc: OSError) -> MeshFileError:
     return MeshFileError(f"{name}: cannot read: {_os_reason(exc)}")
 
 
-def _read_with_trimesh(name: str, file_type: str) -> RawMesh:
-    """Read OBJ / PLY / OFF / 3MF with trimesh (imported here: it is slow to import)."""
+def zip_inflate_limit(zip_size: int) -> int:
+    """Most bytes a zip of ``zip_size`` bytes may inflate to: ``min(ZIP_MAX_INFLATED, max(ZIP_RATIO_FLOOR,
+    ZIP_MAX_RATIO * zip_size))``."""
+    return int(min(ZIP_MAX_INFLATED, max(ZIP_RATIO_FLOOR, ZIP_MAX_RATIO * zip_size)))
+
+
+def inflate_3mf(name: str, data: bytes | None = None) -> io.BytesIO:
+    """Inflate the 3MF (a zip) ``data`` (or the file ``name``) under :func:`zip_inflate_limit`, into an in-memory
+    zip of stored (uncompressed) members for trimesh to read.
+
+    Raises :class:`MeshFileError` (one line naming ``name``) when the members' declared sizes add up to more than
+    the limit, when inflating goes past it anyway (sizes that lie), or when the zip is broken.
+    """
+    try:
+        size = len(data) if data is not None else os.path.getsize(name)
+        limit = zip_inflate_limit(size)
+        with zipfile.ZipFile(io.BytesIO(data) if data is not None else name) as zf:
+            infos = [i for i in zf.infolist() if not i.is_dir()]
+            declared = sum(i.file_size for i in infos)
+            if declared > limit:
+                raise MeshFileError(f"{name}: 3MF members declare {declared} bytes inflated, over the limit of "
+                                    f"{limit} bytes for a file of {size} bytes")
+            out = io.BytesIO()
+            total = 0
+            with zipfile.ZipFile(out, "w", zipfile.ZIP_STORED) as dst:
+                for info in infos:
+                    chunks = []
+                    with zf.open(info) as src:
+                        while chunk := src.read(_INFLATE_CHUNK):
+                            total += len(chunk)
+                            if total > limit:
+                                raise MeshFileError(f"{name}: 3MF inflates past the limit of {limit} bytes")
+                            chunks.append(chunk)
+                    dst.writestr(info.filename, b"".join(chunks))
+    except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, RuntimeError, ValueError) as exc:
+        reason = flatten(str(exc), 200) or type(exc).__name__
+        raise MeshFileError(f"{name}: cannot read 3MF file: {type(exc).__name__}: {reason}") from None
+    except OSError as exc:
+        raise _file_error(name, exc) from None
+    out.seek(0)
+    return out
+
+
+def _read_with_trimesh(name: str, file_type: str, data: bytes | None = None) -> RawMesh:
+    """Read OBJ / PLY / OFF / 3MF with trimesh (imported here: it is slow to import), from the file ``name`` or
+    from its bytes ``data`` (no temporary file); a 3MF is inflated first under :func:`zip_inflate_limit`."""
     try:
         import trimesh
     except ImportError as exc:  # pragma: no cover - trimesh is a dependency
         raise MeshFileError(f"{name}: reading {file_type.upper()} files needs trimesh ({exc})") from None
+    source: str | io.BytesIO = name if data is None else io.BytesIO(data)
+    if file_type == "3mf":
+        source = inflate_3mf(name, data)
     try:
-        mesh = trimesh.load(name, force="mesh", process=False)
+        if isinstance(source, str):
+            mesh = trimesh.load(source, force="mesh", process=False)
+        else:
+            mesh = trimesh.load(source, file_type=file_type, force="mesh", process=False)
         triangles = np.asarray(mesh.triangles, dtype=np.float64)
     except Exception as exc:  # any trimesh failure means a file it cannot read: one line for the user
         reason = flatten(str(exc), 200) or type(exc).__name__

@@ -303,32 +303,56 @@ def mesh_from_arrays(
 
 
 def load_mesh(
-    path: str | os.PathLike, *, scale: float | None = None, fit: float | None = None, device=None
+    source, *, scale: float | None = None, fit: float | None = None, device=None, name: str | None = None
 ) -> Mesh:
-    """Load STL (binary or ASCII), OBJ, PLY, OFF or 3MF, scale it and place it on the bed (lowest z = 0).
+    """Load a mesh from a file or from memory, scale it and place it on the bed (lowest z = 0).
 
     Parameters
     ----------
-    path : path of the mesh file.
+    source : a path of an STL (binary or ASCII), OBJ, PLY, OFF or 3MF file; or, without a temporary file
+        (:mod:`gpuslice.mesh.sources`): a ``trimesh.Trimesh``, a ``trimesh.Scene`` (concatenated, transforms
+        applied), ``(vertices, faces)`` arrays, the ``bytes`` of a mesh file or a binary file object (format from
+        ``name``'s suffix, else a zip is a 3MF and anything else an STL), or a :class:`Mesh` (returned as it is
+        unless ``scale``/``fit`` are given, which then apply to its current coordinates). A ``Trimesh`` gives the
+        same mesh as its binary STL export (corners rounded to float32 the same way).
     scale : multiply every coordinate by this factor (file units to mm).
     fit : instead, scale so the longest bounding-box side is ``fit`` mm.
     device : optional OpenCL :class:`~gpuslice.device.Device` to weld on (see :func:`mesh_from_triangles`).
+    name : how messages and ``Mesh.name`` call an in-memory source (its suffix picks the format of bytes).
 
     Raises
     ------
     MeshFileError, EmptyMeshError, InvalidGeometryError
-        With a one-line message naming the file and the problem.
+        With a one-line message naming the file and the problem (a 3MF is refused past the inflation limit of
+        :func:`gpuslice.io.meshfile.zip_inflate_limit`).
+    ParameterError
+        A source of no known kind, or malformed arrays.
     """
-    from ..io.meshfile import read_mesh_file
+    if isinstance(source, Mesh):
+        if scale is None and fit is None:
+            return source
+        return mesh_from_triangles(source.triangles, source.stored_normals, scale=scale, fit=fit,
+                                   name=name or source.name, source_format=source.source_format,
+                                   solids=source.solids, device=device)
+    if isinstance(source, str | os.PathLike):
+        from ..io.meshfile import read_mesh_file
 
-    raw = read_mesh_file(path)
+        raw = read_mesh_file(source)
+        label, normals, fmt, solids = str(Path(source)), raw.normals, raw.source_format, raw.solids
+        triangles = raw.triangles
+    else:
+        from .sources import read_source
+
+        src = read_source(source, name)
+        label, normals, fmt, solids = src.name, src.normals, src.source_format, src.solids
+        triangles = src.triangles
     return mesh_from_triangles(
-        raw.triangles,
-        raw.normals,
+        triangles,
+        normals,
         scale=scale,
         fit=fit,
-        name=str(Path(path)),
-        source_format=raw.source_format,
-        solids=raw.solids,
+        name=label,
+        source_format=fmt,
+        solids=solids,
         device=device,
     )

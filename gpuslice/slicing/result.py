@@ -88,6 +88,33 @@ class LayerView:
         o = self.result.loop_offsets
         return int(o[self.loops.stop] - o[self.loops.start])
 
+    # ---- the Python geometry ecosystem (shapely, GeoJSON-like dicts, matplotlib) --------------------------
+    def to_shapely(self, open_chains: bool = False) -> Any:
+        """This layer as one shapely ``MultiPolygon`` (mm; holes as interiors, shells CCW, holes CW).
+
+        With ``open_chains=True``, returns ``(multipolygon, multilinestring)``: the open chains (broken meshes
+        only) as a ``MultiLineString``, empty when there are none. See :mod:`gpuslice.slicing.geometry`.
+        """
+        from .geometry import open_chains_shapely, polygons_shapely
+
+        polys = polygons_shapely(self.result, self.index, self.index + 1)[0]
+        if open_chains:
+            return polys, open_chains_shapely(self.result, self.index, self.index + 1)[0]
+        return polys
+
+    @property
+    def __geo_interface__(self) -> dict[str, Any]:
+        """The layer's filled region as a GeoJSON-like ``{"type": "MultiPolygon", "coordinates": …}`` (mm; rings
+        closed, first point repeated last; outer rings CCW, holes CW as RFC 7946 asks). Open chains are left out."""
+        return self.to_shapely().__geo_interface__
+
+    def plot(self, ax: Any = None, **style: Any) -> Any:
+        """Draw the layer with matplotlib (holes as holes, open chains in red) on ``ax`` (new axes when ``None``);
+        returns the axes. ``style``: ``color``, ``alpha``, ``edgecolor``, ``linewidth``."""
+        from .plotting import plot_layers
+
+        return plot_layers(self.result, self.index, ax, **style)
+
 
 @dataclass
 class SliceResult:
@@ -151,6 +178,36 @@ class SliceResult:
 
     def __iter__(self):
         return (self.layer(i) for i in range(self.n_layers))
+
+    # ---- the Python geometry ecosystem (shapely, matplotlib) ---------------------------------------------
+    def to_shapely(self, open_chains: bool = False) -> Any:
+        """Every layer as a shapely ``MultiPolygon``: a list, one per layer (empty ``MultiPolygon`` for an empty
+        layer), coordinates in mm, holes as interiors (shells CCW, holes CW, as in the result).
+
+        Built with shapely 2's vectorised constructors from the flat arrays, with no Python loop over points,
+        loops or layers (``numpy.asarray`` of the list gives the shapely 2 array for ``shapely.area`` and co).
+        Open chains (broken meshes only) are never part of the polygons: with ``open_chains=True`` the call
+        returns ``(polygons, lines)``, ``lines`` a list of one ``MultiLineString`` per layer (empty where none);
+        :meth:`open_chains_shapely` gives ``lines`` alone.
+        """
+        from .geometry import polygons_shapely
+
+        polys = polygons_shapely(self).tolist()
+        return (polys, self.open_chains_shapely()) if open_chains else polys
+
+    def open_chains_shapely(self) -> list[Any]:
+        """The open chains of every layer: a list of one shapely ``MultiLineString`` per layer (mm)."""
+        from .geometry import open_chains_shapely
+
+        return open_chains_shapely(self).tolist()
+
+    def plot(self, layers: int | Any = None, ax: Any = None, **style: Any) -> Any:
+        """Draw ``layers`` (an index, a sequence of indices, or ``None`` for all) with matplotlib, overlaid and
+        coloured by z, holes as holes; returns the axes (new ones when ``ax`` is ``None``). ``style``: ``color``,
+        ``alpha``, ``edgecolor``, ``linewidth``."""
+        from .plotting import plot_layers
+
+        return plot_layers(self, layers, ax, **style)
 
     def __len__(self) -> int:
         return self.n_layers

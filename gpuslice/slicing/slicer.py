@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict
+from typing import Any
 
 import numpy as np
 
@@ -65,7 +66,7 @@ def _batches(mesh: Mesh, zs: np.ndarray, limit: int) -> list[tuple[int, int]]:
 
 
 def slice_mesh(
-    mesh: Mesh,
+    mesh: Mesh | Any,
     params: SliceParams | None = None,
     *,
     z: np.ndarray | None = None,
@@ -77,8 +78,12 @@ def slice_mesh(
 
     Parameters
     ----------
-    mesh : a :class:`~gpuslice.mesh.Mesh` (mm, standing on the bed).
-    params : a :class:`SliceParams`; keyword ``overrides`` replace its fields (e.g. ``thickness=0.2``).
+    mesh : a :class:`~gpuslice.mesh.Mesh` (mm, standing on the bed), or anything :func:`~gpuslice.load_mesh`
+        takes: a path, a ``trimesh.Trimesh`` or ``Scene``, ``(vertices, faces)`` arrays, the bytes of a mesh file
+        or a binary file object (loaded first, in memory; a ``Trimesh`` slices exactly as its binary STL).
+    params : a :class:`SliceParams`; keyword ``overrides`` replace its fields (e.g. ``thickness=0.2``); the
+        overrides ``scale``, ``fit`` (mm) and ``name`` go to :func:`~gpuslice.load_mesh` instead (any source but
+        a placed ``Mesh`` without them).
     z : optional explicit cutting planes, mm above the bed, strictly increasing; ``layer_thickness`` gives their
         thicknesses (an array or one number; default: from the midpoints between planes).
     schedule : optional :class:`~gpuslice.schedule.Schedule` (takes precedence over ``z``).
@@ -100,6 +105,11 @@ def slice_mesh(
     >>> r.z.tolist(), r.area.tolist()
     ([1.25, 3.75, 6.25, 8.75], [100.0, 100.0, 100.0, 100.0])
     """
+    placement = {k: overrides.pop(k) for k in ("scale", "fit", "name") if k in overrides}
+    if not isinstance(mesh, Mesh) or placement.get("scale") is not None or placement.get("fit") is not None:
+        from ..mesh.mesh import load_mesh
+
+        mesh = load_mesh(mesh, **placement)
     params = SliceParams(**{**asdict(params or SliceParams()), **overrides})
     timings: dict[str, float] = {}
     t0 = time.perf_counter()

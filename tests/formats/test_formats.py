@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from gpuslice.errors import GpusliceError, MeshFileError, ParameterError
-from gpuslice.formats import export
+from gpuslice.formats import export, suffixes
 from gpuslice.formats import numbers as ex
 from gpuslice.formats.commonlayer import CLI_CLOCKWISE, CLI_COUNTER_CLOCKWISE, CLI_OPEN, read_cli, write_cli
 from gpuslice.formats.svg import write_svg
@@ -503,7 +503,10 @@ def test_export_dispatch(result, tmp_path):
     assert "$$UNITS/00000000.010000" in (tmp_path / "a.CLI").read_text()
     export(result, tmp_path / "a.npz")
     np.testing.assert_array_equal(SliceResult.load(tmp_path / "a.npz").points, result.points)
-    with pytest.raises(ParameterError, match=r"unknown output format '\.stl' \(use \.npz, \.svg or \.cli\)"):
+    listed = suffixes()
+    assert listed[:3] == [".npz", ".svg", ".cli"]
+    usage = ", ".join(listed[:-1]) + " or " + listed[-1]  # every registered format is named
+    with pytest.raises(ParameterError, match=re.escape(f"unknown output format '.stl' (use {usage})")):
         export(result, tmp_path / "a.stl")
     with pytest.raises(ParameterError, match="unknown output format ''"):
         export(result, tmp_path / "noext")
