@@ -13,7 +13,6 @@ from __future__ import annotations
 import io
 import os
 import stat
-import tempfile
 import zipfile
 import zlib
 from pathlib import Path
@@ -106,14 +105,8 @@ def read_mesh_source(path: str | os.PathLike[str], data: bytes | None = None, la
                 raise
             raise type(exc)(str(exc).replace(where, label)) from None
     suffix = Path(where).suffix.lower()
-    if suffix in TRIMESH_EXTENSIONS:  # trimesh reads files: through a private temporary folder
-        with tempfile.TemporaryDirectory(prefix="gpuslice-") as tmp:
-            p = Path(tmp) / ("model" + suffix)
-            p.write_bytes(data)
-            try:
-                return read_mesh_file(p)
-            except GpusliceError as exc:
-                raise type(exc)(str(exc).replace(str(p), label)) from None
+    if suffix in TRIMESH_EXTENSIONS:  # from memory, no temporary file (a 3MF inflated under its limits)
+        return _read_with_trimesh(label, TRIMESH_EXTENSIONS[suffix], bytes(data))
     return read_stl_bytes(data, label)
 
 
