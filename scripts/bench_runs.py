@@ -5,16 +5,20 @@ The job (docs: ../shared/PERFORMANCE-NOTES.md): ``../shared/meshes/armadillo.stl
 an 11520x5120 display of 0.019 mm pixels, gamma 0 and gamma 1. The file's tallest axis is Y (extents 0.84 x 1.00 x
 0.76), so it is rotated +90 degrees about X, (x, y, z) -> (x, -z, y), to make Y the height; then ``fit=95``.
 
-In-process, warm (one warm-up run first), median of ``--repeat``: ``layer_edges``; runs with the numpy twin and
-with OpenCL (given the edges; the OpenCL stages split out); the old path ``iter_tiles(backend="opencl")`` with
-every tile consumed (its own ``layer_edges`` included). Prints layers/s and the process's peak RSS after each stage.
+In-process, warm (one warm-up run first), median of ``--repeat`` (wall and process CPU seconds: the CPU time of
+PoCL's threads counts, so it tells what a loaded machine hides): ``layer_edges``; runs with OpenCL (given the
+edges; the stages split out in one more run that drains the queue after each; long rows finished on the host) and
+with the numpy twin (``--skip-numpy``); once, for reference, the old bitmap path
+``iter_tiles(backend="opencl-bitmap")`` with every tile consumed, its own ``layer_edges`` included (``--skip-old``,
+it takes ~20 s). Prints layers/s, the run count and the process's peak RSS after each stage, and the load average.
 
-Usage: ``python scripts/bench_runs.py [--repeat 3] [--gammas 0,1] [--skip-numpy] [--skip-raster]``
+Usage: ``python scripts/bench_runs.py [--repeat 3] [--gammas 0,1] [--skip-numpy] [--skip-old]``
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import resource
 import statistics
 import sys
@@ -31,14 +35,16 @@ def peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def timed(fn, repeat: int) -> tuple[float, object]:
-    out = fn()  # warm-up
-    times = []
-    for _ in range(repeat):
-        t = time.perf_counter()
+def timed(fn, repeat: int) -> tuple[float, float, object]:
+    """(median wall s, median process CPU s, last result) of ``repeat`` runs after a warm-up (repeat 0: one run)."""
+    out = fn() if repeat else None  # warm-up
+    walls, cpus = [], []
+    for _ in range(max(repeat, 1)):
+        t, c = time.perf_counter(), time.process_time()
         out = fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times), out
+        walls.append(time.perf_counter() - t)
+        cpus.append(time.process_time() - c)
+    return statistics.median(walls), statistics.median(cpus), out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -46,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--gammas", default="0,1")
     ap.add_argument("--skip-numpy", action="store_true")
-    ap.add_argument("--skip-raster", action="store_true")
+    ap.add_argument("--skip-old", "--skip-raster", action="store_true", help="skip the old bitmap path (~20 s)")
     args = ap.parse_args(argv)
     if not MESH.is_file():
         print(f"{MESH} not found", file=sys.stderr)
@@ -69,20 +75,20 @@ def main(argv: list[str] | None = None) -> int:
     ext = mesh.vertices.max(axis=0) - mesh.vertices.min(axis=0)
     print(f"armadillo Loop x1: {mesh.n_faces} facets, {ext[0]:.1f} x {ext[1]:.1f} x {ext[2]:.1f} mm, "
           f"{res.n_layers} layers, {res.points.shape[0]} points; slice {t_slice:.2f} s (cold); device {dev.name}")
+    print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())} on {os.cpu_count()} CPUs")
     n = res.n_layers
     kern = RunsKernel.of(dev)
-    rows = []
 
-    def row(name, sec, extra=""):
-        rows.append((name, sec))
-        print(f"| {name} | {sec * 1000:.0f} ms | {n / sec:.0f} layers/s | peak RSS {peak_mb():.0f} MB | {extra}")
+    def row(name, wall, cpu, extra=""):
+        print(f"| {name} | {wall * 1000:.0f} ms | {cpu * 1000:.0f} ms | {n / wall:.0f} layers/s | "
+              f"{peak_mb():.0f} MB | {extra} |")
 
     for gamma in (float(g) for g in args.gammas.split(",")):
         spec = RasterSpec(resolution=(11520, 5120), pixel=0.019, gamma=gamma)
         print(f"\n### gamma {gamma:g}, 11520x5120 @ 0.019 mm")
-        print("| stage | median | rate | memory | notes |\n|---|---|---|---|---|")
-        sec, le = timed(lambda spec=spec: layer_edges(res, spec), args.repeat)
-        row("layer_edges", sec, f"{le.edges.shape[0]} edges")
+        print("| stage | wall (median) | CPU (median) | rate | peak RSS | notes |\n|---|---|---|---|---|---|")
+        wall, cpu, le = timed(lambda spec=spec: layer_edges(res, spec), args.repeat)
+        row("layer_edges", wall, cpu, f"{le.edges.shape[0]} edges")
 
         def runs(backend, le=le, spec=spec):
             count = 0
@@ -90,26 +96,29 @@ def main(argv: list[str] | None = None) -> int:
                 count += r.n_runs
             return count
 
-        sec, count = timed(lambda: runs("opencl"), args.repeat)
-        row("runs, OpenCL (given the edges)", sec, f"{count} runs")
-        kern.timings = {}
+        wall, cpu, count = timed(lambda: runs("opencl"), args.repeat)
+        row("runs, OpenCL (given the edges)", wall, cpu, f"{count} runs")
+        kern.timings, long0, fb0 = {}, kern.long_rows, kern.fallbacks
         runs("opencl")
         split = ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in kern.timings.items())
-        print(f"|  stages (queue drained after each) | {sum(kern.timings.values()) * 1000:.0f} ms | | | {split}")
+        print(f"| stages (queue drained after each) | {sum(kern.timings.values()) * 1000:.0f} ms | | | | {split}; "
+              f"{kern.long_rows - long0} long rows on the host, {kern.fallbacks - fb0} batches redone |")
         kern.timings = None
         if not args.skip_numpy:
-            sec, count = timed(lambda: runs("numpy"), args.repeat)
-            row("runs, numpy twin (given the edges)", sec, f"{count} runs")
-        if not args.skip_raster:
+            wall, cpu, count = timed(lambda: runs("numpy"), args.repeat)
+            row("runs, numpy twin (given the edges)", wall, cpu, f"{count} runs")
+        if not args.skip_old:
             def raster(spec=spec):
                 px = 0
-                for tile in iter_tiles(res, spec, backend="opencl", device=dev):
+                for tile in iter_tiles(res, spec, backend="opencl-bitmap", device=dev):
                     px += tile.data.size
                 return px
 
-            sec, px = timed(raster, args.repeat)
-            row("old raster: iter_tiles opencl (+ its layer_edges)", sec, f"{px / 1e9:.2f} G tile pixels")
-    print(f"\npeak RSS of the process: {peak_mb():.0f} MB")
+            wall, cpu, px = timed(raster, 0)
+            row("old bitmap path, once: iter_tiles opencl-bitmap (+ its layer_edges)", wall, cpu,
+                f"{px / 1e9:.2f} G tile pixels")
+    print(f"\npeak RSS of the process: {peak_mb():.0f} MB; load average after: "
+          f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     return 0
 
 

@@ -254,13 +254,42 @@ def test_row_with_thousands_of_pieces(device, teeth):
     assert np.array_equal(b.to_masks(), ref)
     # the host finishes the long rows, the device the others: force both in one batch with a tiny share
     kern = RunsKernel.of(device)
-    kern.CH, ch = 4, kern.CH
+    kern.CH, ch, long_rows = 4, kern.CH, kern.long_rows
     try:
         assert_runs_equal(a, kern.run(le, range(2), gamma_lut(1.0), spec.shape))
+        assert kern.long_rows > long_rows
     finally:
         kern.CH = ch
+    # a capacity bound too low (forced): the batch is redone by the numpy twin, same runs
+    kern.CAP_EXTRA, fallbacks = -3, kern.fallbacks
+    try:
+        assert_runs_equal(a, kern.run(le, range(2), gamma_lut(1.0), spec.shape))
+        assert kern.fallbacks == fallbacks + 1
+    finally:
+        kern.CAP_EXTRA = 0
     spec0 = RasterSpec(resolution=(2000, 20), pixel=1.0, keep_xy=True, gamma=0.0)
     check_against_raster(res, spec0, [0, 1], device)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_random_slopes(device, seed):
+    """Random star polygons (every slope, steep to nearly horizontal, vertices anywhere in a pixel): runs == raster
+    masks and the per-row record bound holds (no batch redone)."""
+    rng = np.random.default_rng(seed)
+    layers = []
+    for _ in range(6):
+        n = int(rng.integers(3, 40))
+        ang = np.sort(rng.uniform(0, 2 * np.pi, n))
+        rad = rng.uniform(2.0, 22.0, n) * rng.choice([1.0, 0.05], n, p=[0.8, 0.2]).clip(0.3)
+        c = rng.uniform(24.0, 40.0, 2)
+        pts = c + np.c_[np.cos(ang), np.sin(ang)] * rad[:, None]
+        snap = rng.random(n) < 0.2  # vertices on pixel corners: horizontal and vertical edges on grid lines
+        pts[snap] = np.round(pts[snap])
+        layers.append([(pts, False, -1, True)])
+    res = make_result(layers)
+    for gamma in (1.0, 0.0):
+        spec = RasterSpec(resolution=(64, 48), pixel=1.0, keep_xy=True, gamma=gamma)
+        check_against_raster(res, spec, list(range(6)), device)
 
 
 def test_iter_runs_batches_and_empty_layers(device):
