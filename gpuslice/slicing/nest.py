@@ -276,7 +276,8 @@ def _resolve_overlaps(nested, points, offsets, layer, closed, layers, fill_rule,
     if not fixed:
         return nested
     fixed = np.array(fixed)
-    keep = ~np.isin(nested.loop_layer, fixed)
+    # the rebuilt layers' closed loops are replaced; their open chains stay (they come first in a layer, as before)
+    keep = ~np.isin(nested.loop_layer, fixed) | ~nested.loop_closed.astype(bool)
     counts = np.diff(nested.loop_offsets)
     old_index = np.flatnonzero(keep)
     remap = np.full(keep.size, -1, dtype=np.int64)

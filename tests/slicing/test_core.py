@@ -345,3 +345,26 @@ def test_expand_ranges_matches_a_loop():
     assert owner.tolist() == [i for i, _ in want]
     assert values.tolist() == [v for _, v in want]
     assert [a.size for a in expand_ranges(np.zeros(0), np.zeros(0))] == [0, 0]
+
+
+def test_open_chains_kept_in_layers_whose_overlaps_are_rebuilt(backend):
+    """A layer whose loops cross is rebuilt (overlaps resolved), and the open chains of the same layer stay in the
+    result: two overlapping closed boxes plus an open box (one side wall missing, its gap wider than --max-gap)."""
+    a = S.box((0, 0, 0), (10, 10, 10))
+    b = S.box((5, 5, 0), (15, 15, 10))
+    c = S.box((30, 0, 0), (40, 10, 10))
+    side = np.all(np.isclose(c[:, :, 0], 30.0), axis=1)  # the two facets of the x = 30 wall
+    assert side.sum() == 2
+    tri = np.concatenate([a, b, c[~side]])
+    res = slice_mesh(mesh_from_triangles(tri), thickness=1.0, backend=backend)
+    assert res.n_layers == 10
+    assert (res.repairs["overlaps_resolved"] == 1).all()
+    open_per_layer = res.open_chains_per_layer
+    np.testing.assert_array_equal(open_per_layer, res.repairs["open_chains"])  # counted and present alike
+    assert (open_per_layer == 1).all()
+    # the union of the two boxes (175 mm^2) is filled, the open chain is not
+    np.testing.assert_allclose(res.area, 175.0, rtol=1e-6)
+    # each open chain is the open box's three walls: its points at x in [30, 40]
+    for i in np.flatnonzero(~res.loop_closed):
+        pts = res.points[res.loop_offsets[i] : res.loop_offsets[i + 1]]
+        assert pts[:, 0].min() >= 30 - 1e-4 and pts[:, 0].max() <= 40 + 1e-4 and len(pts) >= 4
