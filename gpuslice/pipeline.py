@@ -218,10 +218,24 @@ def _write_resin(job: Job, out: JobResult, progress) -> None:
         dev = get_device(job.params.device)
     bounds = _bounds(out.mesh)
     check_fits(out.result, r.spec, bounds, name=job.model_name)
+    k = r.options.z_samples
+    if k > 1 and backend != "opencl":
+        from .errors import ParameterError
+
+        raise ParameterError(f"z_samples needs the OpenCL rasteriser, not {backend}", param="z_samples")
     if backend == "opencl":  # runs all the way to the PNGs: no bitmap of a layer is ever made
         from .raster.layers import iter_run_layers
 
-        layers = iter_run_layers(out.result, r.spec, device=dev, bounds=bounds)
+        source = out.result
+        if k > 1:  # anti-aliasing in Z: k sub-planes per layer, their runs summed per row
+            from .raster.coverage import z_sample_planes
+            from .slicing.slicer import slice_mesh
+
+            t_sub = time.perf_counter()
+            z, th = z_sample_planes(out.result, k)
+            source = slice_mesh(out.mesh, job.params, z=z, layer_thickness=th)
+            out.timings["z_samples"] = time.perf_counter() - t_sub
+        layers = iter_run_layers(source, r.spec, device=dev, bounds=bounds, z_samples=k)
     else:
         layers = iter_tiles(out.result, r.spec, backend=backend, device=dev, bounds=bounds,
                             supersample=r.options.supersample)

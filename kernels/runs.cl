@@ -149,14 +149,20 @@ void runs_edges(const int n_edges, __global const uchar *whole, __global const f
     runs_rows_of(e, t, ra, rb, INT_MIN, INT_MAX, row_count, row_off, recs);
 }
 
-inline uchar runs_grey(__global const uchar *lut, const int s) { return lut[min(255u, (uint)abs(s) >> 8)]; }
+// lut has lut_max + 1 entries: 256, or 256*K for a layer averaged over K sub-planes (z samples): its records are the
+// K sub-layers' records together, and lut[i] = gamma_lut[i / K], so lut[min(lut_max, |S| >> 8)] is the grey of the
+// mean coverage floor(256 * |S| / (65536 * K)), exactly.
+inline uchar runs_grey(__global const uchar *lut, const uint lut_max, const int s) {
+    return lut[min(lut_max, (uint)abs(s) >> 8)];
+}
 
 // One work-item per global row: sort its records by column in place (<= RUNS_CH of them: insertion sort), sum equal
 // columns, and keep only where the grey changes: recs[a + j] = (column, grey from there on), row_m = how many,
 // row_runs = how many of them start a non-blank run (row_m = -1: more than ch records, the host finishes the row).
 __kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
 void runs_rows(const int n_rows, const int ch, __global const int *row_off, __global const int *row_count,
-               __global int2 *recs, __global const uchar *lut, __global int *row_m, __global int *row_runs) {
+               __global int2 *recs, __global const uchar *lut, const int lut_max, __global int *row_m,
+               __global int *row_runs) {
     const int g = get_global_id(0);
     if (g >= n_rows) return;
     const int a = row_off[g], n = row_count[g];
@@ -187,7 +193,7 @@ void runs_rows(const int n_rows, const int ch, __global const int *row_off, __gl
             continue;
         }
         s += pv;
-        const uchar gr = runs_grey(lut, s);
+        const uchar gr = runs_grey(lut, (uint)lut_max, s);
         if (gr != prev) {
             buf[k++] = (int2)(pc, gr);
             runs += gr != zero;

@@ -176,6 +176,43 @@ def layer_edges(result: SliceResult, spec: RasterSpec, bounds=None, layers: Sequ
     return LayerEdges(edges, offsets, tiles)
 
 
+def z_sample_planes(result: SliceResult, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """(z, thickness) of ``k`` sub-planes in each layer's slab, mm: layer i's slab [bottom_i, bottom_i + t_i) cut in
+    ``k`` equal parts, each cut at its middle (z = bottom_i + (j + 0.5)·t_i/k); layer i's sub-planes are entries
+    k·i … k·i + k − 1. Slicing at them and rasterising with ``z_samples=k`` averages each layer over its slab."""
+    b = np.repeat(result.bottom, k)
+    t = np.repeat(np.asarray(result.thickness, np.float64), k) / k
+    j = np.tile(np.arange(k, dtype=np.float64), result.n_layers)
+    return b + (j + 0.5) * t, t
+
+
+def merge_layer_groups(le: LayerEdges, k: int) -> LayerEdges:
+    """Entries k·i … k·i + k − 1 of ``le`` (the sub-planes of one layer) as entry i: the union of their tiles, and
+    their edges moved to its corner (by whole pixels)."""
+    n = len(le.tiles) // k
+    t = le.tiles[: n * k].reshape(n, k, 4)
+    has = (t[:, :, 2] > 0) & (t[:, :, 3] > 0)
+    big = np.iinfo(np.int64).max
+    r0 = np.where(has, t[:, :, 0], big).min(axis=1)
+    c0 = np.where(has, t[:, :, 1], big).min(axis=1)
+    r1 = np.where(has, t[:, :, 0] + t[:, :, 2], -1).max(axis=1)
+    c1 = np.where(has, t[:, :, 1] + t[:, :, 3], -1).max(axis=1)
+    empty = ~has.any(axis=1)
+    tiles = np.stack([np.where(empty, 0, r0), np.where(empty, 0, c0), np.where(empty, 0, r1 - r0),
+                      np.where(empty, 0, c1 - c0)], axis=1).astype(np.int64)
+    counts = np.diff(le.edge_offsets[: n * k + 1])
+    group = np.repeat(np.arange(n * k) // k, counts)
+    sub = np.repeat(np.arange(n * k), counts)
+    dc = (le.tiles[sub, 1] - tiles[group, 1]).astype(np.float64)
+    dr = (le.tiles[sub, 0] - tiles[group, 0]).astype(np.float64)
+    edges = np.asarray(le.edges[: le.edge_offsets[n * k]], np.float64).copy()
+    edges[:, 0] += dc
+    edges[:, 2] += dc
+    edges[:, 1] += dr
+    edges[:, 3] += dr
+    return LayerEdges(edges, np.ascontiguousarray(le.edge_offsets[: n * k + 1 : k]), tiles)
+
+
 def coverage_numpy(edges: np.ndarray, rows: int, cols: int, lut: np.ndarray) -> np.ndarray:
     """The numpy twin of ``kernels/raster.cl``: (rows, cols) uint8 greys of one tile from its edges (E, 4) in
     tile-local pixel coordinates, by exact area accumulation and a prefix sum along each row."""

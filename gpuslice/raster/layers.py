@@ -28,13 +28,14 @@ class RunLayer:
     j: int
 
 
-def iter_run_layers(result, spec, *, device=None, bounds=None, layers: Sequence[int] | None = None
-                    ) -> Iterator[RunLayer]:
+def iter_run_layers(result, spec, *, device=None, bounds=None, layers: Sequence[int] | None = None,
+                    z_samples: int = 1) -> Iterator[RunLayer]:
     """Every selected layer's runs, in order, one batch of layers in flight (:func:`gpuslice.raster.runs.iter_runs`
-    on the OpenCL device)."""
+    on the OpenCL device; ``z_samples``: ``result`` holds that many sub-layers per layer, averaged)."""
     from .runs import iter_runs
 
-    for runs in iter_runs(result, spec, backend="opencl", device=device, bounds=bounds, layers=layers):
+    for runs in iter_runs(result, spec, backend="opencl", device=device, bounds=bounds, layers=layers,
+                          z_samples=z_samples):
         for j in range(len(runs.layers)):
             yield RunLayer(int(runs.layers[j]), runs, j)
 

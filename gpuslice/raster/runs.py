@@ -35,7 +35,7 @@ import numpy as np
 from ..device import KernelDriver, get_device
 from ..errors import ParameterError
 from ..ragged import expand_ranges
-from .coverage import LayerEdges, layer_edges
+from .coverage import LayerEdges, layer_edges, merge_layer_groups
 from .spec import RasterSpec, gamma_lut
 
 __all__ = ["Runs", "runs_numpy", "RunsKernel", "layer_runs", "iter_runs", "runs_to_mask", "BACKENDS"]
@@ -137,7 +137,7 @@ def _cells_to_runs(g: np.ndarray, col: np.ndarray, s: np.ndarray, rows: _Rows, l
     starts = np.flatnonzero(new_row)
     base = cs[starts] - s[starts]
     S = cs - np.repeat(base, np.diff(np.append(starts, g.size)))
-    grey = lut[np.minimum(np.abs(S) >> 8, 255)]
+    grey = lut[np.minimum(np.abs(S) >> 8, lut.size - 1)]  # 256 entries, or 256*K for K z samples
     prev = np.empty_like(grey)
     prev[1:] = grey[:-1]
     prev[new_row] = lut[0]
@@ -378,8 +378,8 @@ class RunsKernel(KernelDriver):
         self._mark("pieces: cut edges")
         b_m, b_runs = self._buffer("row_m", 4 * n_rows), self._buffer("row_runs", 4 * n_rows)
         gr, lr = self._grid(n_rows)
-        self._rows_k(q, gr, lr, np.int32(n_rows), np.int32(min(self.CH, 256)), b_off, b_cnt, b_recs, b_lut, b_m,
-                     b_runs)
+        self._rows_k(q, gr, lr, np.int32(n_rows), np.int32(min(self.CH, 256)), b_off, b_cnt, b_recs, b_lut,
+                     np.int32(lut.size - 1), b_m, b_runs)
         row_runs = np.empty(n_rows, np.int32)
         cl.enqueue_copy(q, row_runs, b_runs, is_blocking=True)
         self._mark("rows: sort, grey changes")
@@ -467,6 +467,7 @@ def iter_runs(
     layers: Sequence[int] | None = None,
     max_batch_pieces: int = 1 << 22,
     edges: LayerEdges | None = None,
+    z_samples: int = 1,
 ) -> Iterator[Runs]:
     """Yield one :class:`Runs` per batch of consecutive layers (``layers``, default all, in order).
 
@@ -475,15 +476,24 @@ def iter_runs(
     result's points), as :func:`gpuslice.raster.iter_tiles`. max_batch_pieces : about how many cell records
     (touched pixel cells) one batch may hold; memory is about 30 bytes per record on either backend.
     edges : the :func:`layer_edges` of exactly these arguments, when the caller already has them.
+    z_samples : K > 1: ``result`` holds K sub-layers per layer (layers K·i … K·i + K − 1 are layer i's sub-planes,
+        :func:`gpuslice.raster.coverage.z_sample_planes`); each layer's grey is that of its mean coverage over them
+        (the K sub-layers' records go into one row sum, read through a K-fold gamma table: exact, no extra pass).
     """
     if backend not in BACKENDS:
         raise ParameterError(f"unknown runs backend '{backend}' (use {', '.join(BACKENDS)})")
     spec = spec or RasterSpec()
     le = edges if edges is not None else layer_edges(result, spec, bounds, layers)
+    k = int(z_samples)
+    if k > 1:
+        if layers is not None or result.n_layers % k:
+            raise ParameterError(f"z_samples={k} needs every layer's {k} sub-layers (and no layer selection)",
+                                 param="z_samples")
+        le = merge_layer_groups(le, k)
     if le.edges.dtype != np.float32:  # every backend computes on float32: convert once, not per batch
         le = LayerEdges(le.edges.astype(np.float32), le.edge_offsets, le.tiles)
-    index = np.arange(result.n_layers) if layers is None else np.asarray(layers, dtype=np.int64)
-    lut = gamma_lut(spec.gamma)
+    index = np.arange(len(le.tiles)) if layers is None else np.asarray(layers, dtype=np.int64)
+    lut = np.repeat(gamma_lut(spec.gamma), max(k, 1))  # lut[i] = gamma_lut[i // k]: see kernels/runs.cl
     if lut[0] != 0:  # pragma: no cover - gamma_lut maps no coverage to black for every gamma
         raise ParameterError("the gamma table must map coverage 0 to grey 0")
     kern = RunsKernel.of(device if device is not None else get_device()) if backend == "opencl" else None

@@ -178,6 +178,8 @@ class ResinOptions:
     exposure_first: float = option(15.0, "First layers' exposure", unit="s")
     job_name: str | None = option(None, "SL1 jobDir and PNG prefix (default: the model's file name)")
     workers: int | None = option(None, "PNG encoding threads (default: the CPUs)")
+    z_samples: int = option(1, "Anti-aliasing in Z: each layer's greys averaged over this many planes inside its "
+                            "slab (1: off; needs the OpenCL rasteriser)")
 
     def __post_init__(self) -> None:
         if self.printer is not None and self.printer not in PRINTERS:
@@ -189,6 +191,11 @@ class ResinOptions:
             raise ParameterError(f"supersample must be from 1 to 16, got {self.supersample}", param="supersample")
         if not 0 <= self.png_level <= 9:
             raise ParameterError(f"png_level must be from 0 to 9, got {self.png_level}", param="png_level")
+        if not 1 <= self.z_samples <= 64:
+            raise ParameterError(f"z_samples must be from 1 to 64, got {self.z_samples}", param="z_samples")
+        if self.z_samples > 1 and self.raster_backend not in ("auto", "opencl"):
+            raise ParameterError(f"z_samples needs the OpenCL rasteriser (raster_backend opencl), not "
+                                 f"{self.raster_backend}", param=("z_samples", "raster_backend"))
         if self.workers is not None and not 1 <= self.workers <= 256:
             raise ParameterError(f"workers must be from 1 to 256, got {self.workers}", param="workers")
 
