@@ -1,4 +1,4 @@
-// Resin layers as run-length runs (gpuslice/runs.py, RunsKernel): the greys of raster.cl without a bitmap.
+// Resin layers as run-length runs (gpuslice/raster/runs.py, RunsKernel): the greys of raster.cl without a bitmap.
 //
 // Same float32 formulas and rint as raster_accumulate, so the integer contributions are identical. Passes:
 //   runs_prep: one work-item per edge: an upper bound of the records it gives each of its rows, added to a
@@ -10,7 +10,8 @@
 //       downstream depends only on the multiset of records: integer sums, sorted by column); the cursors end as the
 //       rows' record counts;
 //   runs_rows: one work-item per row with <= RUNS_CH records: insertion sort by column in place, duplicate columns
-//       summed, prefix sum, grey = lut[min(255, |S| >> 8)], and only the grey changes kept (longer rows: the host);
+//       summed, prefix sum, grey = lut[min(lut_max, |S| >> 8)] (lut_max 255, or 256*K-1 for K z samples), and
+//       only the grey changes kept (longer rows: the host);
 //   host: prefix sum of the run counts -> run_off;
 //   runs_emit: one work-item per row: a run from each non-blank grey change to the next; display coordinates.
 // Tiles: tiles[t] = (first global row of the tile, cols, display row of tile row 0, display column of tile col 0);
