@@ -78,7 +78,9 @@ def polygons_shapely(result: SliceResult, start: int = 0, stop: int | None = Non
 
     Outer loops are shells, their holes interiors, in the result's orientation (shells CCW, holes CW). Built with
     ``shapely.linearrings(coords, indices=…)``, ``shapely.polygons(rings, indices=…)`` and
-    ``shapely.multipolygons(polygons, indices=…)``; layers with no polygon get an empty ``MultiPolygon``.
+    ``shapely.multipolygons(polygons, indices=…)``; layers with no polygon get an empty ``MultiPolygon``. Layers
+    whose rings touch themselves (same area, invalid for GEOS) go through ``shapely.make_valid`` where it keeps
+    their area to 1e-12: on watertight meshes every layer is valid.
     """
     import shapely
 
@@ -99,7 +101,28 @@ def polygons_shapely(result: SliceResult, start: int = 0, stop: int | None = Non
     shells_and_holes = shapely.linearrings(coords, indices=ring_of_point)
     polys = shapely.polygons(shells_and_holes, indices=ring_poly)
     shapely.multipolygons(polys, indices=poly_layer, out=out)
+    # a ring that touches itself at a point (or a sliver of a rebuilt layer rounded to float32) bounds the same area
+    # but is not a valid polygon: such layers are made valid where that keeps their area (the result stays the
+    # truth: overlapping parts that nesting left as they are, on broken non-watertight meshes, stay as they are)
+    bad = np.flatnonzero(~shapely.is_valid(out))
+    if bad.size:
+        fixed = np.array([_as_multipolygon(g) for g in shapely.make_valid(out[bad], method="structure",
+                                                                          keep_collapsed=False)], dtype=object)
+        before, after = shapely.area(out[bad]), shapely.area(fixed)
+        same = np.abs(after - before) <= 1e-12 * np.maximum(before, 1.0)
+        out[bad[same]] = fixed[same]
     return out
+
+
+def _as_multipolygon(geom):
+    """``geom`` (a polygonal result of ``make_valid``) as one ``MultiPolygon``."""
+    import shapely
+
+    parts = [g for g in shapely.get_parts(geom) if g.geom_type == "Polygon" and not g.is_empty]
+    for g in shapely.get_parts(geom):
+        if g.geom_type == "MultiPolygon":
+            parts += list(g.geoms)
+    return shapely.MultiPolygon(parts)
 
 
 def open_chains_shapely(result: SliceResult, start: int = 0, stop: int | None = None) -> np.ndarray:

@@ -368,3 +368,21 @@ def test_open_chains_kept_in_layers_whose_overlaps_are_rebuilt(backend):
     for i in np.flatnonzero(~res.loop_closed):
         pts = res.points[res.loop_offsets[i] : res.loop_offsets[i + 1]]
         assert pts[:, 0].min() >= 30 - 1e-4 and pts[:, 0].max() <= 40 + 1e-4 and len(pts) >= 4
+
+
+def test_loop_crossing_itself_is_rebuilt(backend):
+    """A figure-8 cross-section (a prism over a self-crossing polygon): nesting rebuilds the layer, so its area is
+    the two lobes' (nonzero fill), not their signed difference, and the polygons are valid."""
+    import shapely
+
+    bowtie = np.array([[0.0, 0.0], [10.0, 6.0], [10.0, 0.0], [0.0, 3.0]])  # two lobes of opposite signs, unequal
+    lobes = shapely.make_valid(shapely.Polygon(bowtie)).area  # both lobes, filled (nonzero: |winding| = 1 in each)
+    signed = abs(shapely.Polygon(bowtie).area)  # what the signed area alone gives: their difference
+    assert lobes > signed + 5.0
+    res = slice_mesh(mesh_from_triangles(S.prism(bowtie, 0.0, 2.0)), thickness=1.0, backend=backend, max_gap=0.0)
+    assert res.n_layers == 2
+    np.testing.assert_allclose(res.area, lobes, rtol=1e-6)
+    assert (res.repairs["overlaps_resolved"] == 1).all()
+    polys = res.to_shapely()
+    assert shapely.is_valid(polys).all()
+    np.testing.assert_allclose(shapely.area(polys), res.area, rtol=1e-9)
