@@ -44,11 +44,11 @@ def typed_raster_options(pairs: dict[str, Any] | tuple[tuple[str, Any], ...]) ->
     for key, value in (pairs.items() if isinstance(pairs, dict) else pairs):
         key = key.strip().replace("-", "_")
         if key not in known:
-            raise ParameterError(f"unknown --raster-opt {key} (use {', '.join(known)})")
+            raise ParameterError(f"unknown raster option {key} (use {', '.join(known)})")
         try:
             out.append((key, parse_value(known[key], value)))
         except ParameterError as exc:
-            raise ParameterError(f"--raster-opt {exc}") from None
+            raise ParameterError(f"raster option {exc}") from None
     return tuple(out)
 
 
@@ -79,7 +79,7 @@ class BatchOptions:
                                      param="raster")
             self.resin()  # validates the display and resin options now, before any model is sliced
         elif self.raster_options:
-            raise ParameterError("--raster-opt needs --raster")
+            raise ParameterError("raster_options need a raster output", param=("raster_options", "raster"))
 
     def resin(self):
         """(:class:`RasterSpec`, :class:`ResinOptions`) of ``raster_options``."""

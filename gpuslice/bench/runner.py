@@ -76,10 +76,10 @@ def parse_settings(thicknesses: str | None, adaptive: str | None) -> list[Settin
         if not mode:
             continue
         if mode not in ("roi", "cusp", "area"):
-            raise ParameterError(f"--adaptive: unknown mode '{mode}' (use roi, cusp, area)")
+            raise ParameterError(f"unknown adaptive mode '{mode}' (use roi, cusp, area)")
         out.append(Setting(f"adaptive {mode}", {"adaptive": mode}))
     if not out:
-        raise ParameterError("bench: give thicknesses (-t 0.1,0.2) and/or adaptive modes (--adaptive roi,cusp)")
+        raise ParameterError("bench: give thicknesses and/or adaptive modes", param=("thickness", "adaptive"))
     return out
 
 
@@ -101,7 +101,7 @@ def run_bench(
     from .quality import cusp_summary, layer_geometries, reference_thickness, volume_deviation
 
     if repeat < 1:
-        raise ParameterError(f"--repeat must be >= 1, got {repeat}")
+        raise ParameterError(f"repeat must be >= 1, got {repeat}")
     params = params or SliceParams()
     device = None
     if params.backend == "opencl":

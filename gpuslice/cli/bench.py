@@ -105,6 +105,8 @@ def bench(model, thicknesses, modes, repeat, no_quality, ref_thickness, as_json,
 
     if as_json and as_csv:
         fail("--json and --csv exclude each other")
+    if repeat < 1:
+        fail(f"--repeat must be >= 1, got {repeat}")
     if plots_dir is not None:
         _make_dir(plots_dir)
     settings, params, mesh, load_times = _setup(model, thicknesses, modes, kw)

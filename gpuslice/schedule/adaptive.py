@@ -275,7 +275,7 @@ def cusp_schedule(
         return schedule_from_edges(np.zeros(0) if height == 0 else np.zeros(0), f"adaptive-{mode}", info)
     delta = float(resolution) if resolution else max(min_height / 10, height / 400_000)
     if not (delta > 0 and delta <= min_height):
-        raise ParameterError(f"adaptive resolution must be in (0, --min-height], got {resolution}")
+        raise ParameterError(f"adaptive resolution must be in (0, min_height], got {resolution}", param="min_height")
     n_min = max(1, int(round(min_height / delta)))
     n_max = max(n_min, int(np.floor(max_height / delta + 1e-9)))
     n_bins = int(np.ceil(height / delta - 1e-9))

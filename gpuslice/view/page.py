@@ -145,7 +145,7 @@ def raster_masks(
     from ..raster.spec import RasterSpec
 
     if every < 1:
-        raise ParameterError(f"--mask-every must be >= 1, got {every}")
+        raise ParameterError(f"every must be >= 1 (a mask for every n-th layer), got {every}")
     spec = spec or RasterSpec()
     if bounds is None:
         bounds = result_bounds(result)
