@@ -10,10 +10,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..errors import MeshFileError, ParameterError
+from ..errors import MeshFileError
 from ..io.atomic import atomic_path
 from ..ragged import expand_ranges
-from .numbers import MAX_ABS, check_decimals, format_fixed, layer_chunks, result_arrays
+from .numbers import checked_result, format_fixed, layer_chunks
 
 if TYPE_CHECKING:
     from ..slicing.result import SliceResult
@@ -46,10 +46,7 @@ def write_geojson(result: SliceResult, path: PathLike, *, decimals: int = 6) -> 
     """
     from ..slicing.geometry import polygon_rings
 
-    decimals = check_decimals(decimals)
-    points, loop_offsets, layer_offsets = result_arrays(result)
-    if points.size and np.abs(points).max() > MAX_ABS:
-        raise ParameterError("result coordinates are too large to write (beyond 1e9 mm)")
+    decimals, points, loop_offsets, layer_offsets = checked_result(result, decimals)
     z, thickness, bottom = (np.asarray(a, dtype=np.float64) for a in (result.z, result.thickness, result.bottom))
     area = np.asarray(result.area, dtype=np.float64)
     open_per_layer = result.open_chains_per_layer

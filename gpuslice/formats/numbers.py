@@ -23,7 +23,7 @@ if TYPE_CHECKING:
 PathLike = str | os.PathLike
 
 __all__ = ["Token", "CHUNK_POINTS", "MAX_ABS", "format_numbers", "format_fixed", "fmt_scalar", "check_decimals",
-           "result_arrays", "point_bounds", "layer_chunks"]
+           "result_arrays", "checked_result", "point_bounds", "layer_chunks"]
 
 # Points formatted per vectorised batch; bounds the memory the writers use (about 100 bytes a point).
 CHUNK_POINTS = 1 << 19
@@ -208,3 +208,13 @@ def layer_chunks(point_counts_cum: np.ndarray) -> Iterator[tuple[int, int]]:
         a = b
 
 
+
+
+def checked_result(result: SliceResult, decimals: int) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+    """What every text writer checks first: ``decimals`` (0..9), the result's arrays (:func:`result_arrays`) and
+    coordinates within ``MAX_ABS`` mm; returns (decimals, points, loop_offsets, layer_offsets)."""
+    decimals = check_decimals(decimals)
+    points, loop_offsets, layer_offsets = result_arrays(result)
+    if points.size and np.abs(points).max() > MAX_ABS:
+        raise ParameterError("result coordinates are too large to write (beyond 1e9 mm)")
+    return decimals, points, loop_offsets, layer_offsets

@@ -17,10 +17,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..errors import MeshFileError, ParameterError
+from ..errors import MeshFileError
 from ..io.atomic import atomic_path
 from ..ragged import expand_ranges
-from .numbers import MAX_ABS, check_decimals, fmt_scalar, format_fixed, layer_chunks, point_bounds, result_arrays
+from .numbers import (
+    checked_result,
+    fmt_scalar,
+    format_fixed,
+    layer_chunks,
+    point_bounds,
+)
 
 if TYPE_CHECKING:
     from ..slicing.result import SliceResult
@@ -78,10 +84,7 @@ def write_3mf_slices(result: SliceResult, path: PathLike, *, decimals: int = 6) 
     ParameterError
         ``decimals`` out of 0..9, or a malformed result (inconsistent offsets, coordinates beyond 1e9 mm).
     """
-    decimals = check_decimals(decimals)
-    points, loop_offsets, layer_offsets = result_arrays(result)
-    if points.size and np.abs(points).max() > MAX_ABS:
-        raise ParameterError("result coordinates are too large to write (beyond 1e9 mm)")
+    decimals, points, loop_offsets, layer_offsets = checked_result(result, decimals)
     bottom = np.asarray(result.bottom, dtype=np.float64)
     top = bottom + np.asarray(result.thickness, dtype=np.float64)
     z_bottom = float(bottom[0]) if bottom.size else 0.0
