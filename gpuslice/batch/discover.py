@@ -105,7 +105,8 @@ def _read_list(path: Path) -> list[Path]:
     return out
 
 
-def discover(inputs: Sequence[str | os.PathLike], glob: str | None = None, suffix: str = ".npz") -> list[Model]:
+def discover(inputs: Sequence[str | os.PathLike], glob: str | None = None, suffix: str = ".npz",
+             out_dir: str | os.PathLike | None = None) -> list[Model]:
     """The models named by ``inputs`` (folders searched recursively, list files, model files), in sorted order.
 
     Parameters
@@ -115,6 +116,8 @@ def discover(inputs: Sequence[str | os.PathLike], glob: str | None = None, suffi
         ``**/`` spans folders; a pattern without ``/`` matches names at any depth). Default: every file ending in
         one of :data:`MESH_SUFFIXES`. Hidden files and folders (names starting with ``.``) are skipped.
     suffix : the output suffix that replaces each model's suffix (``""``: none, e.g. a PNG-stack folder).
+    out_dir : the output folder: files inside it are never models (a batch's own outputs, e.g. ``.3mf`` slice
+        stacks, are not read back as inputs), and a model whose output would replace it is refused.
 
     Raises
     ------
@@ -142,6 +145,9 @@ def discover(inputs: Sequence[str | os.PathLike], glob: str | None = None, suffi
     if not files:
         what = f"matching '{glob}'" if glob else f"ending in {', '.join(MESH_SUFFIXES)}"
         raise BatchError(f"{', '.join(map(str, inputs))}: no model files {what}")
+    out_root = Path(os.fspath(out_dir)).resolve() if out_dir is not None else None
+    if out_root is not None:
+        files = [f for f in files if not f.resolve().is_relative_to(out_root)] or files
     base = Path(os.path.commonpath([str(r) for r in roots]))
     models: dict[str, Model] = {}
     outputs: dict[str, str] = {}
@@ -154,6 +160,8 @@ def discover(inputs: Sequence[str | os.PathLike], glob: str | None = None, suffi
         out = stem + suffix
         if out.lower() in outputs:
             raise BatchError(f"{f}: its output {out} clashes with that of {outputs[out.lower()]}")
+        if out_root is not None and (out_root / out).resolve() == resolved:
+            raise BatchError(f"{f}: its output would replace it; give another output folder")
         outputs[out.lower()] = str(f)
         models[rel] = Model(src=str(f), rel=rel, out=out, path=str(resolved))
     return [models[k] for k in sorted(models)]

@@ -496,6 +496,6 @@ def run_batch(inputs: Sequence[str | os.PathLike], out_dir: str | os.PathLike, o
     ``transfer``. A model whose output exists is skipped unless ``force``.
     """
     opts = opts or BatchOptions()
-    models = discover(inputs, glob, opts.suffix)
+    models = discover(inputs, glob, opts.suffix, out_dir)
     runner = BatchRunner(models, opts, out_dir, force=force, progress=progress, inputs=[str(i) for i in inputs])
     return runner.run(workers, client=client, transfer=transfer)

@@ -109,7 +109,7 @@ def batch(inputs, out_dir, pattern, raster_opt, workers, threads, scheduler, tra
     params, placement = slicing_values(kw)
     opts = build(BatchOptions, kw, params=params, placement=placement,
                  raster_options=_raster_options(raster_opt) if kw["raster"] is not None else ())
-    models = discover(inputs, pattern, opts.suffix)
+    models = discover(inputs, pattern, opts.suffix, out_dir)
     client = None
     if scheduler is not None:
         from ..batch import connect

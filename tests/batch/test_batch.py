@@ -365,3 +365,21 @@ def _zip_members(data: bytes) -> dict[str, bytes]:
 
     with zipfile.ZipFile(io.BytesIO(data)) as zf:
         return {name: zf.read(name) for name in zf.namelist()}
+
+
+def test_outputs_are_never_inputs(tmp_path):
+    """A batch whose output folder lies in its input tree does not read its own outputs back as models, and an
+    output that would replace its model (3MF slice stacks into the models' own folder) is refused before any work."""
+    models = tmp_path / "models"
+    models.mkdir()
+    shapes.write_stl(shapes.box(), models / "cube.stl")
+    opts = BatchOptions(SliceParams(thickness=2.0), Placement(fit=20.0), fmt="3mf")
+    out = models / "out"
+    for _ in range(2):  # the second run sees out/cube.3mf in the input tree
+        report = run_batch([models], out, opts, workers=0, force=True)
+        assert [r["model"] for r in report["models"]] == ["cube.stl"]
+    (models / "part.3mf").write_bytes((out / "cube.3mf").read_bytes())  # a 3MF model beside the STL
+    before = (models / "part.3mf").read_bytes()
+    with pytest.raises(BatchError, match="would replace it"):
+        run_batch([models], models, opts, workers=0)
+    assert (models / "part.3mf").read_bytes() == before
