@@ -67,6 +67,8 @@ class Job:
     mesh_check : count the mesh's defects into ``meta["repairs"]`` (:func:`gpuslice.mesh.defects.mesh_repairs`).
     cusp : add the schedule's cusp heights to the meta (:func:`gpuslice.bench.quality.cusp_summary`).
     portable : leave the device and backend out of the meta, so output bytes do not depend on the machine.
+    saved_result : a ``.npz`` source is a saved result, loaded instead of sliced (``view``); elsewhere it is read as
+        a mesh file (and refused as one).
     """
 
     source: str
@@ -81,6 +83,7 @@ class Job:
     mesh_check: bool = True
     cusp: bool = False
     portable: bool = False
+    saved_result: bool = False
 
     @property
     def model_name(self) -> str:
@@ -88,7 +91,7 @@ class Job:
 
     @property
     def is_saved_result(self) -> bool:
-        return self.data is None and Path(self.source).suffix.lower() == ".npz"
+        return self.saved_result and self.data is None and Path(self.source).suffix.lower() == ".npz"
 
 
 @dataclass
@@ -179,15 +182,14 @@ def _slice(job: Job, mesh: Mesh, dev, timings: dict[str, float]) -> SliceResult:
 
     result = slice_mesh(mesh, job.params)
     meta = result.meta
-    stage = meta.pop("timings_s", {})
+    for key, value in meta.pop("timings_s", {}).items():
+        timings[key] = timings.get(key, 0.0) + value
     if job.mesh_check:  # what the mesh needed: flipped facets, non-manifold edges, ... (mesh/defects.py)
         from .mesh.defects import mesh_repairs
 
         t = time.perf_counter()
         meta["repairs"] = {**mesh_repairs(mesh), **meta["repairs"]}
         timings["mesh_check"] = time.perf_counter() - t
-    for key, value in stage.items():
-        timings[key] = timings.get(key, 0.0) + value
     if job.portable:  # output bytes depend on the model and the options only
         meta.pop("device", None)
         meta.pop("backend", None)
@@ -207,10 +209,14 @@ def _bounds(mesh: Mesh | None) -> tuple[float, float, float, float] | None:
 def _write_resin(job: Job, out: JobResult, progress) -> None:
     from .raster.coverage import check_fits, choose_backend, iter_tiles
     from .raster.outputs import RESIN_FORMATS, ResinTarget, source_date
+    from .raster.spec import ResinOptions
 
     r = job.resin
     t = time.perf_counter()
-    backend = choose_backend(r.options.raster_backend)
+    now = source_date()  # a bad SOURCE_DATE_EPOCH fails here, before any layer is made
+    k = r.options.z_samples
+    # z samples need the runs (OpenCL): "auto" means OpenCL then, even where a hardware GPU would give GL
+    backend = "opencl" if k > 1 and r.options.raster_backend == "auto" else choose_backend(r.options.raster_backend)
     dev = out.device
     if dev is None and backend == "opencl":  # numpy slicing, OpenCL rasterising
         from .device import get_device
@@ -218,12 +224,14 @@ def _write_resin(job: Job, out: JobResult, progress) -> None:
         dev = get_device(job.params.device)
     bounds = _bounds(out.mesh)
     check_fits(out.result, r.spec, bounds, name=job.model_name)
-    k = r.options.z_samples
     if k > 1 and backend != "opencl":
         from .errors import ParameterError
 
         raise ParameterError(f"z_samples needs the OpenCL rasteriser, not {backend}", param="z_samples")
-    if backend == "opencl":  # runs all the way to the PNGs: no bitmap of a layer is ever made
+    t_sub = 0.0
+    if backend == "opencl" and (r.options.png_level == ResinOptions().png_level or k > 1):
+        # runs all the way to the PNGs: no bitmap of a layer is ever made (their deflate has no levels: another
+        # --png-level goes through tiles filled from the runs and the level's deflater; with z samples it is unused)
         from .raster.layers import iter_run_layers
 
         source = out.result
@@ -234,7 +242,8 @@ def _write_resin(job: Job, out: JobResult, progress) -> None:
             t_sub = time.perf_counter()
             z, th = z_sample_planes(out.result, k)
             source = slice_mesh(out.mesh, job.params, z=z, layer_thickness=th)
-            out.timings["z_samples"] = time.perf_counter() - t_sub
+            t_sub = time.perf_counter() - t_sub
+            out.timings["z_samples"] = t_sub
         layers = iter_run_layers(source, r.spec, device=dev, bounds=bounds, z_samples=k)
     else:
         layers = iter_tiles(out.result, r.spec, backend=backend, device=dev, bounds=bounds,
@@ -242,11 +251,11 @@ def _write_resin(job: Job, out: JobResult, progress) -> None:
     name = r.options.job_name or Path(job.model_name).stem
     n = out.result.n_layers
     tick = (lambda k: progress(k, n)) if progress is not None else None
-    target = ResinTarget(Path(r.path.rstrip("/\\") or "."), r.spec, r.options, out.result, name, source_date(),
+    target = ResinTarget(Path(r.path.rstrip("/\\") or "."), r.spec, r.options, out.result, name, now,
                          r.options.workers, tick)
     out.stats.update(RESIN_FORMATS[r.format].load()(layers, target))
     out.stats["raster_backend"] = backend
-    out.timings["raster"] = time.perf_counter() - t
+    out.timings["raster"] = time.perf_counter() - t - t_sub  # the z sub-slice has its own line
 
 
 def _write_view(job: Job, out: JobResult) -> None:

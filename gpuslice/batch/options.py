@@ -48,8 +48,21 @@ def typed_raster_options(pairs: dict[str, Any] | tuple[tuple[str, Any], ...]) ->
         try:
             out.append((key, parse_value(known[key], value)))
         except ParameterError as exc:
-            raise ParameterError(f"raster option {exc}") from None
+            raise ParameterError(f"{key}: {exc}", param=key) from None
     return tuple(out)
+
+
+def _as_recorded(value: Any) -> Any:
+    """A ``--raster-opt`` value as the manifest records it: text as it reads (an int, else a float, else true/false,
+    else the text: what 8c0d960 wrote, so its output folders stay valid); other values as JSON has them."""
+    if isinstance(value, str):
+        for cast in (int, float):
+            try:
+                return cast(value)
+            except ValueError:
+                pass
+        return {"true": True, "false": False}.get(value.lower(), value)
+    return list(value) if isinstance(value, tuple) else value
 
 
 @dataclass(frozen=True)
@@ -60,7 +73,8 @@ class BatchOptions:
     fmt : the contour output format (a :mod:`gpuslice.formats` name: ``npz``, ``svg``, ``cli``).
     raster : a resin output (:mod:`gpuslice.raster.outputs` name: ``sl1``, ``png``) instead of contours, with
         ``raster_options``: (name, value) pairs of :class:`~gpuslice.raster.spec.RasterSpec` and
-        :class:`~gpuslice.raster.spec.ResinOptions` fields (``printer``, ``resolution``, ``gamma``, …).
+        :class:`~gpuslice.raster.spec.ResinOptions` fields (``printer``, ``resolution``, ``gamma``, …); values may
+        be the command line's text (``"3840x2400"``), typed by the fields when used.
     """
 
     params: SliceParams = SliceParams()
@@ -121,7 +135,8 @@ class BatchOptions:
         p = self.params
         d: dict[str, Any] = {k: getattr(p, k) for k in ("thickness", "first_layer", "z_mode", "fill_rule", "max_gap")}
         d.update(asdict(self.placement))
-        d.update(fmt=self.fmt, raster=self.raster, raster_options=[list(kv) for kv in self.raster_options])
+        d.update(fmt=self.fmt, raster=self.raster,
+                 raster_options=[[k, _as_recorded(v)] for k, v in self.raster_options])
         d["schedule"] = {k: list(v) if isinstance(v, tuple) else v for k, v in
                          ((k, getattr(p, k)) for k in _SCHEDULE_FIELDS)} if p.adaptive else {}
         return d

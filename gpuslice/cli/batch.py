@@ -18,17 +18,35 @@ from .options import build, click_options, fail, slicing_options, slicing_values
 __all__ = ["batch"]
 
 
-def _raster_options(pairs: tuple[str, ...]) -> tuple[tuple[str, object], ...]:
-    """``KEY=VALUE`` texts typed by their option fields (:func:`gpuslice.batch.options.typed_raster_options`)."""
-    from ..batch.options import typed_raster_options
-
+def _raster_options(pairs: tuple[str, ...]) -> tuple[tuple[str, str], ...]:
+    """``KEY=VALUE`` texts as (key, text) pairs: :class:`~gpuslice.batch.options.BatchOptions` types them by their
+    option fields (and records the text in the output folder's manifest, as given)."""
     out = []
     for pair in pairs:
         key, sep, value = pair.partition("=")
         if not sep or not key.strip():
             fail(f"--raster-opt {pair!r}: expected KEY=VALUE")
-        out.append((key.strip(), value.strip()))
-    return typed_raster_options(tuple(out))
+        out.append((key.strip().replace("-", "_"), value.strip()))
+    return tuple(out)
+
+
+def _batch_options(kw: dict, raster_opt: tuple[str, ...]):
+    """The :class:`BatchOptions`; a resin option's error names it as ``--raster-opt KEY`` (batch has no such flag)."""
+    from ..batch.options import raster_option_fields
+    from ..errors import ParameterError
+
+    params, placement = slicing_values(kw)
+    try:
+        return build(BatchOptions, kw, params=params, placement=placement,
+                     raster_options=_raster_options(raster_opt) if kw["raster"] is not None else ())
+    except ParameterError as exc:
+        resin = [p for p in exc.params if p in raster_option_fields()]
+        if not resin:
+            raise
+        text = str(exc)
+        for name in resin:
+            text = text.replace(name, f"--raster-opt {name}", 1)
+        raise ParameterError(text, param=tuple(p for p in exc.params if p not in resin)) from None
 
 
 class _Progress:
@@ -106,9 +124,11 @@ def batch(inputs, out_dir, pattern, raster_opt, workers, threads, scheduler, tra
         fail("--transfer only applies with --scheduler")
     if kw["raster"] is None and raster_opt:
         fail("--raster-opt needs --raster")
-    params, placement = slicing_values(kw)
-    opts = build(BatchOptions, kw, params=params, placement=placement,
-                 raster_options=_raster_options(raster_opt) if kw["raster"] is not None else ())
+    opts = _batch_options(kw, raster_opt)
+    if opts.raster is not None:
+        from ..raster.outputs import source_date
+
+        source_date()  # a bad SOURCE_DATE_EPOCH is an error now, not in every model
     models = discover(inputs, pattern, opts.suffix, out_dir)
     client = None
     if scheduler is not None:

@@ -69,7 +69,7 @@ def view(source: str, output: str | None, raster: bool, printer: str, mask_every
         masks = with_printer(printer)
     params, placement = slicing_values(kw)
     t0 = time.perf_counter()
-    done = run_job(Job(source=source, placement=placement, params=params, mesh_check=False,
+    done = run_job(Job(source=source, placement=placement, params=params, mesh_check=False, saved_result=True,
                        view=ViewOutput(output, title, masks, mask_every)))
     t1 = done.timings.get("view", 0.0)
     if not quiet:

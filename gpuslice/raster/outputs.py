@@ -127,6 +127,9 @@ def source_date() -> dt.datetime | None:
     if not epoch:
         return None
     try:
-        return dt.datetime.fromtimestamp(int(epoch), dt.timezone.utc).replace(tzinfo=None)
+        when = dt.datetime.fromtimestamp(int(epoch), dt.timezone.utc).replace(tzinfo=None)
     except (ValueError, OverflowError, OSError):
         raise ParameterError(f"SOURCE_DATE_EPOCH must be an integer number of seconds, got '{epoch}'") from None
+    if not 1980 <= when.year <= 2107:  # what a zip entry can hold
+        raise ParameterError(f"SOURCE_DATE_EPOCH must be a date from 1980 to 2107, got '{epoch}' ({when.year})")
+    return when

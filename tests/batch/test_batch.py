@@ -383,3 +383,37 @@ def test_outputs_are_never_inputs(tmp_path):
     with pytest.raises(BatchError, match="would replace it"):
         run_batch([models], models, opts, workers=0)
     assert (models / "part.3mf").read_bytes() == before
+
+
+def test_manifest_records_raster_options_as_given(tmp_path):
+    """The output folder's manifest records --raster-opt values as 8c0d960 did (the text read as an int, a float, a
+    bool or the text), so folders it made stay valid; the values are typed by their option fields only when used."""
+    opts = BatchOptions(SliceParams(thickness=0.5), Placement(fit=25.0), raster="sl1",
+                        raster_options=(("resolution", "400x300"), ("gamma", "1"), ("pixel", "0.1"),
+                                        ("mirror_x", "true")))
+    assert opts.shaping()["raster_options"] == [["resolution", "400x300"], ["gamma", 1], ["pixel", 0.1],
+                                                ["mirror_x", True]]
+    spec, _ = opts.resin()
+    assert spec.resolution == (400, 300) and spec.gamma == 1.0 and spec.mirror_x is True
+    # what 8c0d960 computed for these options (its BatchOptions.shaping, json with sorted keys, sha256[:16])
+    import hashlib
+
+    old = {"thickness": 0.5, "first_layer": None, "z_mode": "mid", "fill_rule": "nonzero", "max_gap": 2.0,
+           "scale": None, "fit": 25.0, "fmt": "npz", "raster": "sl1",
+           "raster_options": [["resolution", "400x300"], ["gamma", 1], ["pixel", 0.1], ["mirror_x", True]],
+           "schedule": {}}
+    assert opts.fingerprint() == hashlib.sha256(json.dumps(old, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def test_cli_raster_option_errors_name_raster_opt(tmp_path, capsys):
+    from gpuslice.cli import main
+
+    models = tmp_path / "m"
+    models.mkdir()
+    shapes.write_stl(shapes.box(), models / "cube.stl")
+    for opt, want in (("png_level=12", "--raster-opt png_level"), ("resolution=abc", "--raster-opt resolution"),
+                      ("nope=1", "unknown raster option nope")):
+        args = ["batch", str(models), "-o", str(tmp_path / "o"), "--raster", "sl1", "--raster-opt", opt, "-q"]
+        assert main(args) == 2
+        err = capsys.readouterr().err.strip()
+        assert want in err and len(err.splitlines()) == 1, err

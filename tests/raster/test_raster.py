@@ -384,3 +384,42 @@ def test_opencl_runs_equal_the_bitmap_kernel(torus, device, gamma):
     tiles = list(iter_tiles(torus, spec, backend="opencl", device=device))
     ref = list(iter_tiles(torus, spec, backend="opencl-bitmap", device=device))
     assert [(t.row0, t.col0, t.data.shape) for t in tiles] == [(t.row0, t.col0, t.data.shape) for t in ref]
+
+
+def test_png_level_is_honoured_on_the_runs_path(tmp_path, device):
+    """The default OpenCL rasteriser deflates PNGs straight from runs; another --png-level goes through tiles and
+    that level: the files change size, the pixels do not."""
+    stl = _torus_stl(tmp_path)
+    args = ["raster", str(stl), "-t", "1", "--resolution", "900x900", "--no-progress", "-q"]
+    sizes, pixels = {}, {}
+    for level in ("1", "0", "9"):
+        out = tmp_path / f"l{level}"
+        assert main([*args, "-o", f"{out}/", "--png-level", level]) == 0
+        files = sorted(out.glob("*.png"))
+        sizes[level] = sum(f.stat().st_size for f in files)
+        pixels[level] = np.stack([np.asarray(Image.open(f)) for f in files])
+    assert sizes["0"] > sizes["9"] and len(set(sizes.values())) == 3  # level 0: stored, level 9: smallest
+    assert np.array_equal(pixels["0"], pixels["1"]) and np.array_equal(pixels["9"], pixels["1"])
+
+
+@pytest.mark.parametrize("epoch", ["99999999999", "soon", "0"])
+def test_bad_source_date_epoch_is_refused_before_work(tmp_path, monkeypatch, capsys, epoch):
+    stl = _torus_stl(tmp_path)
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", epoch)
+    out = tmp_path / "p.sl1"
+    assert main(["raster", str(stl), "-t", "1", "--resolution", "900x900", "-q", "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "SOURCE_DATE_EPOCH" in err and len(err.splitlines()) == 1 and not out.exists()
+
+
+def test_slice_and_raster_read_npz_as_a_mesh_file(tmp_path, capsys):
+    """Only `view` loads a saved result; `slice` and `raster` refuse a .npz as they refuse any non-mesh file."""
+    stl = _torus_stl(tmp_path)
+    assert main(["slice", str(stl), "-t", "1", "-o", str(tmp_path / "t.npz"), "-q"]) == 0
+    capsys.readouterr()
+    for args in (["slice", str(tmp_path / "t.npz"), "-o", str(tmp_path / "x.svg")],
+                 ["raster", str(tmp_path / "t.npz"), "-o", str(tmp_path / "x.sl1")]):
+        assert main([*args, "-q"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "t.npz" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "x.svg").exists() and not (tmp_path / "x.sl1").exists()

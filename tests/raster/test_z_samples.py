@@ -75,3 +75,16 @@ def test_cli_z_samples(tmp_path, device, capsys):
     assert main([*args, "-o", f"{tmp_path / 'gl'}/", "--z-samples", "4", "--raster-backend", "numpy"]) == 2
     err = capsys.readouterr().err
     assert "--z-samples needs the OpenCL rasteriser" in err and len(err.strip().splitlines()) == 1
+
+
+def test_z_samples_use_opencl_where_auto_would_pick_gl(tmp_path, device, monkeypatch):
+    """On a machine with a hardware GPU `auto` picks GL; z samples need the runs, so `auto` means OpenCL for them."""
+    import gpuslice.raster.coverage as coverage
+
+    real = coverage.choose_backend
+    monkeypatch.setattr(coverage, "choose_backend", lambda b="auto", device=None: "gl" if b == "auto" else real(b))
+    stl = tmp_path / "cone.stl"
+    shapes.write_stl(shapes.cone(radius=20.0, height=10.0, n=64), stl)
+    args = ["raster", str(stl), "-t", "1", "--resolution", "500x500", "--pixel", "0.1", "-q", "--no-progress"]
+    assert main([*args, "-o", f"{tmp_path / 'four'}/", "--z-samples", "4"]) == 0
+    assert len(list((tmp_path / "four").glob("*.png"))) == 10

@@ -386,3 +386,10 @@ def test_loop_crossing_itself_is_rebuilt(backend):
     polys = res.to_shapely()
     assert shapely.is_valid(polys).all()
     np.testing.assert_allclose(shapely.area(polys), res.area, rtol=1e-9)
+
+
+def test_loop_crossing_itself_with_cancelling_lobes(backend):
+    """A symmetric figure-8 (lobes of equal area, opposite signs: net area 0) is not degenerate: both lobes fill."""
+    bowtie = np.array([[0.0, 0.0], [10.0, 6.0], [10.0, 0.0], [0.0, 6.0]])  # two lobes of 15 mm^2
+    res = slice_mesh(mesh_from_triangles(S.prism(bowtie, 0.0, 2.0)), thickness=1.0, backend=backend, max_gap=0.0)
+    np.testing.assert_allclose(res.area, 30.0, rtol=1e-6)
