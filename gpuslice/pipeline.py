@@ -228,23 +228,15 @@ def _write_resin(job: Job, out: JobResult, progress) -> None:
         from .errors import ParameterError
 
         raise ParameterError(f"z_samples needs the OpenCL rasteriser, not {backend}", param="z_samples")
-    t_sub = 0.0
     if backend == "opencl" and (r.options.png_level == ResinOptions().png_level or k > 1):
         # runs all the way to the PNGs: no bitmap of a layer is ever made (their deflate has no levels: another
         # --png-level goes through tiles filled from the runs and the level's deflater; with z samples it is unused)
         from .raster.layers import iter_run_layers
 
-        source = out.result
-        if k > 1:  # anti-aliasing in Z: k sub-planes per layer, their runs summed per row
-            from .raster.coverage import z_sample_planes
-            from .slicing.slicer import slice_mesh
-
-            t_sub = time.perf_counter()
-            z, th = z_sample_planes(out.result, k)
-            source = slice_mesh(out.mesh, job.params, z=z, layer_thickness=th)
-            t_sub = time.perf_counter() - t_sub
-            out.timings["z_samples"] = t_sub
-        layers = iter_run_layers(source, r.spec, device=dev, bounds=bounds, z_samples=k)
+        if k > 1:  # anti-aliasing in Z: k sub-planes per layer, sliced a chunk of layers at a time
+            layers = _z_sampled_layers(job, out, r.spec, dev, bounds, k)
+        else:
+            layers = iter_run_layers(out.result, r.spec, device=dev, bounds=bounds)
     else:
         layers = iter_tiles(out.result, r.spec, backend=backend, device=dev, bounds=bounds,
                             supersample=r.options.supersample)
@@ -255,7 +247,29 @@ def _write_resin(job: Job, out: JobResult, progress) -> None:
                          r.options.workers, tick)
     out.stats.update(RESIN_FORMATS[r.format].load()(layers, target))
     out.stats["raster_backend"] = backend
-    out.timings["raster"] = time.perf_counter() - t - t_sub  # the z sub-slice has its own line
+    t_sub = out.timings.get("z_samples", 0.0)
+    out.timings["raster"] = time.perf_counter() - t - t_sub  # the z sub-slices have their own line
+
+
+#: layers whose z sub-planes are sliced at once (memory: their K-fold sub-slice, not the whole model's)
+Z_SAMPLE_CHUNK = 128
+
+
+def _z_sampled_layers(job: Job, out: JobResult, spec, dev, bounds, k: int):
+    """Runs of every layer averaged over ``k`` sub-planes of its slab (``--z-samples``), in order: the sub-planes of
+    :data:`Z_SAMPLE_CHUNK` layers at a time are sliced (timed as ``z_samples``) and rasterised, then let go."""
+    from .raster.coverage import z_sample_planes
+    from .raster.layers import RunLayer, iter_run_layers
+    from .slicing.slicer import slice_mesh
+
+    z, th = z_sample_planes(out.result, k)
+    for a in range(0, out.result.n_layers, Z_SAMPLE_CHUNK):
+        b = min(a + Z_SAMPLE_CHUNK, out.result.n_layers)
+        t = time.perf_counter()
+        sub = slice_mesh(out.mesh, job.params, z=z[a * k : b * k], layer_thickness=th[a * k : b * k])
+        out.timings["z_samples"] = out.timings.get("z_samples", 0.0) + time.perf_counter() - t
+        for item in iter_run_layers(sub, spec, device=dev, bounds=bounds, z_samples=k):
+            yield RunLayer(a + item.index, item.runs, item.j)
 
 
 def _write_view(job: Job, out: JobResult) -> None:

@@ -88,3 +88,22 @@ def test_z_samples_use_opencl_where_auto_would_pick_gl(tmp_path, device, monkeyp
     args = ["raster", str(stl), "-t", "1", "--resolution", "500x500", "--pixel", "0.1", "-q", "--no-progress"]
     assert main([*args, "-o", f"{tmp_path / 'four'}/", "--z-samples", "4"]) == 0
     assert len(list((tmp_path / "four").glob("*.png"))) == 10
+
+
+def test_z_samples_stream_in_chunks_of_layers(tmp_path, device, monkeypatch):
+    """The sub-planes are sliced a chunk of layers at a time (memory set by the chunk): any chunk size gives the
+    same archive."""
+    import gpuslice.pipeline as pipeline
+
+    stl = tmp_path / "cone.stl"
+    shapes.write_stl(shapes.cone(radius=20.0, height=10.0, n=64), stl)
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
+    args = ["raster", str(stl), "-t", "0.5", "--resolution", "500x500", "--pixel", "0.1", "-q", "--no-progress",
+            "--z-samples", "3"]
+    outs = []
+    for chunk in (1000, 3):
+        monkeypatch.setattr(pipeline, "Z_SAMPLE_CHUNK", chunk)
+        out = tmp_path / f"c{chunk}.sl1"
+        assert main([*args, "-o", str(out)]) == 0
+        outs.append(out.read_bytes())
+    assert outs[0] == outs[1]
