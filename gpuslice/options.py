@@ -93,8 +93,6 @@ class OptionInfo:
 
 def _base_type(annotation: Any) -> tuple[type, bool]:
     """(the non-None type, whether None is allowed) of a field annotation such as ``float | None``."""
-    if isinstance(annotation, str):
-        annotation = eval(annotation, {"tuple": tuple, "float": float, "int": int, "str": str, "bool": bool})  # noqa: S307
     args = typing.get_args(annotation)
     if isinstance(annotation, types.UnionType) or typing.get_origin(annotation) is typing.Union:
         rest = [a for a in args if a is not type(None)]
@@ -103,11 +101,11 @@ def _base_type(annotation: Any) -> tuple[type, bool]:
     return (origin or annotation), False
 
 
-def _info(f: Field) -> OptionInfo | None:
+def _info(f: Field, annotation: Any) -> OptionInfo | None:
     meta = f.metadata.get("gpuslice")
     if meta is None:
         return None
-    kind, optional = _base_type(f.type)
+    kind, optional = _base_type(annotation)
     choices = meta["choices"]
     if callable(choices):
         choices = tuple(choices())
@@ -119,8 +117,9 @@ def _info(f: Field) -> OptionInfo | None:
 
 def options_of(cls: type) -> Iterator[OptionInfo]:
     """The option fields of dataclass ``cls`` in declaration order."""
+    hints = typing.get_type_hints(cls)  # the annotations as types (they are strings under postponed evaluation)
     for f in dataclasses.fields(cls):
-        info = _info(f)
+        info = _info(f, hints[f.name])
         if info is not None:
             yield info
 

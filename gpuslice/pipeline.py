@@ -146,6 +146,11 @@ def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | Non
     """
     timings: dict[str, float] = {}
     stats: dict[str, Any] = {}
+    now = None
+    if job.resin is not None:  # a bad SOURCE_DATE_EPOCH fails here, before any work
+        from .raster.outputs import source_date
+
+        now = source_date()
     if job.is_saved_result:
         from .slicing.result import SliceResult
 
@@ -171,7 +176,7 @@ def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | Non
         result.meta.update(cusp_summary(mesh, result, dev))
         timings["cusp"] = time.perf_counter() - t
     if job.resin is not None:
-        _write_resin(job, out, progress)
+        _write_resin(job, out, progress, now)
     if job.view is not None:
         _write_view(job, out)
     return out
@@ -206,14 +211,13 @@ def _bounds(mesh: Mesh | None) -> tuple[float, float, float, float] | None:
     return float(b[0, 0]), float(b[0, 1]), float(b[1, 0]), float(b[1, 1])
 
 
-def _write_resin(job: Job, out: JobResult, progress) -> None:
-    from .raster.coverage import check_fits, choose_backend, iter_tiles
-    from .raster.outputs import RESIN_FORMATS, ResinTarget, source_date
-    from .raster.spec import ResinOptions
+def _write_resin(job: Job, out: JobResult, progress, now) -> None:
+    from .raster.coverage import choose_backend, iter_tiles
+    from .raster.edges import check_fits
+    from .raster.outputs import RESIN_FORMATS, ResinTarget
 
     r = job.resin
     t = time.perf_counter()
-    now = source_date()  # a bad SOURCE_DATE_EPOCH fails here, before any layer is made
     k = r.options.z_samples
     # z samples need the runs (OpenCL): "auto" means OpenCL then, even where a hardware GPU would give GL
     backend = "opencl" if k > 1 and r.options.raster_backend == "auto" else choose_backend(r.options.raster_backend)
@@ -228,9 +232,7 @@ def _write_resin(job: Job, out: JobResult, progress) -> None:
         from .errors import ParameterError
 
         raise ParameterError(f"z_samples needs the OpenCL rasteriser, not {backend}", param="z_samples")
-    if backend == "opencl" and (r.options.png_level == ResinOptions().png_level or k > 1):
-        # runs all the way to the PNGs: no bitmap of a layer is ever made (their deflate has no levels: another
-        # --png-level goes through tiles filled from the runs and the level's deflater; with z samples it is unused)
+    if backend == "opencl":  # runs all the way to the PNGs (raster/layers.py: tiles only for another --png-level)
         from .raster.layers import iter_run_layers
 
         if k > 1:  # anti-aliasing in Z: k sub-planes per layer, sliced a chunk of layers at a time
@@ -258,7 +260,7 @@ Z_SAMPLE_CHUNK = 128
 def _z_sampled_layers(job: Job, out: JobResult, spec, dev, bounds, k: int):
     """Runs of every layer averaged over ``k`` sub-planes of its slab (``--z-samples``), in order: the sub-planes of
     :data:`Z_SAMPLE_CHUNK` layers at a time are sliced (timed as ``z_samples``) and rasterised, then let go."""
-    from .raster.coverage import z_sample_planes
+    from .raster.edges import z_sample_planes
     from .raster.layers import RunLayer, iter_run_layers
     from .slicing.slicer import slice_mesh
 

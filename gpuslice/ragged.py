@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["expand_ranges"]
+__all__ = ["expand_ranges", "group_ranks"]
 
 
 def expand_ranges(starts: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -20,3 +20,18 @@ def expand_ranges(starts: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, n
     owner = np.repeat(np.arange(counts.size, dtype=np.int64), counts)
     local = np.arange(owner.size, dtype=np.int64) - np.repeat(np.cumsum(counts) - counts, counts)
     return owner, np.asarray(starts, dtype=np.int64)[owner] + local
+
+
+def group_ranks(g: np.ndarray) -> np.ndarray:
+    """0, 1, 2, … within each run of equal consecutive values of ``g`` (int64), without a Python loop.
+
+    >>> group_ranks(np.array([4, 4, 7, 7, 7, 2]))
+    array([0, 1, 0, 1, 2, 0])
+    """
+    if g.size == 0:
+        return np.zeros(0, np.int64)
+    start = np.empty(g.size, bool)
+    start[0] = True
+    np.not_equal(g[1:], g[:-1], out=start[1:])
+    first = np.flatnonzero(start)
+    return np.arange(g.size) - np.repeat(first, np.diff(np.append(first, g.size)))

@@ -40,20 +40,18 @@ def best(fn, repeat: int) -> tuple[float, object]:
 
 
 def tile_from_runs(runs, k: int):
-    """The bounding-box bitmap of entry ``k`` as a Tile (what a bitmap encoder needs)."""
-    from gpuslice.ragged import expand_ranges
+    """The bounding-box bitmap of entry ``k`` as a Tile (what a bitmap encoder needs), by the package's own
+    :func:`gpuslice.raster.coverage.tile_from_runs` over the runs' bounding box."""
     from gpuslice.raster import Tile
+    from gpuslice.raster.coverage import tile_from_runs as fill
 
     a, b = int(runs.layer_offsets[k]), int(runs.layer_offsets[k + 1])
-    row, x, n = runs.row[a:b], runs.x[a:b], runs.length[a:b]
     if a == b:
         return Tile(int(runs.layers[k]), 0, 0, np.zeros((0, 0), np.uint8))
+    row, x, n = runs.row[a:b], runs.x[a:b], runs.length[a:b]
     r0, c0 = int(row[0]), int(x.min())
     h, w = int(row[-1]) - r0 + 1, int((x + n).max()) - c0
-    data = np.zeros(h * w, np.uint8)
-    _, idx = expand_ranges((row.astype(np.int64) - r0) * w + (x - c0), n)
-    data[idx] = np.repeat(runs.grey[a:b], n)
-    return Tile(int(runs.layers[k]), r0, c0, data.reshape(h, w))
+    return Tile(int(runs.layers[k]), r0, c0, fill(runs, k, r0, c0, h, w))
 
 
 def decoded(png: bytes, shape: tuple[int, int]) -> np.ndarray:

@@ -76,9 +76,6 @@ def raster(model: str, output: str, progress: bool | None, report: str | None, q
     parent = Path(output.rstrip("/\\") or ".").resolve().parent
     if not parent.is_dir():
         fail(f"{output}: directory {parent} does not exist")
-    from ..raster.outputs import source_date
-
-    source_date()  # a bad SOURCE_DATE_EPOCH is an error before any work
     params, placement = slicing_values(kw, DEFAULTS)
     options = build(ResinOptions, kw)
     spec = options.spec(**values(RasterSpec, kw))

@@ -16,13 +16,11 @@ if TYPE_CHECKING:
 
 from ..io.atomic import atomic_path
 from .numbers import (
-    MAX_ABS,
-    check_decimals,
+    checked_result,
     fmt_scalar,
     format_fixed,
     layer_chunks,
     point_bounds,
-    result_arrays,
 )
 
 PathLike = str | os.PathLike
@@ -80,7 +78,6 @@ def write_svg(
         ``scale`` is not a positive finite number, ``decimals`` is out of range, or the result is
         malformed (inconsistent offsets, non-finite coordinates, coordinates beyond 1e9 mm).
     """
-    decimals = check_decimals(decimals)
     if scale is None:
         scale = 1.0
     if (
@@ -89,9 +86,7 @@ def write_svg(
         or not (math.isfinite(scale) and scale > 0)
     ):
         raise ParameterError(f"scale must be a positive finite number, got {scale!r}")
-    points, loop_offsets, layer_offsets = result_arrays(result)
-    if points.size and np.abs(points).max() > MAX_ABS:
-        raise ParameterError("result coordinates are too large to write (beyond 1e9 mm)")
+    decimals, points, loop_offsets, layer_offsets = checked_result(result, decimals)
     z = np.asarray(result.z, dtype=np.float64)
     thickness = np.asarray(result.thickness, dtype=np.float64)
     bottom = np.asarray(result.bottom, dtype=np.float64)

@@ -1,24 +1,14 @@
 """Resin layers: rasterising the nested polygons onto a printer's display and writing the archives resin printers
 read.
 
-``spec.py`` (the display, presets, resin options), ``coverage.py`` + ``kernels/raster.cl`` (exact area coverage;
+``spec.py`` (the display, presets, resin options), ``edges.py`` (the layers' edges in pixels, for every
+rasteriser), ``coverage.py`` + ``kernels/raster.cl`` (exact area coverage;
 numpy twin), ``gl.py`` (the moderngl pass), ``outputs.py`` (the resin-output registry), ``png.py`` (the PNG encoder),
 ``sl1.py`` and ``pngstack.py`` (the outputs).
 """
 
-from .coverage import (
-    LayerEdges,
-    RasterKernel,
-    Tile,
-    check_fits,
-    choose_backend,
-    coverage_numpy,
-    iter_masks,
-    iter_tiles,
-    layer_edges,
-    masks,
-    result_bounds,
-)
+from .coverage import RasterKernel, Tile, choose_backend, coverage_numpy, iter_masks, iter_tiles, masks
+from .edges import LayerEdges, check_fits, layer_edges, result_bounds
 from .spec import BACKENDS, PRINTERS, RasterSpec, ResinOptions, gamma_lut, with_printer
 
 __all__ = [

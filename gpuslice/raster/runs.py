@@ -34,8 +34,8 @@ import numpy as np
 
 from ..device import KernelDriver, get_device
 from ..errors import ParameterError
-from ..ragged import expand_ranges
-from .coverage import LayerEdges, layer_edges, merge_layer_groups
+from ..ragged import expand_ranges, group_ranks
+from .edges import LayerEdges, layer_edges, merge_layer_groups
 from .spec import RasterSpec, gamma_lut
 
 __all__ = ["Runs", "runs_numpy", "RunsKernel", "layer_runs", "iter_runs", "runs_to_mask", "BACKENDS"]
@@ -414,7 +414,7 @@ class RunsKernel(KernelDriver):
             q.finish()
         row, x, length, grey = arrs
         if host is not None:
-            pos = run_off[host[0]] + _rank_in_group(host[0])
+            pos = run_off[host[0]] + group_ranks(host[0])
             row[pos], x[pos] = rows.drow[host[0]], host[1] + rows.col0[host[0]]
             length[pos], grey[pos] = host[2], host[3]
         off = np.zeros(len(t) + 1, np.int64)
@@ -429,17 +429,6 @@ def _aligned_empty(n: int, dtype) -> np.ndarray:
     raw = np.empty(n * dtype.itemsize + 4096, np.uint8)
     k = -raw.ctypes.data % 4096
     return raw[k : k + n * dtype.itemsize].view(dtype)
-
-
-def _rank_in_group(g: np.ndarray) -> np.ndarray:
-    """0, 1, 2, ... within each group of equal consecutive values of ``g``."""
-    if g.size == 0:
-        return g
-    start = np.empty(g.size, bool)
-    start[0] = True
-    np.not_equal(g[1:], g[:-1], out=start[1:])
-    first = np.flatnonzero(start)
-    return np.arange(g.size) - np.repeat(first, np.diff(np.append(first, g.size)))
 
 
 # ---- public entry points ------------------------------------------------------------------------------------------

@@ -173,8 +173,8 @@ class ResinOptions:
                                  "override it")
     raster_backend: str = option("auto", "Rasteriser: auto is GL on a hardware GPU, else OpenCL", choices=BACKENDS)
     supersample: int = option(8, "GL backend: samples per pixel side (1-16)")
-    png_level: int = option(1, "Deflate level of each layer's non-blank rows (0-9); the default 1 on the OpenCL "
-                             "rasteriser deflates straight from the runs instead (no level; smaller files)")
+    png_level: int = option(1, "Deflate level of each layer's non-blank rows (0-9); at 1 the OpenCL rasteriser "
+                             "deflates straight from its runs (fastest, smaller files)")
     exposure: float = option(10.0, "Exposure time (config.ini)", unit="s")
     exposure_first: float = option(15.0, "First layers' exposure", unit="s")
     job_name: str | None = option(None, "SL1 jobDir and PNG prefix (default: the model's file name)")

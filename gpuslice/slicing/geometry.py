@@ -118,10 +118,12 @@ def _as_multipolygon(geom):
     """``geom`` (a polygonal result of ``make_valid``) as one ``MultiPolygon``."""
     import shapely
 
-    parts = [g for g in shapely.get_parts(geom) if g.geom_type == "Polygon" and not g.is_empty]
-    for g in shapely.get_parts(geom):
+    parts = []
+    for g in shapely.get_parts(geom):  # polygons, or a collection's members
         if g.geom_type == "MultiPolygon":
             parts += list(g.geoms)
+        elif g.geom_type == "Polygon" and not g.is_empty:
+            parts.append(g)
     return shapely.MultiPolygon(parts)
 
 

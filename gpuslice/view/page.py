@@ -141,7 +141,8 @@ def raster_masks(
     """
     from PIL import Image
 
-    from ..raster.coverage import check_fits, iter_tiles, result_bounds
+    from ..raster.coverage import iter_tiles
+    from ..raster.edges import check_fits, result_bounds
     from ..raster.spec import RasterSpec
 
     if every < 1:

@@ -10,7 +10,7 @@ from gpuslice import mesh_from_triangles, slice_mesh
 from gpuslice.cli import main
 from gpuslice.mesh import shapes
 from gpuslice.raster import RasterSpec, coverage_numpy, layer_edges
-from gpuslice.raster.coverage import z_sample_planes
+from gpuslice.raster.edges import z_sample_planes
 from gpuslice.raster.runs import layer_runs
 
 SPEC = RasterSpec(resolution=(500, 500), pixel=0.1)

@@ -1,0 +1,148 @@
+"""The nested polygons of a result in a display's pixel space, the input of every rasteriser (the runs of
+:mod:`gpuslice.raster.runs`, the bitmap kernel and twins of :mod:`gpuslice.raster.coverage`, the GL pass): each
+layer's closed loops as edges relative to its tile (the layer's bounding box in pixels), the check that the model
+fits the display, and the z sub-planes of ``--z-samples`` merged back into their layers. The mapping model XY →
+pixels is :class:`~gpuslice.raster.spec.RasterSpec`'s (see :mod:`gpuslice.raster.coverage`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import ParameterError
+from ..slicing.result import SliceResult
+from .spec import RasterSpec
+
+__all__ = ["LayerEdges", "check_fits", "layer_edges", "merge_layer_groups", "result_bounds", "z_sample_planes"]
+
+
+@dataclass
+class LayerEdges:
+    """Every closed loop's edges in pixel coordinates, layer by layer, and each layer's tile.
+
+    edges (E, 4) float64 (u0, v0, u1, v1) relative to the layer's tile corner; edge_offsets (L + 1,);
+    tiles (L, 4) int64 (row0, col0, rows, cols), an empty layer has rows = cols = 0.
+    """
+
+    edges: np.ndarray
+    edge_offsets: np.ndarray
+    tiles: np.ndarray
+
+
+def result_bounds(result: SliceResult) -> tuple[float, float, float, float] | None:
+    """(xmin, ymin, xmax, ymax) of all points of ``result``, mm; None when it has none."""
+    if result.points.shape[0] == 0:
+        return None
+    lo = result.points.min(axis=0).astype(np.float64)
+    hi = result.points.max(axis=0).astype(np.float64)
+    return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+
+
+def check_fits(result: SliceResult, spec: RasterSpec, bounds=None, name: str = "model") -> None:
+    """Raise :class:`ParameterError` when any layer reaches outside the display."""
+    if result.points.shape[0] == 0:
+        return
+    uv = spec.to_pixels(result.points, bounds if bounds is not None else result_bounds(result))
+    lo, hi = uv.min(axis=0), uv.max(axis=0)
+    eps = 1e-6
+    cols, rows = spec.png_size
+    if lo[0] < -eps or lo[1] < -eps or hi[0] > cols + eps or hi[1] > rows + eps:
+        bx, by = spec.bed_mm
+        b = result_bounds(result)
+        raise ParameterError(
+            f"{name}: the model ({b[2] - b[0]:.2f} x {b[3] - b[1]:.2f} mm) does not fit on the display "
+            f"({bx:.2f} x {by:.2f} mm) at this placement"
+        )
+
+
+def layer_edges(result: SliceResult, spec: RasterSpec, bounds=None, layers: Sequence[int] | None = None) -> LayerEdges:
+    """The edges of the closed loops of ``layers`` (default all) in tile-local pixel coordinates; see
+    :class:`LayerEdges`. ``bounds`` (xmin, ymin, xmax, ymax) mm is what gets centred (default: the result's)."""
+    if bounds is None:
+        bounds = result_bounds(result)
+    n_layers = result.n_layers
+    sel = np.arange(n_layers) if layers is None else np.asarray(layers, dtype=np.int64)
+    if sel.size and (sel.min() < 0 or sel.max() >= n_layers):
+        raise ParameterError(f"layer index out of range 0..{n_layers - 1}")
+    lo_off = result.loop_offsets
+    # loops of the selected layers, closed ones only
+    loop_start = result.layer_offsets[sel]
+    loop_count = result.layer_offsets[sel + 1] - loop_start
+    loops = np.repeat(loop_start - np.concatenate(([0], np.cumsum(loop_count)[:-1])), loop_count) + np.arange(
+        int(loop_count.sum())
+    )
+    loop_sel_layer = np.repeat(np.arange(sel.size), loop_count)
+    keep = result.loop_closed[loops] if loops.size else np.zeros(0, bool)
+    loops, loop_sel_layer = loops[keep], loop_sel_layer[keep]
+    first, n = lo_off[loops], lo_off[loops + 1] - lo_off[loops]
+    keep = n >= 3
+    loops, loop_sel_layer, first, n = loops[keep], loop_sel_layer[keep], first[keep], n[keep]
+    total = int(n.sum())
+    start = np.concatenate(([0], np.cumsum(n)[:-1])).astype(np.int64)
+    idx = np.repeat(first - start, n) + np.arange(total, dtype=np.int64)
+    uv = spec.to_pixels(result.points[idx], bounds) if total else np.zeros((0, 2))
+    nxt = np.arange(total, dtype=np.int64) + 1  # each point's successor in its loop (the last one: the first)
+    nxt[start + n - 1] = start
+    uv_next = uv[nxt]
+    edge_layer = np.repeat(loop_sel_layer, n)
+    counts = np.bincount(edge_layer, minlength=sel.size) if total else np.zeros(sel.size, np.int64)
+    offsets = np.zeros(sel.size + 1, np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    tiles = np.zeros((sel.size, 4), np.int64)
+    nonempty = counts > 0
+    if total:
+        nz = offsets[:-1][nonempty]
+        umin = np.minimum.reduceat(uv[:, 0], nz)
+        umax = np.maximum.reduceat(uv[:, 0], nz)
+        vmin = np.minimum.reduceat(uv[:, 1], nz)
+        vmax = np.maximum.reduceat(uv[:, 1], nz)
+        cols, rows = spec.png_size
+        c0 = np.clip(np.floor(umin), 0, cols).astype(np.int64)
+        c1 = np.clip(np.floor(umax) + 1, 0, cols).astype(np.int64)
+        r0 = np.clip(np.floor(vmin), 0, rows).astype(np.int64)
+        r1 = np.clip(np.floor(vmax) + 1, 0, rows).astype(np.int64)
+        empty = (c1 <= c0) | (r1 <= r0)
+        tiles[nonempty] = np.stack([r0, c0, np.where(empty, 0, r1 - r0), np.where(empty, 0, c1 - c0)], axis=1)
+    corner = np.repeat(tiles[:, [1, 0]].astype(np.float64), counts, axis=0)
+    edges = np.concatenate([uv - corner, uv_next - corner], axis=1) if total else np.zeros((0, 4))
+    return LayerEdges(edges, offsets, tiles)
+
+
+def z_sample_planes(result: SliceResult, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """(z, thickness) of ``k`` sub-planes in each layer's slab, mm: layer i's slab [bottom_i, bottom_i + t_i) cut in
+    ``k`` equal parts, each cut at its middle (z = bottom_i + (j + 0.5)·t_i/k); layer i's sub-planes are entries
+    k·i … k·i + k − 1. Slicing at them and rasterising with ``z_samples=k`` averages each layer over its slab."""
+    b = np.repeat(result.bottom, k)
+    t = np.repeat(np.asarray(result.thickness, np.float64), k) / k
+    j = np.tile(np.arange(k, dtype=np.float64), result.n_layers)
+    return b + (j + 0.5) * t, t
+
+
+def merge_layer_groups(le: LayerEdges, k: int) -> LayerEdges:
+    """Entries k·i … k·i + k − 1 of ``le`` (the sub-planes of one layer) as entry i: the union of their tiles, and
+    their edges moved to its corner (by whole pixels)."""
+    n = len(le.tiles) // k
+    t = le.tiles[: n * k].reshape(n, k, 4)
+    has = (t[:, :, 2] > 0) & (t[:, :, 3] > 0)
+    big = np.iinfo(np.int64).max
+    r0 = np.where(has, t[:, :, 0], big).min(axis=1)
+    c0 = np.where(has, t[:, :, 1], big).min(axis=1)
+    r1 = np.where(has, t[:, :, 0] + t[:, :, 2], -1).max(axis=1)
+    c1 = np.where(has, t[:, :, 1] + t[:, :, 3], -1).max(axis=1)
+    empty = ~has.any(axis=1)
+    tiles = np.stack([np.where(empty, 0, r0), np.where(empty, 0, c0), np.where(empty, 0, r1 - r0),
+                      np.where(empty, 0, c1 - c0)], axis=1).astype(np.int64)
+    counts = np.diff(le.edge_offsets[: n * k + 1])
+    group = np.repeat(np.arange(n * k) // k, counts)
+    sub = np.repeat(np.arange(n * k), counts)
+    dc = (le.tiles[sub, 1] - tiles[group, 1]).astype(np.float64)
+    dr = (le.tiles[sub, 0] - tiles[group, 0]).astype(np.float64)
+    edges = np.asarray(le.edges[: le.edge_offsets[n * k]], np.float64).copy()
+    edges[:, 0] += dc
+    edges[:, 2] += dc
+    edges[:, 1] += dr
+    edges[:, 3] += dr
+    return LayerEdges(edges, np.ascontiguousarray(le.edge_offsets[: n * k + 1 : k]), tiles)
