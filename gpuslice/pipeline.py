@@ -25,6 +25,7 @@ if TYPE_CHECKING:
     from collections.abc import Callable
 
     from .mesh.mesh import Mesh
+    from .raster.settings import PrintSettings
     from .raster.spec import RasterSpec, ResinOptions
     from .slicing.result import SliceResult
 
@@ -34,12 +35,17 @@ __all__ = ["Job", "JobResult", "ResinOutput", "ViewOutput", "prepare_device", "l
 @dataclass(frozen=True)
 class ResinOutput:
     """Rasterise the layers onto ``spec``'s display and write them to ``path`` as the resin output ``format``
-    (a name of :data:`gpuslice.raster.outputs.RESIN_FORMATS`), with ``options``."""
+    (a name of :data:`gpuslice.raster.outputs.RESIN_FORMATS`), with ``options`` and the print ``settings`` (None:
+    ``options.settings()``, the preset's or the defaults)."""
 
     path: str
     format: str
     spec: RasterSpec
     options: ResinOptions
+    settings: PrintSettings | None = None
+
+    def __post_init__(self) -> None:
+        self.options.check_format(self.format)  # a printer that cannot read it: refused before any work
 
 
 @dataclass(frozen=True)
@@ -245,8 +251,9 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
     name = r.options.job_name or Path(job.model_name).stem
     n = out.result.n_layers
     tick = (lambda k: progress(k, n)) if progress is not None else None
+    settings = r.settings if r.settings is not None else r.options.settings()
     target = ResinTarget(Path(r.path.rstrip("/\\") or "."), r.spec, r.options, out.result, name, now,
-                         r.options.workers, tick)
+                         r.options.workers, tick, settings)
     out.stats.update(RESIN_FORMATS[r.format].load()(layers, target))
     out.stats["raster_backend"] = backend
     t_sub = out.timings.get("z_samples", 0.0)

@@ -31,9 +31,10 @@ def _resin_names() -> tuple[str, ...]:
 def raster_option_fields() -> dict[str, Any]:
     """``--raster-opt`` keys → their :class:`~gpuslice.options.OptionInfo`: the fields of
     :class:`~gpuslice.raster.spec.RasterSpec` and :class:`~gpuslice.raster.spec.ResinOptions`."""
+    from ..raster.settings import PrintSettings
     from ..raster.spec import RasterSpec, ResinOptions
 
-    return {i.name: i for cls in (RasterSpec, ResinOptions) for i in options_of(cls)}
+    return {i.name: i for cls in (RasterSpec, ResinOptions, PrintSettings) for i in options_of(cls)}
 
 
 def typed_raster_options(pairs: dict[str, Any] | tuple[tuple[str, Any], ...]) -> tuple[tuple[str, Any], ...]:
@@ -96,14 +97,17 @@ class BatchOptions:
             raise ParameterError("raster_options need a raster output", param=("raster_options", "raster"))
 
     def resin(self):
-        """(:class:`RasterSpec`, :class:`ResinOptions`) of ``raster_options``."""
+        """(:class:`RasterSpec`, :class:`ResinOptions`, :class:`PrintSettings`) of ``raster_options``."""
+        from ..raster.settings import PrintSettings
         from ..raster.spec import RasterSpec, ResinOptions
 
         given = dict(typed_raster_options(self.raster_options))
         resin_keys = {f.name for f in fields(ResinOptions)}
         ropts = ResinOptions(**{k: v for k, v in given.items() if k in resin_keys})
+        ropts.check_format(self.raster)
         display = {f.name: given.get(f.name) for f in fields(RasterSpec)}
-        return ropts.spec(**display), ropts
+        settings = ropts.settings(**{f.name: given.get(f.name) for f in fields(PrintSettings)})
+        return ropts.spec(**display), ropts, settings
 
     @property
     def suffix(self) -> str:
@@ -124,8 +128,9 @@ class BatchOptions:
 
         resin = None
         if self.raster is not None:
-            spec, ropts = self.resin()
-            resin = ResinOutput(str(target), self.raster, spec, replace(ropts, workers=ropts.workers or workers))
+            spec, ropts, settings = self.resin()
+            resin = ResinOutput(str(target), self.raster, spec, replace(ropts, workers=ropts.workers or workers),
+                                settings)
         return Job(source=source, name=name, label=label, data=data, placement=self.placement, params=self.params,
                    contours=None if resin is not None else str(target), resin=resin, portable=True)
 

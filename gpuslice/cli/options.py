@@ -122,10 +122,11 @@ def option_classes() -> list[type]:
     """Every dataclass whose fields are command-line options (for mapping error messages to flags)."""
     from ..batch.options import BatchOptions
     from ..mesh.mesh import Placement
+    from ..raster.settings import PrintSettings
     from ..raster.spec import RasterSpec, ResinOptions
     from ..slicing.params import SliceParams
 
-    return [SliceParams, Placement, RasterSpec, ResinOptions, BatchOptions]
+    return [SliceParams, Placement, RasterSpec, ResinOptions, PrintSettings, BatchOptions]
 
 
 def flag_for(param: str) -> str | None:

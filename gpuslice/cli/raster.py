@@ -9,6 +9,7 @@ from pathlib import Path
 
 import click
 
+from ..raster.settings import PrintSettings
 from ..raster.spec import RasterSpec, ResinOptions
 from .options import build, click_options, fail, slicing_options, slicing_values, values, with_options
 
@@ -58,6 +59,7 @@ class _Bar:
 @with_options(click_options(ResinOptions, only=("printer",)))
 @with_options(click_options(RasterSpec, defaults=False))  # None unless given: they override the preset
 @with_options(click_options(ResinOptions, exclude=("printer",)))
+@with_options(click_options(PrintSettings, defaults=False))  # None unless given: they override the preset
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr [TTY or long runs].")
 @click.option("--report", type=click.Path(path_type=str), default=None, help="Write timings and counts as JSON.")
 @click.option("-q", "--quiet", is_flag=True, help="No summary on stdout.")
@@ -79,8 +81,9 @@ def raster(model: str, output: str, progress: bool | None, report: str | None, q
     params, placement = slicing_values(kw, DEFAULTS)
     options = build(ResinOptions, kw)
     spec = options.spec(**values(RasterSpec, kw))
+    settings = options.settings(**values(PrintSettings, kw))
     job = Job(source=model, placement=placement, params=params, mesh_check=False,
-              resin=ResinOutput(output, fmt.name, spec, options))
+              resin=ResinOutput(output, fmt.name, spec, options, settings))
     bar = _Bar(f"raster {Path(output).name}", progress)
     try:
         done = run_job(job, progress=bar)

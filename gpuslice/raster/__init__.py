@@ -1,7 +1,7 @@
 """Resin layers: rasterising the nested polygons onto a printer's display and writing the archives resin printers
 read.
 
-``spec.py`` (the display, presets, resin options), ``edges.py`` (the layers' edges in pixels, for every
+``spec.py`` (the display, resin options), ``printers.py`` (presets), ``settings.py`` (print settings per layer), ``edges.py`` (the layers' edges in pixels, for every
 rasteriser), ``coverage.py`` + ``kernels/raster.cl`` (exact area coverage;
 numpy twin), ``gl.py`` (the moderngl pass), ``outputs.py`` (the resin-output registry), ``png.py`` (the PNG encoder),
 ``sl1.py`` and ``pngstack.py`` (the outputs).
@@ -9,12 +9,16 @@ numpy twin), ``gl.py`` (the moderngl pass), ``outputs.py`` (the resin-output reg
 
 from .coverage import RasterKernel, Tile, choose_backend, coverage_numpy, iter_masks, iter_tiles, masks
 from .edges import LayerEdges, check_fits, layer_edges, result_bounds
+from .printers import Printer, find_printer
+from .settings import PrintSettings
 from .spec import BACKENDS, PRINTERS, RasterSpec, ResinOptions, gamma_lut, with_printer
 
 __all__ = [
     "BACKENDS",
     "LayerEdges",
     "PRINTERS",
+    "PrintSettings",
+    "Printer",
     "RasterKernel",
     "RasterSpec",
     "ResinOptions",
@@ -22,6 +26,7 @@ __all__ = [
     "check_fits",
     "choose_backend",
     "coverage_numpy",
+    "find_printer",
     "gamma_lut",
     "iter_masks",
     "iter_tiles",

@@ -16,7 +16,7 @@ from .coverage import Tile
 from .png import PngEncoder
 from .runs import Runs
 
-__all__ = ["RunLayer", "iter_run_layers", "encode_png", "sample"]
+__all__ = ["RunLayer", "iter_run_layers", "encode_png", "sample", "pixel_runs"]
 
 
 @dataclass(frozen=True)
@@ -90,3 +90,33 @@ def sample(item: Tile | RunLayer, step: int, threshold: int = 128) -> tuple[np.n
     count = np.maximum((end[keep] - 1) // step - first + 1, 0)
     owner, cols = expand_ranges(first, count)
     return row[keep][owner] // step, cols
+
+
+def pixel_runs(item: Tile | RunLayer, cols: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The layer as run-length runs in display order, what run-length archive formats store: ``(start, length,
+    grey)`` with ``start`` the int64 row-major pixel index (``row * cols + column``, row 0 the PNG's top row),
+    ``length`` int64 (>= 1) and ``grey`` uint8 (never 0: the pixels between runs are blank). Runs are sorted, never
+    overlap and never cross a row end; two runs of one row never touch with the same grey. ``cols``: the display's
+    columns (:attr:`RasterSpec.shape` [1]). Runs come straight from the rasteriser's runs; a tile is run-length
+    coded row by row (time proportional to the tile, never the display)."""
+    if isinstance(item, RunLayer):
+        runs, j = item.runs, item.j
+        a, b = int(runs.layer_offsets[j]), int(runs.layer_offsets[j + 1])
+        start = runs.row[a:b].astype(np.int64) * cols + runs.x[a:b]
+        return start, runs.length[a:b].astype(np.int64), runs.grey[a:b]
+    data = item.data
+    h, w = data.shape
+    if not h or not w:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.uint8)
+    # a run starts where the grey changes along a row (or at a row's start); blank runs are dropped
+    change = np.ones((h, w), bool)
+    change[:, 1:] = data[:, 1:] != data[:, :-1]
+    r, c = np.nonzero(change)
+    first = r * w + c
+    ends = np.append(first[1:], h * w)
+    row_end = (r + 1) * w
+    length = np.minimum(ends, row_end) - first
+    grey = data.reshape(-1)[first]
+    keep = grey != 0
+    start = (r[keep] + item.row0).astype(np.int64) * cols + (c[keep] + item.col0)
+    return start, length[keep].astype(np.int64), grey[keep]

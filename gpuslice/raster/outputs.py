@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from ..errors import ParameterError
+from .settings import PrintSettings
 from .spec import RasterSpec, ResinOptions
 
 if TYPE_CHECKING:
@@ -34,7 +35,7 @@ __all__ = ["RESIN_FORMATS", "ResinFormat", "ResinTarget", "resin_format_for", "r
 @dataclass(frozen=True)
 class ResinTarget:
     """Everything an archive writer needs besides the tiles: where (``path``), the display (``spec``), the job's
-    options, the sliced ``result`` (layer heights, areas for the resin volume, count), the job ``name`` (SL1 jobDir,
+    options, the print ``settings``, the sliced ``result`` (layer heights, areas for the resin volume, count), the job ``name`` (SL1 jobDir,
     PNG prefix), the archive date ``now`` (None: the current time; given: a reproducible build, see
     :attr:`deflater`), encoder ``workers`` and a ``progress(k)`` callback."""
 
@@ -46,6 +47,7 @@ class ResinTarget:
     now: dt.datetime | None = None
     workers: int | None = None
     progress: Callable[[int], None] | None = None
+    settings: PrintSettings = PrintSettings()
 
     @property
     def deflater(self) -> str:

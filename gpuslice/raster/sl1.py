@@ -279,8 +279,9 @@ def info_from(result, job_dir: str, values: Mapping[str, object] | None = None) 
 
 def write_target(tiles: Iterable[Tile], target) -> dict[str, float]:
     """The registry's writer (:mod:`gpuslice.raster.outputs`): an SL1 archive of ``target.result``'s layers."""
-    o = target.options
-    values = {"exposure_time": o.exposure, "initial_exposure_time": o.exposure_first}
+    o, s = target.options, target.settings
+    values = {"exposure_time": s.exposure, "initial_exposure_time": s.bottom_exposure,
+              "faded_layers": s.transition_layers}
     info = info_from(target.result, target.name, values)
     return write_sl1(tiles, target.spec, target.path, info, target.result.n_layers, level=o.png_level,
                      deflater=target.deflater, workers=target.workers, progress=target.progress, now=target.now)

@@ -1,5 +1,5 @@
 """What a resin printer's display is and how a model is placed on it (:class:`RasterSpec`), the printer presets
-(:data:`PRINTERS`), the grey levels (:func:`gamma_lut`) and the options of a resin job (:class:`ResinOptions`): each
+(:data:`PRINTERS`, from :mod:`gpuslice.raster.printers`), the grey levels (:func:`gamma_lut`) and the options of a resin job (:class:`ResinOptions`): each
 option declared once (:mod:`gpuslice.options`). The mapping model XY → pixels is described in
 :mod:`gpuslice.raster.coverage`.
 """
@@ -14,6 +14,8 @@ import numpy as np
 
 from ..errors import ParameterError
 from ..options import option, parse_resolution
+from .printers import PRINTERS, Printer, find_printer
+from .settings import PrintSettings
 
 __all__ = ["RasterSpec", "ResinOptions", "PRINTERS", "BACKENDS", "gamma_lut", "with_printer"]
 
@@ -138,18 +140,6 @@ class RasterSpec:
         return inv[0, 0] * u + inv[0, 1] * v + inv[0, 2], inv[1, 0] * u + inv[1, 1] * v + inv[1, 2]
 
 
-#: display presets: name -> RasterSpec keyword arguments (nominal panel figures; check your printer)
-PRINTERS: dict[str, dict] = {
-    "generic-4k": {"resolution": (3840, 2400), "pixel": 0.05},  # 192 x 120 mm, e.g. 8.9" 4K monochrome LCDs
-    "generic-2k": {"resolution": (2560, 1440), "pixel": 0.04725},  # 120.96 x 68.04 mm, 5.5" 2K LCDs
-    # the display values of PrusaSlicer's Original Prusa SL1 profile (68.04 x 120.96 mm, portrait, mirrored X)
-    "prusa-sl1": {"resolution": (1440, 2560), "pixel": 0.04725, "portrait": True, "mirror_x": True},
-    "elegoo-mars": {"resolution": (1440, 2560), "pixel": 0.04725},  # 5.5" 2K, 68.04 x 120.96 mm
-    "elegoo-saturn": {"resolution": (3840, 2400), "pixel": 0.05},  # 8.9" 4K
-    "anycubic-photon-mono-x": {"resolution": (3840, 2400), "pixel": 0.05},  # 8.9" 4K
-}
-
-
 def gamma_lut(gamma: float) -> np.ndarray:
     """(256,) uint8: grey for ``k = min(255, floor(256·coverage))``, as agg's ``gamma_power``/``gamma_threshold``."""
     k = np.arange(256, dtype=np.float64) / 255.0
@@ -159,32 +149,28 @@ def gamma_lut(gamma: float) -> np.ndarray:
 
 
 def with_printer(name: str, **overrides) -> RasterSpec:
-    """A :class:`RasterSpec` from the preset ``name`` (:data:`PRINTERS`) with ``overrides``."""
-    if name not in PRINTERS:
-        raise ParameterError(f"unknown printer '{name}' (use {', '.join(sorted(PRINTERS))})")
-    return replace(RasterSpec(**PRINTERS[name]), **overrides)
+    """A :class:`RasterSpec` of the preset ``name`` (:data:`PRINTERS`, or a preset file) with ``overrides``."""
+    return replace(RasterSpec(**find_printer(name).display()), **overrides)
 
 
 @dataclass(frozen=True)
 class ResinOptions:
     """How a resin job is rasterised and encoded, besides the display (:class:`RasterSpec`); times in s."""
 
-    printer: str | None = option(None, "Display preset, one of gpuslice.raster.PRINTERS; the display options "
-                                 "override it")
+    printer: str | None = option(None, "Printer preset: a name `gpuslice printers` lists, or a .toml/.json preset "
+                                 "file; the display and print options given override it")
     raster_backend: str = option("auto", "Rasteriser: auto is GL on a hardware GPU, else OpenCL", choices=BACKENDS)
     supersample: int = option(8, "GL backend: samples per pixel side (1-16)")
     png_level: int = option(1, "Deflate level of each layer's non-blank rows (0-9); at 1 the OpenCL rasteriser "
                              "deflates straight from its runs (fastest, smaller files)")
-    exposure: float = option(10.0, "Exposure time (config.ini)", unit="s")
-    exposure_first: float = option(15.0, "First layers' exposure", unit="s")
     job_name: str | None = option(None, "SL1 jobDir and PNG prefix (default: the model's file name)")
     workers: int | None = option(None, "PNG encoding threads (default: the CPUs)")
     z_samples: int = option(1, "Anti-aliasing in Z: each layer's greys averaged over this many planes inside its "
                             "slab (1: off; needs the OpenCL rasteriser)")
 
     def __post_init__(self) -> None:
-        if self.printer is not None and self.printer not in PRINTERS:
-            raise ParameterError(f"unknown printer '{self.printer}' (use {', '.join(sorted(PRINTERS))})")
+        if self.printer is not None:
+            find_printer(self.printer)
         if self.raster_backend not in BACKENDS:
             raise ParameterError(f"unknown raster backend '{self.raster_backend}' (use {', '.join(BACKENDS)})",
                                  param="raster_backend")
@@ -202,6 +188,24 @@ class ResinOptions:
 
     def spec(self, **display) -> RasterSpec:
         """The :class:`RasterSpec`: the preset's values (if any) overridden by ``display`` values that are not None."""
-        kw = dict(PRINTERS[self.printer]) if self.printer is not None else {}
+        kw = self.preset.display() if self.preset is not None else {}
         kw.update({k: v for k, v in display.items() if v is not None})
         return RasterSpec(**kw)
+
+    @property
+    def preset(self) -> Printer | None:
+        """The :class:`~gpuslice.raster.printers.Printer` that ``printer`` names, or None."""
+        return find_printer(self.printer) if self.printer is not None else None
+
+    def settings(self, **given) -> PrintSettings:
+        """The :class:`~gpuslice.raster.settings.PrintSettings`: defaults, then the preset's, then ``given`` values
+        that are not None."""
+        preset = self.preset
+        base = PrintSettings().with_values(preset.settings) if preset is not None else PrintSettings()
+        return base.with_values(given)
+
+    def check_format(self, fmt: str) -> None:
+        """:class:`ParameterError` when the preset's printer cannot read the resin output ``fmt``."""
+        preset = self.preset
+        if preset is not None and not preset.reads(fmt):
+            raise ParameterError(f"printer {preset.name} reads {', '.join(preset.formats)}, not {fmt}")

@@ -393,7 +393,7 @@ def test_manifest_records_raster_options_as_given(tmp_path):
                                         ("mirror_x", "true")))
     assert opts.shaping()["raster_options"] == [["resolution", "400x300"], ["gamma", 1], ["pixel", 0.1],
                                                 ["mirror_x", True]]
-    spec, _ = opts.resin()
+    spec, _, _ = opts.resin()
     assert spec.resolution == (400, 300) and spec.gamma == 1.0 and spec.mirror_x is True
     # what 8c0d960 computed for these options (its BatchOptions.shaping, json with sorted keys, sha256[:16])
     import hashlib
