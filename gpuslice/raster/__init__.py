@@ -1,5 +1,4 @@
-"""Resin layers: rasterising the nested polygons onto a printer's display and writing the archives resin printers
-read.
+"""Resin layers: rasterising the nested polygons onto a printer's display and writing the archives resin printers read.
 
 ``spec.py`` (the display, resin options), ``printers.py`` (presets), ``settings.py`` (print settings per layer), ``edges.py`` (the layers' edges in pixels, for every
 rasteriser), ``coverage.py`` + ``kernels/raster.cl`` (exact area coverage;

@@ -1,8 +1,7 @@
 """What a resin printer's display is and how a model is placed on it (:class:`RasterSpec`), the printer presets
-(:data:`PRINTERS`, from :mod:`gpuslice.raster.printers`), the grey levels (:func:`gamma_lut`) and the options of a resin job (:class:`ResinOptions`): each
-option declared once (:mod:`gpuslice.options`). The mapping model XY → pixels is described in
-:mod:`gpuslice.raster.coverage`.
-"""
+(:data:`PRINTERS`, from :mod:`gpuslice.raster.printers`), the grey levels (:func:`gamma_lut`) and the options of a
+resin job (:class:`ResinOptions`): each option declared once (:mod:`gpuslice.options`). The mapping model XY → pixels
+is described in :mod:`gpuslice.raster.coverage`."""
 
 from __future__ import annotations
 
