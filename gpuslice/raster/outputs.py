@@ -35,9 +35,10 @@ __all__ = ["RESIN_FORMATS", "ResinFormat", "ResinTarget", "resin_format_for", "r
 @dataclass(frozen=True)
 class ResinTarget:
     """Everything an archive writer needs besides the tiles: where (``path``), the display (``spec``), the job's
-    options, the print ``settings``, the sliced ``result`` (layer heights, areas for the resin volume, count), the job ``name`` (SL1 jobDir,
+    options, the sliced ``result`` (layer heights, areas for the resin volume, count), the job ``name`` (SL1 jobDir,
     PNG prefix), the archive date ``now`` (None: the current time; given: a reproducible build, see
-    :attr:`deflater`), encoder ``workers`` and a ``progress(k)`` callback."""
+    :attr:`deflater`), encoder ``workers``, a ``progress(k)`` callback and the print ``settings``
+    (:class:`~gpuslice.raster.settings.PrintSettings`: exposures, lifts, per layer via ``layer_table``)."""
 
     path: Path
     spec: RasterSpec
