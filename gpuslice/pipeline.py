@@ -225,8 +225,7 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
     r = job.resin
     t = time.perf_counter()
     k = r.options.z_samples
-    # z samples need the runs (OpenCL): "auto" means OpenCL then, even where a hardware GPU would give GL
-    backend = "opencl" if k > 1 and r.options.raster_backend == "auto" else choose_backend(r.options.raster_backend)
+    backend = choose_backend(r.options.raster_backend)
     dev = out.device
     if dev is None and backend == "opencl":  # numpy slicing, OpenCL rasterising
         from .device import get_device

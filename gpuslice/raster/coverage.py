@@ -29,9 +29,9 @@ Backends: ``"opencl"`` (run-length runs, :mod:`gpuslice.raster.runs` + ``kernels
 ``kernels/raster.cl`` byte for byte, 10x faster, never a display-sized bitmap; tiles are filled from the runs),
 ``"opencl-bitmap"`` (``kernels/raster.cl``, :class:`RasterKernel`: the bitmap accumulator the runs replaced, kept for
 benchmarks), ``"numpy"`` (:func:`coverage_numpy`, the bitmap kernel's float64 twin; it may differ from it by one grey
-level on a few pixels), ``"gl"`` (moderngl/EGL, :mod:`gpuslice.raster.gl`, supersampled). ``"auto"`` takes GL on a
-hardware GPU and OpenCL otherwise (llvmpipe, Mesa's software GL, is slower than the OpenCL pass on a CPU:
-docs/BENCHMARKS.md).
+level on a few pixels), ``"gl"`` (moderngl/EGL, :mod:`gpuslice.raster.gl`, supersampled). ``"auto"`` is the runs
+(OpenCL): GL is the optional GPU pass, taken only when asked (probing EGL for a hardware GPU costs 0.1 s at start-up;
+llvmpipe, Mesa's software GL, is 50-135x slower than the runs on a CPU: docs/BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -191,20 +191,10 @@ class RasterKernel(KernelDriver):
 
 
 def choose_backend(backend: str = "auto", device=None) -> str:
-    """The rasteriser ``backend`` names: ``"auto"`` → ``"gl"`` when EGL gives a hardware GPU, else ``"opencl"``."""
+    """The rasteriser ``backend`` names: ``"auto"`` → ``"opencl"`` (the runs); the others as given."""
     if backend not in BACKENDS:
         raise ParameterError(f"unknown raster backend '{backend}' (use {', '.join(BACKENDS)})")
-    if backend != "auto":
-        return backend
-    try:
-        from .gl import gl_info
-
-        info = gl_info()
-        if info is not None and not info["software"]:
-            return "gl"
-    except Exception:  # no moderngl, no EGL: the OpenCL pass
-        pass
-    return "opencl"
+    return "opencl" if backend == "auto" else backend
 
 
 def _batches(tiles: np.ndarray, max_pixels: int) -> Iterator[range]:

@@ -146,7 +146,15 @@ def _pack(val: np.ndarray, nb: np.ndarray, body: np.ndarray, pattern: int, pbits
     ``pbits``-bit ``pattern`` repeated ``nb / pbits`` times (their ``val`` is ignored). Padded to a byte."""
     off = np.cumsum(nb) - nb
     total = int(off[-1] + nb[-1])
-    words = np.zeros(total // 64 + 2, _U64)
+    words = _pack_words(val, nb, off, body, pattern, pbits, total // 64 + 2)
+    return words.astype("<u8", copy=False).view(np.uint8)[: (total + 7) // 8].tobytes()
+
+
+def _pack_words(val: np.ndarray, nb: np.ndarray, off: np.ndarray, body: np.ndarray, pattern: int, pbits: int,
+                n_words: int) -> np.ndarray:
+    """``n_words`` uint64 words holding tokens ``val`` of ``nb`` bits at bit offsets ``off`` (increasing; tokens do
+    not overlap), bodies as in :func:`_pack`."""
+    words = np.zeros(n_words, _U64)
     val = np.where(body, _U64(0), val)  # bodies add nothing here (zero value, and zero spill)
     w, s = off >> 6, (off & 63).astype(_U64)
     first = np.flatnonzero(np.concatenate(([True], w[1:] != w[:-1])))
@@ -171,40 +179,44 @@ def _pack(val: np.ndarray, nb: np.ndarray, body: np.ndarray, pattern: int, pbits
         mid = ~last
         words[wi[mid]] = part[mid]
         np.bitwise_or.at(words, np.concatenate((w0, wi[last])), np.concatenate((head, part[last])))
-    return words.astype("<u8", copy=False).view(np.uint8)[: (total + 7) // 8].tobytes()
+    return words
 
 
-def _deflate(seg_v: np.ndarray, seg_n: np.ndarray, huffman: str) -> bytes:
-    """One final deflate block of the segments (module docstring)."""
+def _codes(seg_v: np.ndarray, q: np.ndarray, r: np.ndarray, huffman: str):
+    """(code, lengths, header values, header bit counts, distance bits) of one deflate block for segments of values
+    ``seg_v`` with ``q`` body copies and tails of ``r`` bytes (module docstring)."""
+    if huffman == "fixed":
+        return _FIXED_CODE, _FIXED_LENGTHS, np.array([3]), np.array([3]), 5  # BFINAL 1, BTYPE 01
+    tail_match = r >= 3
+    freq = np.zeros(286, np.int64)
+    freq[:256] = np.bincount(seg_v, weights=1 + np.where(tail_match, 0, r), minlength=256)
+    freq[256] = 1
+    freq[_LSYM[_MAXLEN]] += int(q.sum())
+    np.add.at(freq, _LSYM[r[tail_match]], 1)
+    lengths = _huffman_lengths(freq)
+    code = _canonical(lengths)
+    nlit = int(np.flatnonzero(lengths)[-1]) + 1
+    cl = [4 * (s < 16) for s in _CL_ORDER]  # the code-length code: symbols 0..15, 4 bits each
+    code_lens = np.concatenate((lengths[:nlit], [1]))  # then one distance code of 1 bit
+    hdr_val = np.concatenate(([5, nlit - 257, 0, 15], cl, _reverse(code_lens, np.full(code_lens.size, 4))))
+    hdr_nb = np.concatenate(([3, 5, 5, 4], [3] * 19, np.full(code_lens.size, 4)))
+    return code, lengths, hdr_val, hdr_nb, 1
+
+
+def _split(seg_n: np.ndarray):
+    """(q, r, per): body copies, tail bytes and tokens (head, body?, tail?) of segments of ``seg_n`` bytes."""
     m = seg_n - 1
     q, r = m // _MAXLEN, m % _MAXLEN
-    has_body, has_tail = q > 0, r > 0
-    tail_match = r >= 3
-    if huffman == "fixed":
-        lengths, code, dist_bits = _FIXED_LENGTHS, _FIXED_CODE, 5
-        hdr_val, hdr_nb = np.array([3]), np.array([3])  # BFINAL 1, BTYPE 01
-    else:
-        freq = np.zeros(286, np.int64)
-        freq[:256] = np.bincount(seg_v, weights=1 + np.where(tail_match, 0, r), minlength=256)
-        freq[256] = 1
-        freq[_LSYM[_MAXLEN]] += int(q.sum())
-        np.add.at(freq, _LSYM[r[tail_match]], 1)
-        lengths, dist_bits = _huffman_lengths(freq), 1
-        code = _canonical(lengths)
-        nlit = int(np.flatnonzero(lengths)[-1]) + 1
-        cl = [4 * (s < 16) for s in _CL_ORDER]  # the code-length code: symbols 0..15, 4 bits each
-        code_lens = np.concatenate((lengths[:nlit], [1]))  # then one distance code of 1 bit
-        hdr_val = np.concatenate(([5, nlit - 257, 0, 15], cl, _reverse(code_lens, np.full(code_lens.size, 4))))
-        hdr_nb = np.concatenate(([3, 5, 5, 4], [3] * 19, np.full(code_lens.size, 4)))
+    return q, r, 1 + (q > 0) + (r > 0)
+
+
+def _fill_tokens(seg_v, q, r, es, val, nb, body, code, lengths, dist_bits) -> tuple[int, int]:
+    """Write each segment's tokens (head literal, body, tail) at token positions ``es`` of ``val``/``nb``/``body``;
+    returns (the body pattern, its bits): one <258, 1> copy."""
+    has_body, has_tail, tail_match = q > 0, r > 0, r >= 3
     lit_val, lit_nb = code[:256], lengths[:256]
     mval = code[_LSYM] | (_LXVAL << lengths[_LSYM])  # then the distance code: dist_bits zeros
     mnb = lengths[_LSYM] + _LXBITS + dist_bits
-    per = 1 + has_body + has_tail
-    h = hdr_val.size
-    es = h + np.cumsum(per) - per
-    e = h + int(per.sum()) + 1
-    val, nb, body = np.zeros(e, np.int64), np.zeros(e, np.int64), np.zeros(e, bool)
-    val[:h], nb[:h] = hdr_val, hdr_nb
     val[es], nb[es] = lit_val[seg_v], lit_nb[seg_v]
     bi = es[has_body] + 1
     nb[bi], body[bi] = q[has_body] * mnb[_MAXLEN], True
@@ -212,8 +224,21 @@ def _deflate(seg_v: np.ndarray, seg_n: np.ndarray, huffman: str) -> bytes:
     lv, lb = lit_val[vt], lit_nb[vt]
     val[ti] = np.where(tm, mval[rt], lv | np.where(rt == 2, lv << lb, 0))
     nb[ti] = np.where(tm, mnb[rt], rt * lb)
+    return int(mval[_MAXLEN]), int(mnb[_MAXLEN])
+
+
+def _deflate(seg_v: np.ndarray, seg_n: np.ndarray, huffman: str) -> bytes:
+    """One final deflate block of the segments (module docstring)."""
+    q, r, per = _split(seg_n)
+    code, lengths, hdr_val, hdr_nb, dist_bits = _codes(seg_v, q, r, huffman)
+    h = hdr_val.size
+    es = h + np.cumsum(per) - per
+    e = h + int(per.sum()) + 1
+    val, nb, body = np.zeros(e, np.int64), np.zeros(e, np.int64), np.zeros(e, bool)
+    val[:h], nb[:h] = hdr_val, hdr_nb
+    pattern, pbits = _fill_tokens(seg_v, q, r, es, val, nb, body, code, lengths, dist_bits)
     val[-1], nb[-1] = code[256], lengths[256]  # end of block
-    return _pack(val.astype(_U64), nb, body, int(mval[_MAXLEN]), int(mnb[_MAXLEN]))
+    return _pack(val.astype(_U64), nb, body, pattern, pbits)
 
 
 def encode_png_from_runs(runs: Runs, k: int, width: int, height: int, huffman: str = "dynamic") -> bytes:
@@ -227,6 +252,9 @@ def encode_png_from_runs(runs: Runs, k: int, width: int, height: int, huffman: s
         raise ParameterError(f"image size must be positive, got {width}x{height}")
     seg_v, seg_n, p, n, v = _segments(runs, k, width, height)
     adler = _adler(p, n, v, height * (width + 1))
-    idat = b"\x78\x01" + _deflate(seg_v, seg_n, huffman) + struct.pack(">I", adler)
+    return _png(b"\x78\x01" + _deflate(seg_v, seg_n, huffman) + struct.pack(">I", adler), width, height)
+
+
+def _png(idat: bytes, width: int, height: int) -> bytes:
     ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
     return _SIG + png_chunk(b"IHDR", ihdr) + png_chunk(b"IDAT", idat) + png_chunk(b"IEND", b"")

@@ -45,10 +45,13 @@ def write_png_stack(
     with atomic_path(out) as tmp:
         tmp.mkdir()
 
-        def sink(k: int, data: bytes) -> None:
+        def encode_and_write(pair: tuple[int, Tile]) -> bytes:  # in the pool: file creation overlaps the encoding
+            k, item = pair
+            data = encode_png(item, enc)
             (tmp / f"{prefix}{k:0{digits}d}.png").write_bytes(data)
+            return data
 
-        stats = encode_all(tiles, lambda item: encode_png(item, enc), sink, workers, progress=progress)
+        stats = encode_all(enumerate(tiles), encode_and_write, lambda k, data: None, workers, progress=progress)
     return stats
 
 

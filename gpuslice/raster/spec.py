@@ -18,7 +18,7 @@ from .settings import PrintSettings
 
 __all__ = ["RasterSpec", "ResinOptions", "PRINTERS", "BACKENDS", "gamma_lut", "with_printer"]
 
-#: rasterisers: ``auto`` (GL on a hardware GPU, else OpenCL), ``opencl`` (runs), ``numpy`` (the twin), ``gl``
+#: rasterisers: ``auto`` (= ``opencl``), ``opencl`` (runs), ``numpy`` (the twin), ``gl``
 #: (moderngl), ``opencl-bitmap`` (the bitmap kernel runs replaced)
 BACKENDS = ("auto", "opencl", "numpy", "gl", "opencl-bitmap")
 
@@ -158,7 +158,8 @@ class ResinOptions:
 
     printer: str | None = option(None, "Printer preset: a name `gpuslice printers` lists, or a .toml/.json preset "
                                  "file; the display and print options given override it")
-    raster_backend: str = option("auto", "Rasteriser: auto is GL on a hardware GPU, else OpenCL", choices=BACKENDS)
+    raster_backend: str = option("auto", "Rasteriser: auto is opencl (run-length runs); gl is the optional "
+                                 "moderngl pass", choices=BACKENDS)
     supersample: int = option(8, "GL backend: samples per pixel side (1-16)")
     png_level: int = option(1, "Deflate level of each layer's non-blank rows (0-9); at 1 the OpenCL rasteriser "
                              "deflates straight from its runs (fastest, smaller files)")
