@@ -205,10 +205,13 @@ def resolve(spec: str | None) -> dict:
 _DEVICES: dict[str, Device] = {}
 
 
-def get_device(spec: str | None = None) -> Device:
-    """The :class:`Device` named by ``spec`` (see the module docstring); contexts are created once per process."""
+def get_device(spec: str | Device | None = None) -> Device:
+    """The :class:`Device` named by ``spec`` (see the module docstring; a :class:`Device` is returned as it is, so
+    ``slice_mesh(mesh, device=get_device())`` works too); contexts are created once per process."""
     import pyopencl as cl
 
+    if isinstance(spec, Device):
+        return spec
     entry = resolve(spec)
     key = entry["id"]
     if key not in _DEVICES:

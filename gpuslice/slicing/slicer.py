@@ -81,7 +81,8 @@ def slice_mesh(
     mesh : a :class:`~gpuslice.mesh.Mesh` (mm, standing on the bed), or anything :func:`~gpuslice.load_mesh`
         takes: a path, a ``trimesh.Trimesh`` or ``Scene``, ``(vertices, faces)`` arrays, the bytes of a mesh file
         or a binary file object (loaded first, in memory; a ``Trimesh`` slices exactly as its binary STL).
-    params : a :class:`SliceParams`; keyword ``overrides`` replace its fields (e.g. ``thickness=0.2``); the
+    params : a :class:`SliceParams`; keyword ``overrides`` replace its fields (e.g. ``thickness=0.2``; ``device`` may
+        also be a :class:`~gpuslice.device.Device`, e.g. ``get_device()``); the
         overrides ``scale``, ``fit`` (mm) and ``name`` go to :func:`~gpuslice.load_mesh` instead (any source but
         a placed ``Mesh`` without them).
     z : optional explicit cutting planes, mm above the bed, strictly increasing; ``layer_thickness`` gives their
@@ -105,6 +106,9 @@ def slice_mesh(
     >>> r.z.tolist(), r.area.tolist()
     ([1.25, 3.75, 6.25, 8.75], [100.0, 100.0, 100.0, 100.0])
     """
+    from ..device import Device
+
+    given_device = overrides.pop("device") if isinstance(overrides.get("device"), Device) else None
     placement = {k: overrides.pop(k) for k in ("scale", "fit", "name") if k in overrides}
     if not isinstance(mesh, Mesh) or placement.get("scale") is not None or placement.get("fit") is not None:
         from ..mesh.mesh import load_mesh
@@ -122,7 +126,7 @@ def slice_mesh(
         from ..device import get_device
 
         t = time.perf_counter()
-        device = get_device(params.device)
+        device = given_device or get_device(params.device)
         device.program("crossings.cl")
         device.program("walk.cl")
         device_name = device.name
