@@ -4,8 +4,8 @@ all run jobs through here, with the same stage names and timings:
 
 ``device`` (OpenCL context and kernels) → ``load`` (read the file) → ``topology`` (weld, edge ids, placement) →
 ``schedule``, ``crossings``, ``chaining``, ``nesting`` (the slicer's own) → ``mesh_check`` (defect counts) →
-``write`` (the contour file) → ``cusp`` (schedule quality, for the report) → ``raster`` (masks, encoding and the
-archive) → ``view`` (the viewer page; ``masks`` when it shows resin masks).
+``write`` (the contour file) → ``cusp`` (schedule quality, for the report) → ``checks`` (pre-print checks) →
+``raster`` (masks, encoding and the archive) → ``view`` (the viewer page; ``masks`` when it shows resin masks).
 
 Timings are seconds, in :attr:`JobResult.timings`; nothing else of a run depends on the machine unless asked
 (``Job.portable`` leaves the device and backend out of the result's meta, so outputs are the same anywhere).
@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from .mesh.mesh import Placement
 from .slicing.params import SliceParams
 
@@ -29,7 +31,7 @@ if TYPE_CHECKING:
     from .raster.spec import RasterSpec, ResinOptions
     from .slicing.result import SliceResult
 
-__all__ = ["Job", "JobResult", "ResinOutput", "ViewOutput", "prepare_device", "load_job_mesh", "run_job"]
+__all__ = ["CheckOutput", "Job", "JobResult", "ResinOutput", "ViewOutput", "prepare_device", "load_job_mesh", "run_job"]
 
 
 @dataclass(frozen=True)
@@ -60,6 +62,22 @@ class ViewOutput:
 
 
 @dataclass(frozen=True)
+class CheckOutput:
+    """Run the pre-print checks (:func:`gpuslice.checks.run_checks`, stage ``checks``) after slicing, before any
+    resin or view output: on ``spec``'s pixels (a printer's display, placed as the archive places it; None:
+    contour-exact), with the print ``settings`` (None: the defaults) and ``options``
+    (:class:`gpuslice.checks.CheckOptions`; None: the defaults); ``path``: also write the JSON report there;
+    ``on_report(report)``: called as soon as the report is made (``raster --check`` prints it before writing).
+    The report goes to ``JobResult.stats["checks"]``."""
+
+    spec: RasterSpec | None = None
+    settings: PrintSettings | None = None
+    options: Any = None
+    path: str | None = None
+    on_report: Callable[[Any], None] | None = field(default=None, compare=False)
+
+
+@dataclass(frozen=True)
 class Job:
     """What to slice and what to write (lengths in mm).
 
@@ -70,6 +88,7 @@ class Job:
     placement, params : :class:`~gpuslice.mesh.mesh.Placement` and :class:`~gpuslice.slicing.params.SliceParams`.
     contours : a contour file to write (format by suffix, :mod:`gpuslice.formats`), or None.
     resin, view : a :class:`ResinOutput` / :class:`ViewOutput`, or None.
+    checks : a :class:`CheckOutput` (the pre-print checks), or None.
     mesh_check : count the mesh's defects into ``meta["repairs"]`` (:func:`gpuslice.mesh.defects.mesh_repairs`).
     cusp : add the schedule's cusp heights to the meta (:func:`gpuslice.bench.quality.cusp_summary`).
     portable : leave the device and backend out of the meta, so output bytes do not depend on the machine.
@@ -86,6 +105,7 @@ class Job:
     contours: str | None = None
     resin: ResinOutput | None = None
     view: ViewOutput | None = None
+    checks: CheckOutput | None = None
     mesh_check: bool = True
     cusp: bool = False
     portable: bool = False
@@ -167,6 +187,8 @@ def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | Non
     else:
         dev = prepare_device(job.params, device, timings)
         mesh = load_job_mesh(job, dev, timings)
+        if job.resin is not None:
+            _check_printer_fits(job, mesh)  # before slicing: a model larger than the printer is refused now
         result = _slice(job, mesh, dev, timings)
     out = JobResult(mesh, result, dev, timings, stats)
     if job.contours is not None:
@@ -181,6 +203,8 @@ def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | Non
         t = time.perf_counter()
         result.meta.update(cusp_summary(mesh, result, dev))
         timings["cusp"] = time.perf_counter() - t
+    if job.checks is not None:
+        _run_checks(job, out)
     if job.resin is not None:
         _write_resin(job, out, progress, now)
     if job.view is not None:
@@ -215,6 +239,29 @@ def _bounds(mesh: Mesh | None) -> tuple[float, float, float, float] | None:
         return None
     b = mesh.bounds
     return float(b[0, 0]), float(b[0, 1]), float(b[1, 0]), float(b[1, 1])
+
+
+def _check_printer_fits(job: Job, mesh: Mesh) -> None:
+    """:class:`ParameterError` when the placed mesh's XY box leaves the display or its height exceeds the printer
+    preset's build height (the exact per-layer check follows after slicing: ``raster.edges.check_fits``)."""
+    from .errors import ParameterError
+
+    r = job.resin
+    spec, preset = r.spec, r.options.preset
+    b = mesh.bounds
+    if b.size == 0:
+        return
+    corners = np.array([[b[0, 0], b[0, 1]], [b[1, 0], b[1, 1]]], np.float64)
+    uv = spec.to_pixels(corners, _bounds(mesh))
+    cols, rows = spec.png_size
+    eps = 1e-6
+    if uv[:, 0].min() < -eps or uv[:, 1].min() < -eps or uv[:, 0].max() > cols + eps or uv[:, 1].max() > rows + eps:
+        bx, by = spec.bed_mm
+        raise ParameterError(f"{job.model_name}: the model ({b[1, 0] - b[0, 0]:.2f} x {b[1, 1] - b[0, 1]:.2f} mm) "
+                             f"does not fit on the display ({bx:.2f} x {by:.2f} mm) at this placement")
+    if preset is not None and preset.build_height > 0 and mesh.height > preset.build_height + 1e-6:
+        raise ParameterError(f"{job.model_name}: the model is {mesh.height:.2f} mm tall, more than the "
+                             f"{preset.name}'s build height ({preset.build_height:g} mm)")
 
 
 def _write_resin(job: Job, out: JobResult, progress, now) -> None:
@@ -280,6 +327,26 @@ def _z_sampled_layers(job: Job, out: JobResult, spec, dev, bounds, k: int):
             yield RunLayer(a + item.index, item.runs, item.j)
 
 
+def _run_checks(job: Job, out: JobResult) -> None:
+    """The pre-print checks (stage ``checks``): islands, unsupported area, traps and suction cups, peel, time and
+    resin (:mod:`gpuslice.checks`), on the display's pixels placed as the archive places them."""
+    from .checks import run_checks
+
+    c = job.checks
+    t = time.perf_counter()
+    backend = "numpy" if job.params.backend == "numpy" else "auto"
+    report = run_checks(out.result, c.spec, c.settings, options=c.options, bounds=_bounds(out.mesh), backend=backend,
+                        device=out.device, name=job.model_name)
+    out.stats["checks"] = report
+    out.timings["checks"] = time.perf_counter() - t
+    if c.path is not None:
+        from .io.report import write_report
+
+        write_report(report.to_json(), c.path)
+    if c.on_report is not None:
+        c.on_report(report)
+
+
 def _write_view(job: Job, out: JobResult) -> None:
     from .view.page import raster_masks, write_view
 
@@ -301,6 +368,7 @@ def _write_view(job: Job, out: JobResult) -> None:
     else:
         title = src.name
     t = time.perf_counter()
-    out.stats["view_bytes"] = write_view(out.result, v.path, title=title, masks=masks)
+    out.stats["view_bytes"] = write_view(out.result, v.path, title=title, masks=masks,
+                                         checks=out.stats.get("checks"))
     out.timings["view"] = time.perf_counter() - t
 

@@ -28,6 +28,7 @@ COMMANDS = {
     "devices": "devices:devices",
     "info": "info:info",
     "plot": "bench:plot",
+    "printers": "printers:printers",
     "raster": "raster:raster",
     "shape": "shape:shape",
     "slice": "slice:slice_cmd",

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from ..raster.settings import PrintSettings
+from ..raster.settings import PrintSettings, format_duration, print_time_s, resin_ml
 from ..raster.spec import RasterSpec, ResinOptions
 from .options import build, click_options, fail, slicing_options, slicing_values, values, with_options
 
@@ -91,13 +91,18 @@ def raster(model: str, output: str, progress: bool | None, report: str | None, q
         bar.stop()
     timings = {**done.timings, "total": time.perf_counter() - t_start}
     stats, n = done.stats, done.result.n_layers
+    ml = resin_ml(done.result.area, done.result.thickness)
+    estimate = {"print_time_s": round(print_time_s(settings, n), 3), "resin_ml": round(ml, 4),
+                "resin_g": round(ml * settings.resin_density, 4)}
     if report is not None:
         write_report({"layers": n, "raster_backend": stats["raster_backend"], "output": output, "timings_s": timings,
                       **{k: v for k, v in stats.items() if k != "raster_backend"},
                       "display": {"resolution": list(spec.resolution), "pixel": [spec.px, spec.py],
-                                  "portrait": spec.portrait, "mirror_x": spec.mirror_x, "mirror_y": spec.mirror_y}},
+                                  "portrait": spec.portrait, "mirror_x": spec.mirror_x, "mirror_y": spec.mirror_y},
+                      **estimate},
                      report)
     if not quiet:
         click.echo(f"{Path(model).name}: {n} layers of {spec.png_size[0]}x{spec.png_size[1]} px ({spec.px:g} mm), "
-                   f"raster {stats['raster_backend']}, {stats['png_bytes'] / 1e6:.1f} MB of PNG, "
-                   f"{timings['total']:.2f} s; wrote {output}")
+                   f"raster {stats['raster_backend']}, {stats['png_bytes'] / 1e6:.1f} MB of layer images, "
+                   f"{timings['total']:.2f} s; print about {format_duration(estimate['print_time_s'])} (h:mm), "
+                   f"{ml:.1f} ml of resin; wrote {output}")

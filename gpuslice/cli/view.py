@@ -20,12 +20,6 @@ def _size(n: int) -> str:
     return f"{n / 1e6:.1f} MB" if n >= 1e6 else f"{n / 1e3:.1f} kB"
 
 
-def _printers() -> tuple[str, ...]:
-    from ..raster.spec import PRINTERS
-
-    return tuple(sorted(PRINTERS))
-
-
 @click.command()
 @click.argument("source", type=click.Path(dir_okay=True, path_type=str))
 @click.option("-o", "--output", type=click.Path(path_type=str), default=None,
@@ -33,16 +27,18 @@ def _printers() -> tuple[str, ...]:
 @with_options(slicing_options(defaults=False))  # None unless given: they are refused with a saved .npz
 @click.option("--raster", is_flag=True, help="Add each layer's resin mask (gpuslice.raster), drawn under the contours.")
 @click.option("--printer", default="generic-4k", show_default=True,
-              help="--raster: the display preset (gpuslice.raster.PRINTERS).")
+              help="--raster: the printer preset (a name `gpuslice printers` lists, or a .toml/.json file).")
 @click.option("--mask-every", type=int, default=1, show_default=True,
               help="--raster: a mask for every N-th layer only (smaller page).")
 @click.option("--title", default=None, help="Page title (default: the model's file name).")
+@click.option("--check", is_flag=True, help="Run the pre-print checks (as `gpuslice check`) and mark islands, resin "
+              "traps and suction cups on their layers, with a list to jump to them.")
 @click.option("-q", "--quiet", is_flag=True, help="Print nothing but errors.")
 def view(source: str, output: str | None, raster: bool, printer: str, mask_every: int, title: str | None,
-         quiet: bool, **kw) -> None:
+         check: bool, quiet: bool, **kw) -> None:
     """Write a self-contained HTML layer viewer for SOURCE (a mesh, sliced with the `slice` options, or a saved
     .npz result). Open it in any browser, offline: slider and arrow keys step through the layers."""
-    from ..pipeline import Job, ViewOutput, run_job
+    from ..pipeline import CheckOutput, Job, ViewOutput, run_job
 
     src = Path(source)
     if output is None:
@@ -62,15 +58,13 @@ def view(source: str, output: str | None, raster: bool, printer: str, mask_every
             fail("--raster needs pillow (pip install 'gpuslice[raster]')")
         if mask_every < 1:
             fail(f"--mask-every must be >= 1, got {mask_every}")
-        if printer not in _printers():
-            fail(f"unknown printer '{printer}' (use {', '.join(_printers())})")
         from ..raster.spec import with_printer
 
-        masks = with_printer(printer)
+        masks = with_printer(printer)  # a preset name or a .toml/.json preset file
     params, placement = slicing_values(kw)
     t0 = time.perf_counter()
     done = run_job(Job(source=source, placement=placement, params=params, mesh_check=False, saved_result=True,
-                       view=ViewOutput(output, title, masks, mask_every)))
+                       view=ViewOutput(output, title, masks, mask_every), checks=CheckOutput() if check else None))
     t1 = done.timings.get("view", 0.0)
     if not quiet:
         m = done.stats.get("masks")
@@ -79,3 +73,5 @@ def view(source: str, output: str | None, raster: bool, printer: str, mask_every
         click.echo(f"wrote {output}: {_size(size)} ({size:,} bytes), {done.result.n_layers:,} layers, "
                    f"{int(done.result.points.shape[0]):,} points{extra}; slicing/loading/masks "
                    f"{time.perf_counter() - t0 - t1:.2f} s, page {t1:.2f} s")
+        for line in done.stats["checks"].lines() if check else ():
+            click.echo(line)

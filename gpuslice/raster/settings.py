@@ -2,18 +2,32 @@
 the waits and the light's PWM (:class:`PrintSettings`, each option declared once), as per-layer columns
 (:func:`layer_table`) that every archive writer stores and that the print-time and resin estimates read.
 
-Conventions (what resin firmware and its archive formats use): times in s, heights in mm, speeds in mm/min.
-Layer i (0-based) is a **bottom** layer for ``i < bottom_layers``; the next ``transition_layers`` layers step their
-exposure linearly from ``bottom_exposure`` towards ``exposure`` (Chitubox's and UVtools' ramp: transition layer t of
-T gets ``bottom_exposure - (t + 1)·(bottom_exposure - exposure)/(T + 1)``); later layers get ``exposure``. The lift is
-two-stage where ``lift_height2 > 0`` (first ``lift_height`` at ``lift_speed``, then ``lift_height2`` at
-``lift_speed2``); the retract likewise (``retract_height2`` at ``retract_speed2`` first, the slow stage near the
-vat film, then ``retract_height`` at ``retract_speed``); both are one stage by default. Bottom layers use the
-``bottom_*`` lift values where given (None: the normal ones).
+Conventions (those of Chitubox, UVtools and the archive formats): times in s, heights in mm, speeds in mm/min.
+
+* **Bottom layers**: layer i (0-based) is a bottom layer for ``i < bottom_layers``; it is exposed for
+  ``bottom_exposure`` and moves with the ``bottom_*`` values (each None: the normal value).
+* **Transition layers**: the next ``transition_layers`` layers (T of them) step their exposure down linearly from
+  ``bottom_exposure`` to ``exposure``: transition layer t (0-based) gets ``bottom_exposure - (t + 1)·step`` with
+  ``step = (bottom_exposure - exposure) / (T + 1)`` rounded to 0.01 s, kept within [exposure, bottom_exposure]
+  (UVtools' ``GetTransitionStepTime``). So bottom 30 s, normal 2.5 s and T = 4 give 24.5, 19, 13.5 and 8 s. There is
+  no ramp when ``bottom_exposure <= exposure`` or the step rounds to 0 (the transition layers get ``exposure``).
+  Transition layers move and wait as normal layers; only their exposure ramps.
+* **Lift** (after the exposure, peeling the layer off the vat's film): ``lift_height`` at ``lift_speed`` (the slow
+  peel), then, where ``lift_height2 > 0``, ``lift_height2`` at ``lift_speed2`` (the fast stage): Chitubox's
+  two-stage motion control (TSMC).
+* **Retract** (back down for the next layer): the plate comes back by as much as it was lifted (the firmware adds
+  the layer height), so the retract is not a free length: it is the lift's total, ``lift_height + lift_height2``,
+  made of a fast stage at ``retract_speed`` then, where ``retract_height2 > 0``, a slow final stage of
+  ``retract_height2`` at ``retract_speed2`` near the film. The fast stage's length is the read-only
+  :attr:`PrintSettings.retract_height` (``lift_height + lift_height2 - retract_height2``), as UVtools defines it.
+* **Waits**: ``wait_before_cure`` (rest after the retract, before the light), ``wait_after_cure`` (before the lift),
+  ``wait_after_lift`` (at the top of the lift).
+* **PWM**: the light's intensity 1-255 (``light_pwm``, ``bottom_light_pwm``).
 
 A layer's time (:func:`layer_times`) is ``wait_before_cure + exposure + wait_after_cure + lift + wait_after_lift +
-retract``, each move ``height / speed · 60``; the whole print is their sum (:func:`print_time_s`). Resin volume is the
-sum of layer area × thickness (:func:`resin_ml`).
+retract``, each move ``height / speed · 60`` (UVtools' estimate with no light-off delay; printers add acceleration
+and, for tilting vats, their own tilt time). The whole print is their sum (:func:`print_time_s`). The resin volume is
+the sum of layer area × thickness (:func:`resin_ml`), its mass that times ``resin_density``.
 """
 
 from __future__ import annotations
@@ -27,7 +41,12 @@ import numpy as np
 from ..errors import ParameterError
 from ..options import option
 
-__all__ = ["PrintSettings", "layer_table", "layer_times", "print_time_s", "resin_ml", "LAYER_COLUMNS"]
+__all__ = ["PrintSettings", "layer_table", "layer_times", "print_time_s", "resin_ml", "transition_step",
+           "format_duration", "LAYER_COLUMNS"]
+
+#: settings with a bottom-layer twin ``bottom_<name>`` (None: the normal value)
+BOTTOM_TWINS = ("lift_height", "lift_speed", "lift_height2", "lift_speed2", "retract_speed", "retract_height2",
+                "retract_speed2", "wait_before_cure", "wait_after_cure", "wait_after_lift")
 
 
 @dataclass(frozen=True)
@@ -38,24 +57,39 @@ class PrintSettings:
     bottom_exposure: float = option(15.0, "Exposure of the bottom layers", unit="s",
                                     flags=("--bottom-exposure", "--exposure-first"))
     exposure: float = option(10.0, "Exposure of the normal layers", unit="s")
-    transition_layers: int = option(10, "Layers after the bottom ones whose exposure steps linearly from "
+    transition_layers: int = option(10, "Layers after the bottom ones whose exposure steps down linearly from "
                                     "--bottom-exposure to --exposure")
-    lift_height: float = option(5.0, "Lift after each layer (first stage)", unit="mm")
+    lift_height: float = option(5.0, "Lift after each layer (first, slow stage: the peel)", unit="mm")
     lift_speed: float = option(65.0, "Lift speed (first stage)", unit="mm/min")
-    lift_height2: float = option(0.0, "Second lift stage, after the first (0: one stage)", unit="mm")
+    lift_height2: float = option(0.0, "Second, fast lift stage after the first (0: one stage)", unit="mm")
     lift_speed2: float = option(0.0, "Second lift stage's speed", unit="mm/min")
-    retract_height: float = option(5.0, "Retract towards the vat (last stage; the whole retract when one stage)",
-                                   unit="mm")
-    retract_speed: float = option(150.0, "Retract speed", unit="mm/min")
-    retract_height2: float = option(0.0, "First retract stage, the slow approach to the film (0: one stage)",
-                                    unit="mm")
-    retract_speed2: float = option(0.0, "First retract stage's speed", unit="mm/min")
+    retract_speed: float = option(150.0, "Retract speed (the fast stage; the retract returns the whole lift)",
+                                  unit="mm/min")
+    retract_height2: float = option(0.0, "Last, slow retract stage near the vat film, part of the lift's height "
+                                    "(0: one stage)", unit="mm")
+    retract_speed2: float = option(0.0, "Slow retract stage's speed", unit="mm/min")
     bottom_lift_height: float | None = option(None, "Bottom layers' lift (default: --lift-height)", unit="mm")
     bottom_lift_speed: float | None = option(None, "Bottom layers' lift speed (default: --lift-speed)",
                                              unit="mm/min")
+    bottom_lift_height2: float | None = option(None, "Bottom layers' second lift stage (default: --lift-height2)",
+                                               unit="mm")
+    bottom_lift_speed2: float | None = option(None, "Bottom layers' second lift speed (default: --lift-speed2)",
+                                              unit="mm/min")
+    bottom_retract_speed: float | None = option(None, "Bottom layers' retract speed (default: --retract-speed)",
+                                                unit="mm/min")
+    bottom_retract_height2: float | None = option(None, "Bottom layers' slow retract stage (default: "
+                                                  "--retract-height2)", unit="mm")
+    bottom_retract_speed2: float | None = option(None, "Bottom layers' slow retract speed (default: "
+                                                 "--retract-speed2)", unit="mm/min")
     wait_before_cure: float = option(0.0, "Rest before each exposure (after the retract)", unit="s")
     wait_after_cure: float = option(0.0, "Rest after each exposure, before the lift", unit="s")
     wait_after_lift: float = option(0.0, "Rest at the top of the lift", unit="s")
+    bottom_wait_before_cure: float | None = option(None, "Bottom layers' rest before exposure (default: "
+                                                   "--wait-before-cure)", unit="s")
+    bottom_wait_after_cure: float | None = option(None, "Bottom layers' rest after exposure (default: "
+                                                  "--wait-after-cure)", unit="s")
+    bottom_wait_after_lift: float | None = option(None, "Bottom layers' rest after the lift (default: "
+                                                  "--wait-after-lift)", unit="s")
     light_pwm: int = option(255, "Light intensity of the normal layers (PWM, 1-255)")
     bottom_light_pwm: int = option(255, "Light intensity of the bottom layers (PWM, 1-255)")
     per_layer_settings: bool = option(False, "Let the printer read each layer's own settings from the archive "
@@ -65,36 +99,78 @@ class PrintSettings:
     def __post_init__(self) -> None:
         for name in ("bottom_layers", "transition_layers"):
             v = getattr(self, name)
-            if not (isinstance(v, int | np.integer) and not isinstance(v, bool) and 0 <= v <= 100000):
-                raise ParameterError(f"{name} must be a whole number of layers >= 0, got {v}", param=name)
+            if not (_is_int(v) and 0 <= v <= 100000):
+                raise ParameterError(f"{name} must be a whole number of layers from 0 to 100000, got {v}", param=name)
         for name in ("bottom_exposure", "exposure", "resin_density"):
             v = getattr(self, name)
-            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
+            if not (_is_number(v) and v > 0):
                 raise ParameterError(f"{name} must be > 0, got {v}", param=name)
-        for name in ("lift_height", "lift_height2", "retract_height", "retract_height2", "bottom_lift_height",
-                     "wait_before_cure", "wait_after_cure", "wait_after_lift", "lift_speed2", "retract_speed2"):
-            v = getattr(self, name)
-            if v is not None and not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
-                raise ParameterError(f"{name} must be >= 0, got {v}", param=name)
-        for name in ("lift_speed", "retract_speed", "bottom_lift_speed"):
-            v = getattr(self, name)
-            if v is not None and not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
-                raise ParameterError(f"{name} must be > 0 mm/min, got {v}", param=name)
-        for height, speed in (("lift_height2", "lift_speed2"), ("retract_height2", "retract_speed2")):
-            if getattr(self, height) > 0 and getattr(self, speed) <= 0:
-                raise ParameterError(f"{speed} must be > 0 mm/min when {height} is set", param=(speed, height))
+        for name in ("lift_height", "lift_height2", "retract_height2", "wait_before_cure", "wait_after_cure",
+                     "wait_after_lift", "lift_speed2", "retract_speed2"):
+            for n in (name, f"bottom_{name}"):
+                v = getattr(self, n)
+                if v is not None and not (_is_number(v) and v >= 0):
+                    raise ParameterError(f"{n} must be >= 0, got {v}", param=n)
+        for name in ("lift_speed", "retract_speed"):
+            for n in (name, f"bottom_{name}"):
+                v = getattr(self, n)
+                if v is not None and not (_is_number(v) and v > 0):
+                    raise ParameterError(f"{n} must be > 0 mm/min, got {v}", param=n)
         for name in ("light_pwm", "bottom_light_pwm"):
             v = getattr(self, name)
-            if not (isinstance(v, int | np.integer) and 1 <= v <= 255):
-                raise ParameterError(f"{name} must be from 1 to 255, got {v}", param=name)
+            if not (_is_int(v) and 1 <= v <= 255):
+                raise ParameterError(f"{name} must be a whole number from 1 to 255, got {v}", param=name)
+        for prefix in ("", "bottom_"):  # contradictions, for the normal and for the bottom layers
+            g = self.group(prefix == "bottom_")
+            for height, speed in (("lift_height2", "lift_speed2"), ("retract_height2", "retract_speed2")):
+                if g[height] > 0 and g[speed] <= 0:
+                    raise ParameterError(f"{prefix}{speed} must be > 0 mm/min when {prefix}{height} is set",
+                                         param=(prefix + speed, prefix + height))
+            lift = g["lift_height"] + g["lift_height2"]
+            if g["retract_height2"] > lift + 1e-9:
+                raise ParameterError(
+                    f"{prefix}retract_height2 ({g['retract_height2']:g} mm) is longer than the lift it returns "
+                    f"({prefix}lift_height + {prefix}lift_height2 = {lift:g} mm)",
+                    param=(prefix + "retract_height2", prefix + "lift_height2", prefix + "lift_height"))
+
+    def group(self, bottom: bool) -> dict[str, float]:
+        """The motion and wait values of a bottom (``bottom=True``) or normal layer: :data:`BOTTOM_TWINS` names →
+        value (the bottom twin where given), plus the derived ``retract_height``."""
+        g = {}
+        for name in BOTTOM_TWINS:
+            twin = getattr(self, f"bottom_{name}") if bottom else None
+            g[name] = float(getattr(self, name) if twin is None else twin)
+        g["retract_height"] = max(g["lift_height"] + g["lift_height2"] - g["retract_height2"], 0.0)
+        return g
+
+    @property
+    def retract_height(self) -> float:
+        """The fast retract stage of a normal layer, mm: ``lift_height + lift_height2 - retract_height2``."""
+        return self.group(False)["retract_height"]
+
+    @property
+    def bottom_retract_height(self) -> float:
+        """The fast retract stage of a bottom layer, mm (from the bottom lift)."""
+        return self.group(True)["retract_height"]
 
     def with_values(self, values: dict[str, Any]) -> PrintSettings:
-        """A copy with ``values`` (field → value; None values ignored) replaced."""
+        """A copy with ``values`` (field → value; None values ignored) replaced, validated together."""
         known = {f.name for f in fields(self)}
         unknown = sorted(set(values) - known)
         if unknown:
+            if unknown[0] in ("retract_height", "bottom_retract_height"):
+                raise ParameterError(f"{unknown[0]} is not a setting: the retract returns the whole lift (set the "
+                                     "lift heights, and retract_height2 for a slow last stage)")
             raise ParameterError(f"unknown print setting '{unknown[0]}' (use {', '.join(sorted(known))})")
         return replace(self, **{k: v for k, v in values.items() if v is not None})
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, int | float | np.integer | np.floating) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int | np.integer) and not isinstance(v, bool)
 
 
 #: the columns of :func:`layer_table`, all (n,) arrays
@@ -103,42 +179,40 @@ LAYER_COLUMNS = ("exposure", "lift_height", "lift_speed", "lift_height2", "lift_
                  "wait_after_lift", "light_pwm", "bottom")
 
 
+def transition_step(settings: PrintSettings) -> float:
+    """The exposure step of the transition layers, s (>= 0; 0 when there is no ramp): module docstring."""
+    s = settings
+    if s.transition_layers == 0 or s.bottom_exposure <= s.exposure:
+        return 0.0
+    step = (s.bottom_exposure - s.exposure) / (s.transition_layers + 1)
+    return math.floor(step * 100.0 + 0.5) / 100.0  # to 0.01 s, halves away from zero (as UVtools)
+
+
 def layer_table(settings: PrintSettings, n_layers: int) -> dict[str, np.ndarray]:
     """Per-layer print settings of ``n_layers`` layers: float64 columns of :data:`LAYER_COLUMNS` (``light_pwm``
-    int64, ``bottom`` bool), following the module docstring's bottom/transition rule."""
+    int64, ``bottom`` bool), following the module docstring's bottom, transition and retract rules."""
     s = settings
     i = np.arange(n_layers)
     bottom = i < s.bottom_layers
     t = i - s.bottom_layers  # 0 .. T-1 inside the transition
     trans = (t >= 0) & (t < s.transition_layers)
-    step = (s.bottom_exposure - s.exposure) / (s.transition_layers + 1)
-    exposure = np.where(bottom, s.bottom_exposure, np.where(trans, s.bottom_exposure - (t + 1) * step, s.exposure))
-
-    def col(normal: float, bottom_value: float | None = None) -> np.ndarray:
-        b = normal if bottom_value is None else bottom_value
-        return np.where(bottom, float(b), float(normal))
-
-    return {
-        "exposure": exposure.astype(np.float64),
-        "lift_height": col(s.lift_height, s.bottom_lift_height),
-        "lift_speed": col(s.lift_speed, s.bottom_lift_speed),
-        "lift_height2": col(s.lift_height2),
-        "lift_speed2": col(s.lift_speed2),
-        "retract_height": col(s.retract_height),
-        "retract_speed": col(s.retract_speed),
-        "retract_height2": col(s.retract_height2),
-        "retract_speed2": col(s.retract_speed2),
-        "wait_before_cure": col(s.wait_before_cure),
-        "wait_after_cure": col(s.wait_after_cure),
-        "wait_after_lift": col(s.wait_after_lift),
-        "light_pwm": np.where(bottom, s.bottom_light_pwm, s.light_pwm).astype(np.int64),
-        "bottom": bottom,
-    }
+    step = transition_step(s)
+    ramp = np.clip(s.bottom_exposure - (t + 1) * step, s.exposure, s.bottom_exposure) if step > 0 else s.exposure
+    exposure = np.where(bottom, float(s.bottom_exposure), np.where(trans, ramp, float(s.exposure)))
+    b, n = s.group(True), s.group(False)
+    out = {"exposure": exposure.astype(np.float64)}
+    for name in LAYER_COLUMNS:
+        if name in n:
+            out[name] = np.where(bottom, b[name], n[name]).astype(np.float64)
+    out["light_pwm"] = np.where(bottom, s.bottom_light_pwm, s.light_pwm).astype(np.int64)
+    out["bottom"] = bottom
+    return {name: out[name] for name in LAYER_COLUMNS}
 
 
 def _move(height: np.ndarray, speed: np.ndarray) -> np.ndarray:
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(height > 0, height / np.where(speed > 0, speed, 1.0) * 60.0, 0.0)
+    """Seconds of moves of ``height`` mm at ``speed`` mm/min (0 where the height is 0)."""
+    safe = np.where(speed > 0, speed, 1.0)
+    return np.where(height > 0, height / safe * 60.0, 0.0)
 
 
 def layer_times(settings: PrintSettings, n_layers: int) -> np.ndarray:
@@ -158,3 +232,9 @@ def resin_ml(area_mm2: np.ndarray, thickness_mm: np.ndarray) -> float:
     """Resin volume in ml (= cm³) of layers with these cross-section areas (mm²) and thicknesses (mm)."""
     v = float(np.dot(np.asarray(area_mm2, np.float64), np.asarray(thickness_mm, np.float64))) / 1000.0
     return v if math.isfinite(v) else 0.0
+
+
+def format_duration(seconds: float) -> str:
+    """``seconds`` as ``h:mm`` (rounded to the minute), e.g. 5430 s → ``"1:31"``."""
+    minutes = int(math.floor(max(float(seconds), 0.0) / 60.0 + 0.5))
+    return f"{minutes // 60}:{minutes % 60:02d}"
