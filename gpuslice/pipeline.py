@@ -299,7 +299,7 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
     tick = (lambda k: progress(k, n)) if progress is not None else None
     settings = r.settings if r.settings is not None else r.options.settings()
     target = ResinTarget(Path(r.path.rstrip("/\\") or "."), r.spec, r.options, out.result, name, now,
-                         r.options.workers, tick, settings)
+                         r.options.workers, tick, settings, bounds=bounds)
     out.stats.update(RESIN_FORMATS[r.format].load()(layers, target))
     out.stats["raster_backend"] = backend
     t_sub = out.timings.get("z_samples", 0.0)

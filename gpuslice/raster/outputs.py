@@ -38,7 +38,9 @@ class ResinTarget:
     options, the sliced ``result`` (layer heights, areas for the resin volume, count), the job ``name`` (SL1 jobDir,
     PNG prefix), the archive date ``now`` (None: the current time; given: a reproducible build, see
     :attr:`deflater`), encoder ``workers``, a ``progress(k)`` callback and the print ``settings``
-    (:class:`~gpuslice.raster.settings.PrintSettings`: exposures, lifts, per layer via ``layer_table``)."""
+    (:class:`~gpuslice.raster.settings.PrintSettings`: exposures, lifts, per layer via ``layer_table``); ``bounds``:
+    the (xmin, ymin, xmax, ymax) mm box the layers were centred by (None: the result's own, as ``masks()``), for
+    writers that place the contours themselves (``sl1svg``)."""
 
     path: Path
     spec: RasterSpec
@@ -49,6 +51,7 @@ class ResinTarget:
     workers: int | None = None
     progress: Callable[[int], None] | None = None
     settings: PrintSettings = PrintSettings()
+    bounds: tuple[float, float, float, float] | None = None
 
     @property
     def deflater(self) -> str:
@@ -81,12 +84,33 @@ class ResinFormat:
         return getattr(importlib.import_module(f"{__package__}.{module}"), func)
 
 
+#: Photon Workshop suffixes and the Anycubic printer each names (gpuslice/raster/photon.py's MACHINES)
+_PHOTON = (("pwmo", "Photon Mono"), ("pwms", "Photon Mono SE"), ("pwma", "Photon Mono 4K"), ("pwmx", "Photon Mono X"),
+           ("pmsq", "Photon Mono SQ"), ("pm3", "Photon M3"), ("pm3m", "Photon M3 Max"), ("pm3n", "Photon Mono 2"),
+           ("pm4n", "Photon Mono 4"), ("pwmb", "Photon Mono X 6K / M3 Plus"), ("pmx2", "Photon Mono X2"),
+           ("pm3r", "Photon M3 Premium"), ("px6s", "Photon Mono X 6Ks"), ("pm5", "Photon Mono M5"),
+           ("pm5s", "Photon Mono M5s"), ("m5sp", "Photon Mono M5s Pro"))
+
 #: the registry, in the order the help lists them
 RESIN_FORMATS: dict[str, ResinFormat] = {
     f.name: f
     for f in (
         ResinFormat("sl1", (".sl1",), "sl1:write_target", "Prusa SL1 archive (PNG layers, config.ini, thumbnails)",
                     "SL1 archive"),
+        ResinFormat("sl1s", (".sl1s",), "sl1s:write_target", "Prusa SL1S Speed archive (the SL1 archive for the "
+                    "SL1S: 1620x2560 PNGs of 0.05 mm, printerModel SL1S)", "SL1S archive"),
+        ResinFormat("sl1svg", (".sl1_svg",), "sl1svg:write_target", "PrusaSlicer's vector SL1 archive (one SVG of "
+                    "the contours per layer, config.ini, thumbnails)", "SL1 SVG archive"),
+        ResinFormat("nanodlp", (".nanodlp",), "nanodlp:write_target", "NanoDLP plate (1.png upward, "
+                    "meta/plate/profile/options/info json, 3d.png)", "NanoDLP plate"),
+        ResinFormat("goo", (".goo",), "goo:write_target", "Elegoo GOO file (8-bit RLE layers, print settings, "
+                    "RGB565 previews)", "GOO file"),
+        ResinFormat("prz", (".prz",), "goo:write_target", "Phrozen PRZ file (the GOO layout, no grey-difference "
+                    "chunks)", "PRZ file"),
+        ResinFormat("ctb", (".ctb",), "ctb:write_target", "Chitubox CTB file, unencrypted, v3 unless the printer "
+                    "preset asks for v2 or v4 (7-bit RLE layers, print settings, RGB15 previews)", "CTB file"),
+        *(ResinFormat(s, (f".{s}",), "photon:write_target", f"Anycubic {t} file (Photon Workshop: 4-bit PW0 "
+                      "layers, settings, preview)", f"Photon Workshop file ({t})") for s, t in _PHOTON),
         ResinFormat("png", (), "pngstack:write_target", "a folder of 8-bit PNGs, one per layer", "PNG stack",
                     folder=True),
     )

@@ -44,6 +44,7 @@ class SL1Info:
     material_name: str = ""
     printer_model: str = ""
     printer_profile: str = ""
+    printer_variant: str = ""  # the Prusa firmware expects "default" (else it warns of a variant mismatch)
     print_profile: str = ""
     used_material_ml: float = 0.0
     tilt_time: float = 5.0  # fast tilt, s per layer (PrusaSlicer's default)
@@ -86,7 +87,7 @@ def config_ini(info: SL1Info, n_layers: int, now: _dt.datetime | None = None) ->
         "printTime": round(print_time, 6),
         "printerModel": info.printer_model,
         "printerProfile": info.printer_profile,
-        "printerVariant": "",
+        "printerVariant": info.printer_variant,
         "prusaSlicerVersion": f"gpuslice {__version__}",
         "usedMaterial": round(info.used_material_ml, 6),
     }
@@ -151,9 +152,9 @@ class _Thumb:
     def add(self, item: Tile | RunLayer) -> None:
         """Raise the height map where the layer (a tile or runs) covers a sampled pixel at least half."""
         r, c = sample(item, self.step)
-        if r.size:
+        if r.size:  # the sampled pixels of one layer are distinct: a plain fancy-indexed maximum (not ufunc.at)
             level = np.uint8(1 + (254 * item.index) // self.n)
-            np.maximum.at(self.img, (r, c), level)
+            self.img[r, c] = np.maximum(self.img[r, c], level)
 
     def png(self, size: tuple[int, int]) -> bytes:
         from PIL import Image
@@ -277,11 +278,29 @@ def info_from(result, job_dir: str, values: Mapping[str, object] | None = None) 
     return info
 
 
+def check_one_layer_height(thickness: np.ndarray, path: Path, first_may_differ: bool = True) -> float:
+    """The one layer height (mm) of a schedule whose layers all have it (the first may differ when
+    ``first_may_differ``); :class:`ParameterError` naming ``path`` otherwise (adaptive layers)."""
+    th = np.asarray(thickness, np.float64)
+    rest = th[1:] if first_may_differ and th.size > 1 else th
+    if rest.size == 0:
+        return float(th[0]) if th.size else 0.0
+    lo, hi = float(rest.min()), float(rest.max())
+    if hi - lo > 1e-6 * max(hi, 1.0):
+        raise ParameterError(f"{path}: this format holds one layer height, the layers here are {lo:g} to {hi:g} mm "
+                             f"thick (adaptive layers need another format)")
+    return float(np.median(rest))
+
+
 def write_target(tiles: Iterable[Tile], target) -> dict[str, float]:
     """The registry's writer (:mod:`gpuslice.raster.outputs`): an SL1 archive of ``target.result``'s layers."""
+    check_one_layer_height(target.result.thickness, Path(target.path))
     o, s = target.options, target.settings
     values = {"exposure_time": s.exposure, "initial_exposure_time": s.bottom_exposure,
               "faded_layers": s.transition_layers}
+    preset = o.preset
+    if preset is not None and preset.machine:  # the firmware refuses a project made for another model
+        values.update(printer_model=preset.machine, printer_variant="default")
     info = info_from(target.result, target.name, values)
     return write_sl1(tiles, target.spec, target.path, info, target.result.n_layers, level=o.png_level,
                      deflater=target.deflater, workers=target.workers, progress=target.progress, now=target.now)

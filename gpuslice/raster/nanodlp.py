@@ -1,0 +1,223 @@
+"""NanoDLP plates (``.nanodlp``; NanoDLP takes the same bytes named ``.zip``): a zip of numbered layer PNGs and JSON
+manifests.
+
+What NanoDLP imports (its manual, "NanoDLP / ZIP File Format", docs.nanodlp.com/manual/format): a zip holding the
+layers as ``1.png`` upward (no leading zeros, 8-bit; on a mono display one byte is one pixel) and optionally
+``meta.json``, ``plate.json`` (required for ``.nanodlp``; a ``.zip`` is "processed the same with extra checks"),
+``profile.json``, ``override.json``, ``info.json`` and ``3d.png``. UVtools (``NanoDLPFile.cs``) requires
+``meta.json``, ``plate.json`` and ``profile.json`` and reads ``slicer.json``; mslicer writes NanoDLP's
+``options.json`` and the same object as ``slicer.json``. This writer writes all of them (no ``override.json``):
+
+* ``1.png`` … ``N.png``: greyscale 8-bit PNGs exactly as the PNG stack's (:mod:`gpuslice.raster.png`, encoded and
+  deflated into the zip on the worker threads), the display's full size (``spec.png_size``), already mirrored and
+  turned as the display asks.
+* ``meta.json``: ``FormatVersion`` 2, ``Distro`` generic, ``Program`` gpuslice and its version, ``Profile`` false:
+  NanoDLP keeps the printer's own resin profile (its G-code templates), so the exposures below are a record.
+* ``profile.json``: ``Title``, ``Depth``/``SupportDepth`` (layer and first-layer thickness, µm), ``CureTime``,
+  ``SupportCureTime`` (s), ``SupportLayerNumber``, ``TransitionalLayer``, ``WaitHeight``/``SupportWaitHeight`` (lift,
+  mm), ``TopWait``/``SupportTopWait`` (wait after the lift, s), ``WaitBeforePrint``/``WaitAfterPrint`` (waits before
+  and after the exposure, s, also as the ``Support*`` ones), ``CustomValues.UvPwmValue`` (light PWM / 255, 2
+  decimals), colours; field meanings as UVtools maps them.
+* ``options.json`` = ``slicer.json``: ``PWidth``/``PHeight`` (the PNG's size), ``XPixelSize``/``YPixelSize`` (mm
+  along the PNG's columns and rows), ``XRes``/``YRes`` (the same in µm), ``Thickness``/``SupportDepth`` (µm),
+  ``SupportLayerNumber``, ``LayerCount``, ``XOffset``/``YOffset`` (half the PNG), ``ImageMirror`` (1 when the
+  display mirrors the columns), ``DisplayController`` 1 (8-bit mono layers), ``Boundary`` (as ``plate.json``'s).
+* ``info.json``: per layer ``TotalSolidArea``, ``LargestArea``, ``SmallestArea`` (mm², of the layer's polygons under
+  the fill rule), ``AreaCount`` (its polygons), ``MinX``/``MinY``/``MaxX``/``MaxY`` (its lit pixels' box, PNG pixel
+  indices; 0 for a blank layer).
+* ``plate.json``: ``LayersCount``, ``TotalSolidArea`` (the resin, ml), ``PrintTime``/``PrintEst`` (s,
+  :func:`~gpuslice.raster.settings.print_time_s`), ``CreatedDate``/``Updated`` (the archive date, Unix s),
+  ``Path`` (the job name), ``Processed`` true, and the part's box ``XMin`` … ``ZMax`` in mm (X/Y in the PNG's frame
+  from the display's centre, Z from the plate), ``XMin`` … ``YMax`` also in ``options.json``'s ``Boundary``.
+* ``3d.png``: a 200 x 100 top view (the SL1 thumbnail's height map).
+
+One layer height: NanoDLP moves every layer by ``Depth`` (the bottom layers by ``SupportDepth``), so schedules with
+other thicknesses (adaptive layers) are refused. Written atomically; with a given ``now`` the bytes are reproducible.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+import zipfile
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import ParameterError
+from ..io.atomic import atomic_path
+from .coverage import Tile
+from .layers import RunLayer, encode_png, pixel_runs
+from .png import PngEncoder, encode_all
+from .settings import PrintSettings, print_time_s, resin_ml
+from .sl1 import _Thumb, _write_deflated, _zip_time, check_one_layer_height
+from .spec import RasterSpec
+
+__all__ = ["PREVIEW_SIZE", "polygon_areas", "write_nanodlp", "write_target"]
+
+#: size of ``3d.png`` (NanoDLP's manual: a 200x100 px render)
+PREVIEW_SIZE = (200, 100)
+
+
+def polygon_areas(result) -> tuple[np.ndarray, np.ndarray]:
+    """(layer, area) of every polygon of ``result`` (an outer loop with its holes; closed loops of 3 points or
+    more), mm²: the outer loop's shoelace area less its holes'. Sorted by layer."""
+    po = result.loop_offsets
+    n = np.diff(po).astype(np.int64)
+    pts = np.asarray(result.points, np.float64)
+    owner = np.repeat(np.arange(n.size, dtype=np.int64), n)
+    nxt = np.arange(pts.shape[0], dtype=np.int64) + 1
+    ne = n > 0
+    nxt[po[1:][ne] - 1] = po[:-1][ne]
+    cross = pts[:, 0] * pts[nxt, 1] - pts[nxt, 0] * pts[:, 1] if pts.size else np.zeros(0)
+    signed = 0.5 * np.bincount(owner, weights=cross, minlength=n.size)
+    closed = np.asarray(result.loop_closed, bool) & (n >= 3)
+    hole = np.asarray(result.loop_is_hole, bool)
+    parent = np.asarray(result.loop_parent, np.int64)
+    outer = closed & ~hole
+    ok_parent = (parent >= 0) & (parent < n.size)
+    pid = np.where(ok_parent, parent, 0)
+    hole_ok = closed & hole & ok_parent & outer[pid]
+    area = np.zeros(n.size)
+    np.add.at(area, np.flatnonzero(outer), np.abs(signed[outer]))
+    np.add.at(area, pid[hole_ok], -np.abs(signed[hole_ok]))
+    polys = np.flatnonzero(outer)
+    layer = np.asarray(result.loop_layer, np.int64)[polys]
+    return layer, area[polys]
+
+
+def _lit_box(item: Tile | RunLayer, cols: int) -> tuple[int, int, int, int]:
+    """(min x, min y, max x, max y) PNG pixel indices of the layer's non-blank pixels; zeros when blank."""
+    start, length, _ = pixel_runs(item, cols)
+    if start.size == 0:
+        return 0, 0, 0, 0
+    row, x = np.divmod(start, cols)
+    return int(x.min()), int(row.min()), int((x + length - 1).max()), int(row.max())
+
+
+def um(mm: float) -> float:
+    """Millimetres as micrometres (NanoDLP's unit for thicknesses and resolutions), 3 decimals."""
+    return round(float(mm) * 1000.0, 3)
+
+
+def _json(obj: Any) -> bytes:
+    return (json.dumps(obj, indent=2, ensure_ascii=False) + "\n").encode()
+
+
+def write_nanodlp(
+    tiles: Iterable[Tile | RunLayer],
+    result,
+    spec: RasterSpec,
+    path: str | os.PathLike,
+    settings: PrintSettings,
+    *,
+    name: str,
+    title: str = "",
+    bounds=None,
+    level: int = 1,
+    deflater: str = "auto",
+    workers: int | None = None,
+    progress: Callable[[int], None] | None = None,
+    now: _dt.datetime | None = None,
+) -> dict[str, float]:
+    """Write a NanoDLP plate of ``result``'s layers (``tiles``: tiles or runs, in order) at ``path``, atomically
+    (module docstring). ``bounds``: the box the layers were centred by (only for the part's box in the manifests;
+    None: the result's). Returns the layer count and PNG bytes."""
+    from .. import __version__
+    from .edges import result_bounds
+
+    p = Path(os.fspath(path))
+    n = result.n_layers
+    th = np.asarray(result.thickness, np.float64)
+    depth = check_one_layer_height(th, p, first_may_differ=settings.bottom_layers <= 1)
+    first = float(th[0]) if th.size else depth
+    cols, rows = spec.png_size
+    pitch = (spec.py, spec.px) if spec.portrait else (spec.px, spec.py)  # mm along the PNG's columns, rows
+    when = now or _dt.datetime.now(_dt.timezone.utc).replace(tzinfo=None)
+    stamp = int(when.replace(tzinfo=_dt.timezone.utc).timestamp())
+    # the part's box: display frame (PNG orientation) from the display's centre, mm
+    box = {"XMin": 0.0, "XMax": 0.0, "YMin": 0.0, "YMax": 0.0}
+    if result.points.shape[0]:
+        uv = spec.to_pixels(result.points, bounds if bounds is not None else result_bounds(result))
+        lo, hi = uv.min(axis=0), uv.max(axis=0)
+        box = {"XMin": round((lo[0] - cols / 2) * pitch[0], 4), "XMax": round((hi[0] - cols / 2) * pitch[0], 4),
+               "YMin": round((lo[1] - rows / 2) * pitch[1], 4), "YMax": round((hi[1] - rows / 2) * pitch[1], 4)}
+    z_max = float(result.bottom[-1] + th[-1]) if n else 0.0
+    s = settings
+    waits = {"WaitBeforePrint": s.wait_before_cure, "WaitAfterPrint": s.wait_after_cure,
+             "SupportWaitBeforePrint": s.wait_before_cure, "SupportWaitAfterPrint": s.wait_after_cure}
+    meta = {"FormatVersion": 2, "Distro": "generic", "Program": "gpuslice", "Version": __version__, "OS": "",
+            "Arch": "", "Profile": False}
+    profile = {"ResinID": 0, "ProfileID": 0, "Title": title or "gpuslice", "Desc": "", "Depth": um(depth),
+               "SupportDepth": um(first), "CureTime": s.exposure, "SupportCureTime": s.bottom_exposure,
+               "SupportLayerNumber": s.bottom_layers, "TransitionalLayer": s.transition_layers,
+               "WaitHeight": s.lift_height,
+               "SupportWaitHeight": s.bottom_lift_height if s.bottom_lift_height is not None else s.lift_height,
+               "TopWait": s.wait_after_lift, "SupportTopWait": s.wait_after_lift, **waits, "Updated": stamp,
+               "CustomValues": {"UvPwmValue": f"{round(s.light_pwm / 255, 2):g}"}, "FillColor": "#ffffff",
+               "BlankColor": "#000000", "IgnoreMask": 1}
+    options = {"PWidth": cols, "PHeight": rows, "XPixelSize": pitch[0], "YPixelSize": pitch[1],
+               "XRes": um(pitch[0]), "YRes": um(pitch[1]), "Thickness": um(depth), "SupportDepth": um(first),
+               "SupportLayerNumber": s.bottom_layers, "LayerCount": n, "XOffset": cols // 2, "YOffset": rows // 2,
+               "ImageMirror": int(spec.mirror_x), "DisplayController": 1, "IgnoreMask": 1,
+               "FillColor": "#ffffff", "BlankColor": "#000000",
+               "FillColorRGB": {"R": 255, "G": 255, "B": 255, "A": 255},
+               "BlankColorRGB": {"R": 0, "G": 0, "B": 0, "A": 255},
+               "Boundary": {**box, "ZMin": 0.0, "ZMax": round(z_max, 4)}}
+    poly_layer, poly_area = polygon_areas(result)
+    cut = np.searchsorted(poly_layer, np.arange(n + 1))
+    area = np.asarray(result.area, np.float64)
+    enc = PngEncoder(cols, rows, level, deflater)
+    thumb = _Thumb(spec, n)
+    boxes: list[tuple[int, int, int, int]] = []
+    with atomic_path(p) as tmp, zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, allowZip64=True) as z:
+        zstamp = _zip_time(now)
+
+        def entry(member: str) -> zipfile.ZipInfo:
+            zi = zipfile.ZipInfo(member, zstamp)
+            zi.compress_type = zipfile.ZIP_DEFLATED
+            return zi
+
+        for member, obj in (("meta.json", meta), ("profile.json", profile), ("options.json", options),
+                            ("slicer.json", options)):
+            z.writestr(entry(member), _json(obj))
+
+        def encode(item: Tile | RunLayer) -> tuple[bytes, bytes, tuple[int, int, int, int]]:  # on a worker
+            png = encode_png(item, enc)
+            c = enc.z.compressobj(1, enc.z.DEFLATED, -15)
+            return png, c.compress(png) + c.flush(), _lit_box(item, cols)
+
+        def sink(k: int, item: tuple[bytes, bytes, tuple[int, int, int, int]]) -> None:
+            _write_deflated(z, entry(f"{k + 1}.png"), item[0], item[1])
+            boxes.append(item[2])
+
+        stats = encode_all(tiles, encode, sink, workers, on_tile=thumb.add, progress=progress)
+        if stats["layers"] != n:
+            raise ParameterError(f"{p}: expected {n} layers, got {stats['layers']}")
+        info = []
+        for i, (x0, y0, x1, y1) in enumerate(boxes):
+            a = poly_area[cut[i] : cut[i + 1]]
+            info.append({"TotalSolidArea": round(float(area[i]), 4),
+                         "LargestArea": round(float(a.max()), 4) if a.size else 0.0,
+                         "SmallestArea": round(float(a.min()), 4) if a.size else 0.0,
+                         "MinX": x0, "MinY": y0, "MaxX": x1, "MaxY": y1, "AreaCount": int(a.size)})
+        z.writestr(entry("info.json"), _json(info))
+        seconds = int(round(print_time_s(s, n)))
+        plate = {"PlateID": 0, "ProfileID": 0, "CreatedDate": stamp, "Updated": stamp, "Path": name,
+                 "LayersCount": n, "TotalSolidArea": round(resin_ml(area, th), 4), "PrintTime": seconds,
+                 "PrintEst": seconds, "Processed": True, **box, "ZMin": 0.0, "ZMax": round(z_max, 4)}
+        z.writestr(entry("plate.json"), _json(plate))
+        z.writestr(entry("3d.png"), thumb.png(PREVIEW_SIZE))
+    return stats
+
+
+def write_target(tiles: Iterable[Tile | RunLayer], target) -> dict[str, float]:
+    """The registry's writer (:mod:`gpuslice.raster.outputs`): a NanoDLP plate of ``target.result``'s layers."""
+    preset = target.options.preset
+    return write_nanodlp(tiles, target.result, target.spec, target.path, target.settings, name=target.name,
+                         title=preset.title if preset is not None else "", bounds=target.bounds,
+                         level=target.options.png_level, deflater=target.deflater, workers=target.workers,
+                         progress=target.progress, now=target.now)

@@ -1,0 +1,433 @@
+"""Anycubic Photon Workshop files: the one container behind ``.pwmo``, ``.pwms``, ``.pwma``, ``.pwmx``, ``.pmsq``,
+``.pm3``, ``.pm3m``, ``.pm3n``, ``.pm4n``, ``.pwmb``, ``.pmx2``, ``.pm3r``, ``.px6s``, ``.pm5``, ``.pm5s``, ``.m5sp``.
+
+Facts (field layouts, version differences) from public readers and writers: UVtools ``AnycubicFile.cs`` and its
+``Scripts/010 Editor/PhotonWorkshop.bt``, PrusaSlicer's ``AnycubicSLA.cpp``, ole00's ``pwmx_info``, checked against
+four files written by Photon Workshop (versions 515 and 516) in futurelink/msla-imaging's ``sample_data``; our code.
+
+**Layout** (little endian; every address a uint32, so a file stays under 4 GiB): a file mark (``ANYCUBIC``, the
+version, the table count 4/5/8/9/11 for versions 1/515/516/517/518, then the tables' addresses), then the tables,
+each (except two) opened by a 12-byte name and a uint32 length, in the order Photon Workshop writes them:
+HEADER (print settings, resolution; 80 bytes, +4 from 516: advanced mode, +8 from 517: grey, blur, resin type, +4 in
+518: intelligent mode), PREVIEW (224×168 RGB565: red in the high 5 bits, little endian, top row first), from 515 the
+layer grey table (no name: full-greyscale flag, 16 greys, a uint32), LAYERDEF (per layer 32 bytes: data address and
+length, lift mm and mm/s, exposure s, thickness mm, lit pixels, 0), from 516 EXTRA (two lift stages each for the
+bottom and the normal layers: height mm, lift and retract speeds mm/s) and MACHINE (name, ``pw0Img``, display mm,
+machine Z, highest file version; in 518 also the pixel pitch µm and the resolution), from 517 SOFTWARE (no name) and
+MODEL (the part's box, mm from the display centre), in 518 SUBIMGS (per layer address, length, lit pixels) and
+PREVIEW2 (320×190). The layers' images follow. The tables' sizes depend only on the version and the layer count, so
+the images are streamed to disk first and the tables written last, once the layers have been seen.
+
+**Layer image (PW0)**: run-length code over the whole display, row after row, runs crossing rows freely. A byte's
+high nibble is the colour code c; for c = 0 (blank) and c = 15 (full) the low nibble and the next byte hold the run
+length (12 bits, at most 4095), for c = 1..14 the low nibble is the length (at most 15). **Quantisation**: PW0 keeps
+4 bits a pixel; grey g (0-255) is stored as ``c = g >> 4`` (as PrusaSlicer's and UVtools' writers do) and read back
+as ``17·c``: 0-15 → 0 (blank), 16-31 → 17, ..., 240-255 → 255 (:func:`quantise`). With ``--gamma 0`` every pixel is
+0 or 255 and the file holds the layers exactly. The header's anti-aliasing level is 1 when no layer holds a grey
+between (Photon Workshop's grey table then is sixteen 255s, as in its files) and 16 otherwise (table 15, 31, ..., 255,
+UVtools' rule); how a firmware maps grey codes to exposure is its own business.
+
+**Print settings** (:class:`~gpuslice.raster.settings.PrintSettings`; speeds are stored in mm/s): the header holds the
+bottom and normal exposures, bottom layer count, transition layer count, one rest before every exposure (the normal
+layers' ``wait_before_cure + wait_after_cure + wait_after_lift``: the format has no other wait; bottom waits that
+differ are refused), the normal lift (its total over both stages) at the first stage's speed and the retract speed;
+LAYERDEF repeats each layer's exposure (with the transition ramp), lift total, first-stage speed and thickness; the
+per-layer-settings flag is ``per_layer_settings`` (off by default: UVtools reports M5s firmware that never ends the
+first layer when it is on). From 516, two-stage motion goes to EXTRA, for the bottom and the normal layers, with the
+advanced mode on: stage 1 = (``lift_height``, ``lift_speed``, the slow retract speed ``retract_speed2``, or
+``retract_speed`` when ``retract_height2`` is 0), stage 2 = (``lift_height2``, ``lift_speed2``, ``retract_speed``),
+placed as UVtools places them; the format stores no retract heights (the retract stages follow the lift stages'
+heights). One-stage motion is written as Photon Workshop writes it in basic mode: stage 1 = (lift, lift speed, 0),
+stage 2 = (0, 0, retract speed), advanced mode off. The pixel size in the header is the larger pitch, µm.
+
+**Machine and version**: the output's suffix names the machine (:data:`MACHINES`: its name as Photon Workshop writes
+it, display, Z travel and file version). A printer preset (``--printer``) overrides the name (``machine``), the Z
+travel (``build_height``) and, when its native format is this suffix, the version (``format_version``: 1, 515, 516,
+517 or 518). The display, pitch and resolution written are always the job's (:class:`RasterSpec`); the firmware
+checks them against its own, so give the printer's display (``--printer`` or ``--resolution``/``--pixel``).
+Mirroring is the display's (``--mirror-x``): UVtools' Anycubic printer profiles mirror X. Photon Workshop files
+carry no date, so the bytes depend only on the layers and the options. The M7 generation (``.pm7``, ``.pm7m``,
+``.pwsz``, ``.pm4u``) uses another, zip-based container: not this writer.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import ParameterError
+from ..io.atomic import atomic_path
+from .coverage import Tile
+from .layers import RunLayer, pixel_runs, sample
+from .png import encode_all
+from .settings import layer_table, print_time_s, resin_ml
+
+__all__ = ["MACHINES", "VERSIONS", "Machine", "encode_pw0", "quantise", "write_photon", "write_target"]
+
+VERSIONS = (1, 515, 516, 517, 518)
+
+
+@dataclass(frozen=True)
+class Machine:
+    """An Anycubic printer of the Photon Workshop family (lengths mm): ``suffix`` of its files, ``name`` as Photon
+    Workshop writes it, display ``resolution`` and ``display`` size, Z travel ``height``, file ``version``."""
+
+    suffix: str
+    name: str
+    resolution: tuple[int, int]
+    display: tuple[float, float]
+    height: float
+    version: int
+
+
+_M = Machine
+#: by suffix. Names as Photon Workshop 2.x writes them in MACHINE (checked on its .pwmx/.pwma/.pm3 files); displays,
+#: Z and versions from UVtools (AnycubicFile.cs: display mm, machine Z, versions each suffix accepts; its PrusaSlicer
+#: printer profiles: resolution, FILEVERSION), the highest version UVtools accepts for the suffix, except where a
+#: lower one is known to print: .pwmb 516 (UVtools' Mono X 6K profile; photonic-etcher's files), .pm3n 516 (Mono 2
+#: prints M3 files, photonic-etcher #20). .pm4n: no public source names its version; 516, the family's base, assumed.
+MACHINES: dict[str, Machine] = {
+    m.suffix: m
+    for m in (
+        _M("pwmo", "Anycubic Photon Mono", (1620, 2560), (82.62, 130.56), 165.0, 516),
+        _M("pwms", "Anycubic Photon Mono SE", (1620, 2560), (82.62, 130.56), 160.0, 516),
+        _M("pwma", "Anycubic Photon Mono 4K", (3840, 2400), (134.4, 84.0), 165.0, 516),
+        _M("pwmx", "Anycubic Photon Mono X", (3840, 2400), (192.0, 120.0), 245.0, 516),
+        _M("pmsq", "Anycubic Photon Mono SQ", (2400, 2560), (120.0, 128.0), 200.0, 516),
+        _M("pm3", "Anycubic Photon M3", (4096, 2560), (163.84, 102.4), 180.0, 516),
+        _M("pm3m", "Anycubic Photon M3 Max", (6480, 3600), (298.08, 165.6), 300.0, 516),
+        _M("pm3n", "Anycubic Photon Mono 2", (4096, 2560), (143.36, 89.6), 165.0, 516),
+        _M("pm4n", "Anycubic Photon Mono 4", (9024, 5120), (153.408, 87.04), 165.0, 516),
+        _M("pwmb", "Anycubic Photon Mono X 6K", (5760, 3600), (198.15, 123.84), 245.0, 516),
+        _M("pmx2", "Anycubic Photon Mono X2", (4096, 2560), (196.61, 122.88), 200.0, 517),
+        _M("pm3r", "Anycubic Photon M3 Premium", (7680, 4320), (218.88, 123.12), 250.0, 517),
+        _M("px6s", "Anycubic Photon Mono X 6Ks", (5760, 3600), (195.84, 122.4), 200.0, 517),
+        _M("pm5", "Anycubic Photon Mono M5", (11520, 5120), (218.88, 122.88), 200.0, 517),
+        _M("pm5s", "Anycubic Photon Mono M5s", (11520, 5120), (218.88, 122.88), 200.0, 518),
+        _M("m5sp", "Anycubic Photon Mono M5s Pro", (13312, 5120), (223.6416, 126.976), 200.0, 518),
+    )
+}
+
+PREVIEW = (224, 168)
+PREVIEW2 = (320, 190)
+#: Photon Workshop's preview background (RGB565 0x5ACB) and our part colour
+BACKGROUND = (90, 89, 90)
+PART = (255, 165, 40)
+MARK_SIZE = {1: 48, 515: 48, 516: 52, 517: 56, 518: 64}
+N_TABLES = {1: 4, 515: 5, 516: 8, 517: 9, 518: 11}
+HEADER_LENGTH = {1: 80, 515: 80, 516: 84, 517: 92, 518: 96}
+#: MACHINE's property-field count: 7 in Photon Workshop's 516 files, 15 in 518 (UVtools)
+PROPERTIES = {516: 7, 517: 7, 518: 15}
+MACHINE_BACKGROUND = 6506241  # in every Photon Workshop MACHINE table seen
+LAYER_DEF = np.dtype([("address", "<u4"), ("length", "<u4"), ("lift_height", "<f4"), ("lift_speed", "<f4"),
+                      ("exposure", "<f4"), ("thickness", "<f4"), ("nonzero", "<u4"), ("padding", "<u4")])
+SUB_DEF = np.dtype([("address", "<u4"), ("length", "<u4"), ("nonzero", "<u4"), ("padding", "<u4", 8)])
+
+
+def quantise(grey: np.ndarray) -> np.ndarray:
+    """The grey a reader gets back for grey ``grey`` (uint8): ``17·(g >> 4)`` (module docstring)."""
+    return ((np.asarray(grey, np.uint8) >> 4) * 17).astype(np.uint8)
+
+
+def encode_pw0(start: np.ndarray, length: np.ndarray, grey: np.ndarray, n_pixels: int) -> tuple[bytes, int, bool]:
+    """One layer's PW0 image from its runs (``start`` row-major pixel index, ``length``, ``grey`` 1-255; sorted, not
+    overlapping) over an image of ``n_pixels``: (bytes, lit pixels after quantisation, whether any grey lies strictly
+    between 0 and 255 after it). Vectorised: a few numpy passes over the runs and their records."""
+    start = np.asarray(start, np.int64)
+    length = np.asarray(length, np.int64)
+    code = np.asarray(grey, np.uint8) >> 4
+    keep = code > 0
+    start, length, code = start[keep], length[keep], code[keep]
+    m = start.size
+    if m:
+        end = start + length
+        join = (start[1:] == end[:-1]) & (code[1:] == code[:-1])
+        if join.any():  # touching runs of one code (after quantisation, or across a row end): one run
+            head = np.flatnonzero(np.concatenate(([True], ~join)))
+            last = np.append(head[1:] - 1, m - 1)
+            start, code = start[head], code[head]
+            length = end[last] - start
+            end = start + length
+            m = start.size
+        gaps = start - np.concatenate(([0], end[:-1]))
+        tail = n_pixels - int(end[-1])
+    else:
+        gaps, tail = np.zeros(0, np.int64), n_pixels
+    n = np.empty(2 * m + 1, np.int64)  # segments: gap 0, run 0, gap 1, ..., the tail gap
+    n[0:-1:2], n[1::2], n[-1] = gaps, length, tail
+    c = np.zeros(2 * m + 1, np.uint8)
+    c[1::2] = code
+    sel = n > 0
+    n, c = n[sel], c[sel]
+    two = (c == 0) | (c == 15)
+    cap = np.where(two, 0xFFF, 0xF)
+    pieces = -(-n // cap)  # records a segment needs
+    seg = np.repeat(np.arange(n.size), pieces)
+    k = np.arange(seg.size) - np.repeat(np.cumsum(pieces) - pieces, pieces)
+    rec = np.where(k < pieces[seg] - 1, cap[seg], n[seg] - (pieces[seg] - 1) * cap[seg])
+    rc, r2 = c[seg].astype(np.int64), two[seg]
+    width = 1 + r2.astype(np.int64)
+    off = np.cumsum(width) - width
+    out = np.empty(int(width.sum()), np.uint8)
+    out[off] = (rc << 4) | np.where(r2, rec >> 8, rec)
+    out[off[r2] + 1] = rec[r2] & 0xFF
+    return out.tobytes(), int(length.sum()), bool(np.any(~two[c > 0])) if c.size else False
+
+
+def _pitch(spec) -> tuple[float, float]:
+    """(column, row) pitch of the image in mm: (px, py) in landscape, (py, px) in portrait."""
+    return (spec.py, spec.px) if spec.portrait else (spec.px, spec.py)
+
+
+class _TopView:
+    """The part seen from above for the previews: per sampled pixel the last (highest) layer covering it."""
+
+    def __init__(self, spec, n_layers: int) -> None:
+        rows, cols = spec.shape
+        self.step = max(1, min(rows, cols) // 512)
+        self.n = max(n_layers - 1, 1)
+        self.pitch = _pitch(spec)
+        self.img = np.zeros((-(-rows // self.step), -(-cols // self.step)), np.uint8)
+
+    def add(self, item: Tile | RunLayer) -> None:
+        r, c = sample(item, self.step)
+        if r.size:  # layers come in order: the last one written is the highest
+            self.img[r, c] = 1 + (254 * item.index) // self.n
+
+    def rgb565(self, size: tuple[int, int]) -> bytes:
+        """The view fitted into ``size`` (width, height) with its true aspect, as RGB565 little endian."""
+        w, h = size
+        ys, xs = np.nonzero(self.img)
+        out = np.empty((h, w, 3), np.float32)
+        out[:] = BACKGROUND
+        if ys.size:
+            src = self.img[ys.min() : ys.max() + 1, xs.min() : xs.max() + 1]
+            sw, sh = src.shape[1] * self.pitch[0], src.shape[0] * self.pitch[1]  # mm / step
+            scale = 0.9 * min(w / sw, h / sh)
+            dw, dh = max(1, min(w, round(sw * scale))), max(1, min(h, round(sh * scale)))
+            rows = np.minimum((np.arange(dh) + 0.5) * src.shape[0] / dh, src.shape[0] - 1).astype(np.int64)
+            cols = np.minimum((np.arange(dw) + 0.5) * src.shape[1] / dw, src.shape[1] - 1).astype(np.int64)
+            level = src[rows[:, None], cols[None, :]].astype(np.float32)
+            shade = (0.35 + 0.65 * level / 255.0)[..., None] * np.array(PART, np.float32)
+            y0, x0 = (h - dh) // 2, (w - dw) // 2
+            view = out[y0 : y0 + dh, x0 : x0 + dw]
+            view[:] = np.where(level[..., None] > 0, shade, view)
+        q = out.astype(np.uint16)
+        v = ((q[..., 0] >> 3) << 11) | ((q[..., 1] >> 2) << 5) | (q[..., 2] >> 3)
+        return v.astype("<u2").tobytes()
+
+
+def _name(text: str, size: int) -> bytes:
+    return text.encode("utf-8")[: size - 1].ljust(size, b"\0")
+
+
+def _table(name: str, length: int, body: bytes) -> bytes:
+    return _name(name, 12) + struct.pack("<I", length) + body
+
+
+def _sizes(version: int, n: int) -> dict[str, int]:
+    """Bytes of each table before the images, in file order."""
+    s = {"mark": MARK_SIZE[version], "header": 16 + HEADER_LENGTH[version], "preview": 28 + 2 * PREVIEW[0] * PREVIEW[1]}
+    if version >= 515:
+        s["colors"] = 28
+    s["layerdef"] = 20 + LAYER_DEF.itemsize * n
+    if version >= 516:
+        s["extra"], s["machine"] = 72, 224 if version >= 518 else 156
+    if version >= 517:
+        s["software"], s["model"] = 164, 48
+    if version >= 518:
+        s["sublayers"], s["preview2"] = 24 + SUB_DEF.itemsize * n, 28 + 2 * PREVIEW2[0] * PREVIEW2[1]
+    return s
+
+
+def _stages(s, bottom: bool) -> tuple[bool, tuple[float, ...]]:
+    """(two stages?, the six EXTRA values (height mm, lift and retract speeds mm/s, twice)) of the bottom or the normal
+    layers (module docstring)."""
+    g = s.group(bottom)
+    if g["lift_height2"] > 0 or g["retract_height2"] > 0:
+        slow = g["retract_speed2"] if g["retract_height2"] > 0 else g["retract_speed"]
+        fast = g["lift_speed2"] if g["lift_speed2"] > 0 else g["lift_speed"]
+        return True, (g["lift_height"], g["lift_speed"] / 60, slow / 60, g["lift_height2"], fast / 60,
+                      g["retract_speed"] / 60)
+    return False, (g["lift_height"], g["lift_speed"] / 60, 0.0, 0.0, 0.0, g["retract_speed"] / 60)
+
+
+def _wait(s, path: Path) -> float:
+    """The one rest the format stores (before each exposure, every layer), s: the normal layers' three waits folded
+    together; :class:`ParameterError` when the bottom layers' waits differ (there is nowhere to put them)."""
+    waits = [sum(s.group(b)[k] for k in ("wait_before_cure", "wait_after_cure", "wait_after_lift"))
+             for b in (False, True)]
+    if abs(waits[0] - waits[1]) > 1e-9:
+        raise ParameterError(f"{path}: Photon Workshop files rest the same before every layer; the bottom layers' "
+                             f"waits ({waits[1]:g} s) cannot differ from the others' ({waits[0]:g} s)")
+    return waits[0]
+
+
+def _tables(target, machine: Machine, version: int, name: str, machine_z: float, defs: np.ndarray, aa: int,
+            box: tuple[int, int, int, int] | None, view: _TopView) -> bytes:
+    """Everything before the layer images: the file mark and the tables, at the addresses :func:`_sizes` gives."""
+    from .. import __version__
+
+    spec, res, s = target.spec, target.result, target.settings
+    n = res.n_layers
+    cols, rows = spec.png_size
+    pw, ph = _pitch(spec)
+    th = np.asarray(res.thickness, np.float64)
+    layer_height = float(np.median(th[1:])) if n > 1 else (float(th[0]) if n else 0.0)
+    sizes = _sizes(version, n)
+    at, pos = {}, 0
+    for key, size in sizes.items():
+        at[key], pos = pos, pos + size
+    images = pos
+    volume = resin_ml(res.area, th)
+    two_b, bottom = _stages(s, True)
+    two_n, normal = _stages(s, False)
+    head = struct.pack("<10f3I2f5I", max(pw, ph) * 1000, layer_height, s.exposure, _wait(s, target.path),
+                       s.bottom_exposure, min(s.bottom_layers, n), s.lift_height + s.lift_height2, s.lift_speed / 60,
+                       s.retract_speed / 60, volume, aa, cols, rows, volume * s.resin_density, 0.0, 0x24,
+                       int(s.per_layer_settings), round(print_time_s(s, n)),
+                       min(s.transition_layers, max(n - s.bottom_layers, 0)), 0)
+    if version >= 516:
+        head += struct.pack("<I", int(two_b or two_n))
+    if version >= 517:
+        head += struct.pack("<HHI", 0, 0, 0)  # grey, blur level, resin type: Photon Workshop's own settings
+    if version >= 518:
+        head += struct.pack("<I", 0)  # intelligent mode off: the exposures are used as given
+    parts = [_table("HEADER", HEADER_LENGTH[version], head)]
+    w, h = PREVIEW
+    mark, length = (42, sizes["preview"] - 16) if version == 1 else (ord("x"), sizes["preview"])
+    parts.append(_table("PREVIEW", length, struct.pack("<III", w, mark, h) + view.rgb565(PREVIEW)))
+    if version >= 515:
+        greys = [255] * 16 if aa == 1 else [min(255, int((i + 1) * 255 / aa)) for i in range(16)]
+        parts.append(struct.pack("<II16BI", 0, 16, *greys, 0))
+    parts.append(_table("LAYERDEF", sizes["layerdef"] - 16, struct.pack("<I", n) + defs.tobytes()))
+    if version >= 516:
+        parts.append(_table("EXTRA", 24, struct.pack("<I6fI6f", 2, *bottom, 2, *normal)))
+        body = _name(name, 96) + _name("pw0Img", 16) + struct.pack(
+            "<IIfffII", 16, PROPERTIES[version], cols * pw, rows * ph, machine_z, max(version, machine.version),
+            MACHINE_BACKGROUND)
+        if version >= 518:
+            body += struct.pack("<2f8I2I2H4I", pw * 1000, ph * 1000, *([0] * 8), 1, 0, cols, rows, 0, 0, 0, 0)
+        parts.append(_table("MACHINE", sizes["machine"], body))
+    if version >= 517:
+        parts.append(_name("gpuslice", 32) + struct.pack("<I", 164) + _name(__version__, 32) + _name("", 64)
+                     + _name("", 32))
+        if box is None:
+            lo = hi = (0.0, 0.0)
+        else:  # the lit pixels' box in mm from the display's centre, x right and y down the image (as UVtools)
+            r0, c0, r1, c1 = box
+            lo = (c0 * pw - cols * pw / 2, r0 * ph - rows * ph / 2)
+            hi = ((c1 + 1) * pw - cols * pw / 2, (r1 + 1) * ph - rows * ph / 2)
+        parts.append(_table("MODEL", sizes["model"], struct.pack("<6fIf", *lo, 0.0, *hi, float(th.sum()), 0, 0.0)))
+    if version >= 518:
+        sub = np.zeros(n, SUB_DEF)
+        for k in ("address", "length", "nonzero"):
+            sub[k] = defs[k]
+        parts.append(_table("SUBIMGS", sizes["sublayers"], struct.pack("<II", n, 1) + sub.tobytes()))
+        w, h = PREVIEW2
+        parts.append(_table("PREVIEW2", sizes["preview2"], struct.pack("<IHHI", w, 4293, 0, h)
+                            + view.rgb565(PREVIEW2)))
+    addr = [at["header"], at.get("software", 0), at["preview"], at.get("colors", 0), at["layerdef"],
+            at.get("extra", 0)]
+    if version >= 516:
+        addr.append(at["machine"])
+    addr.append(images)
+    if version >= 517:
+        addr.append(at["model"])
+    if version >= 518:
+        addr += [at["sublayers"], at["preview2"]]
+    out = _name("ANYCUBIC", 12) + struct.pack(f"<{2 + len(addr)}I", version, N_TABLES[version], *addr)
+    out += b"".join(parts)
+    assert len(out) == images, (len(out), images)
+    return out
+
+
+def write_photon(layers: Iterable[Tile | RunLayer], target, *, machine: Machine, version: int | None = None,
+                 name: str | None = None, machine_z: float | None = None) -> dict[str, Any]:
+    """Write ``target.result``'s layers (tiles or runs, in order) as a Photon Workshop file of ``machine`` at
+    ``target.path``, atomically: file ``version`` (default the machine's), machine ``name`` and Z travel
+    ``machine_z`` (mm) in MACHINE (defaults: the machine's). Layers are encoded on ``target.workers`` threads and
+    streamed to disk; the tables go in last. Returns the layer count, ``png_bytes`` (the layers' image bytes, the
+    name the command line reports), ``photon_bytes`` (the file), ``format_version``, ``machine``, ``antialiasing``."""
+    path = Path(os.fspath(target.path))
+    version = machine.version if version is None else version
+    if version not in VERSIONS:
+        raise ParameterError(f"{path}: Photon Workshop file version must be one of "
+                             f"{', '.join(map(str, VERSIONS))}, not {version}")
+    spec, res = target.spec, target.result
+    n = res.n_layers
+    cols, rows = spec.png_size
+    if version >= 518 and max(cols, rows) > 0xFFFF:
+        raise ParameterError(f"{path}: a version 518 file holds at most 65535 pixels a side, not {cols}x{rows}")
+    n_pixels = cols * rows
+    _wait(target.settings, path)
+    table = layer_table(target.settings, n)
+    defs = np.zeros(n, LAYER_DEF)
+    defs["lift_height"] = table["lift_height"] + table["lift_height2"]
+    defs["lift_speed"] = table["lift_speed"] / 60
+    defs["exposure"] = table["exposure"]
+    defs["thickness"] = np.asarray(res.thickness, np.float64)
+    view = _TopView(spec, n)
+    images = sum(_sizes(version, n).values())
+    box = [rows, cols, -1, -1]  # lit pixels' row0, col0, row1, col1
+    greys = False
+
+    def encode(item: Tile | RunLayer) -> tuple[bytes, int, bool, tuple[int, int, int, int] | None]:  # on a worker
+        start, length, grey = pixel_runs(item, cols)
+        data, lit, mid = encode_pw0(start, length, grey, n_pixels)
+        lit_runs = (grey >> 4) > 0
+        if not lit_runs.any():
+            return data, lit, mid, None
+        s, e = start[lit_runs], start[lit_runs] + length[lit_runs] - 1  # runs never cross a row end
+        return data, lit, mid, (int(s[0] // cols), int((s % cols).min()), int(e[-1] // cols), int((e % cols).max()))
+
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.seek(images)
+
+        def sink(k: int, item) -> None:
+            nonlocal greys
+            data, lit, mid, b = item
+            address = f.tell()
+            if address + len(data) > 0xFFFFFFFF:
+                raise ParameterError(f"{path}: a Photon Workshop file holds at most 4 GiB (its addresses are 32-bit)")
+            f.write(data)
+            defs["address"][k], defs["length"][k], defs["nonzero"][k] = address, len(data), lit
+            greys |= mid
+            if b is not None:
+                box[:2] = min(box[0], b[0]), min(box[1], b[1])
+                box[2:] = max(box[2], b[2]), max(box[3], b[3])
+
+        stats = encode_all(layers, encode, sink, target.workers, on_tile=view.add, progress=target.progress)
+        if stats["layers"] != n:
+            raise ParameterError(f"{path}: expected {n} layers, got {stats['layers']}")
+        size = f.tell()
+        f.seek(0)
+        aa = 16 if greys else 1
+        f.write(_tables(target, machine, version, name or machine.name, machine.height if machine_z is None
+                        else machine_z, defs, aa, tuple(box) if box[2] >= 0 else None, view))
+    return {"layers": n, "png_bytes": stats["png_bytes"], "photon_bytes": size, "format_version": version,
+            "machine": name or machine.name, "antialiasing": aa}
+
+
+def write_target(layers: Iterable[Tile | RunLayer], target) -> dict[str, Any]:
+    """The registry's writer (:mod:`gpuslice.raster.outputs`): the suffix of ``target.path`` picks the machine
+    (:data:`MACHINES`); a printer preset overrides its name, Z travel and (native format here) version."""
+    path = Path(os.fspath(target.path))
+    suffix = path.suffix.lower().lstrip(".")
+    if suffix not in MACHINES:
+        raise ParameterError(f"{path}: not a Photon Workshop suffix (use .{', .'.join(MACHINES)})")
+    machine = MACHINES[suffix]
+    preset = target.options.preset
+    version = name = machine_z = None
+    if preset is not None:
+        name = preset.machine or None
+        machine_z = float(preset.build_height) if preset.build_height > 0 else None
+        if preset.format_version is not None and preset.native_format == suffix:
+            version = int(preset.format_version)
+    return write_photon(layers, target, machine=machine, version=version, name=name, machine_z=machine_z)
