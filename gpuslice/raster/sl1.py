@@ -141,13 +141,15 @@ def read_sl1_config(path: str | os.PathLike) -> tuple[dict[str, str], dict[str, 
 
 class _Thumb:
     """Top view of the part for the thumbnails: a height map (the highest layer covering each spot, shaded from dark
-    at the bed to bright at the top) at a quarter of the display's resolution."""
+    at the bed to bright at the top) on every ``step``-th pixel of the display."""
 
-    def __init__(self, spec: RasterSpec, n_layers: int, step: int = 4) -> None:
-        self.step = step
+    def __init__(self, spec: RasterSpec, n_layers: int, step: int | None = None) -> None:
+        # every 4th pixel up to 4K displays; coarser above, so the map stays about 960 samples wide (the largest
+        # thumbnail is 800 wide) and sampling costs the same on any display (a 12K display at 4 took 4 s)
+        self.step = step if step is not None else max(4, -(-max(spec.shape) // 960))
         self.n = max(n_layers - 1, 1)
         rows, cols = spec.shape
-        self.img = np.zeros(((rows + step - 1) // step, (cols + step - 1) // step), np.uint8)
+        self.img = np.zeros(((rows + self.step - 1) // self.step, (cols + self.step - 1) // self.step), np.uint8)
 
     def add(self, item: Tile | RunLayer) -> None:
         """Raise the height map where the layer (a tile or runs) covers a sampled pixel at least half."""
