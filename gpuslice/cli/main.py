@@ -25,6 +25,7 @@ __all__ = ["main", "cli", "COMMANDS"]
 COMMANDS = {
     "batch": "batch:batch",
     "bench": "bench:bench",
+    "check": "check:check",
     "devices": "devices:devices",
     "info": "info:info",
     "plot": "bench:plot",

@@ -19,6 +19,12 @@ __all__ = ["raster"]
 DEFAULTS = {"thickness": 0.05}
 
 
+def _print_checks(model: str):
+    from .check import print_report
+
+    return lambda report: print_report(report, Path(model).name)
+
+
 def _outputs_help() -> str:
     from ..raster.outputs import resin_usage
 
@@ -62,15 +68,20 @@ class _Bar:
 @with_options(click_options(PrintSettings, defaults=False))  # None unless given: they override the preset
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr [TTY or long runs].")
 @click.option("--report", type=click.Path(path_type=str), default=None, help="Write timings and counts as JSON.")
+@click.option("--check", is_flag=True, help="Run the pre-print checks on the printer's pixels (as `gpuslice check "
+              "--printer`) and print them before writing.")
 @click.option("-q", "--quiet", is_flag=True, help="No summary on stdout.")
-def raster(model: str, output: str, progress: bool | None, report: str | None, quiet: bool, **kw) -> None:
-    """Slice MODEL and write one 8-bit bitmap per layer: an SL1 archive (-o part.sl1) or a PNG stack (-o dir/).
+def raster(model: str, output: str, progress: bool | None, report: str | None, check: bool, quiet: bool,
+           **kw) -> None:
+    """Slice MODEL and write its layers for a resin printer: the output's suffix picks the format (-o part.goo,
+    part.ctb, part.pwmx, part.sl1, part.sl1s, part.sl1_svg, part.nanodlp, or a PNG stack -o dir/; `gpuslice printers`
+    lists the presets, --printer NAME sets the display, print settings and the formats it reads).
 
     The model is centred on the display (--keep-xy keeps its XY); column j has its centre at x = (j + 0.5)*pixel
     and row 0 is the +y edge (landscape). Greys are pixel coverage with PrusaSlicer's gamma.
     """
     from ..io.report import write_report
-    from ..pipeline import Job, ResinOutput, run_job
+    from ..pipeline import CheckOutput, Job, ResinOutput, run_job
     from ..raster.outputs import resin_format_for
 
     t_start = time.perf_counter()
@@ -83,7 +94,8 @@ def raster(model: str, output: str, progress: bool | None, report: str | None, q
     spec = options.spec(**values(RasterSpec, kw))
     settings = options.settings(**values(PrintSettings, kw))
     job = Job(source=model, placement=placement, params=params, mesh_check=False,
-              resin=ResinOutput(output, fmt.name, spec, options, settings))
+              resin=ResinOutput(output, fmt.name, spec, options, settings),
+              checks=CheckOutput(spec, settings, on_report=None if quiet else _print_checks(model)) if check else None)
     bar = _Bar(f"raster {Path(output).name}", progress)
     try:
         done = run_job(job, progress=bar)

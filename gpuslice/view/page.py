@@ -5,8 +5,9 @@ drawn on a 2D canvas (filled under the result's fill rule, so holes show as hole
 open chains red with their ends marked), the layer's z, slab, thickness, area, points, loops and repairs, and the
 points-per-layer curve (the paper's Fig. 11) with the current layer marked (click or drag on it to jump; layers with
 repairs or open chains are ticked in red; an adaptive schedule adds its thickness curve). An optional resin mask
-(a PNG per layer) is shown beside the contours. It needs no network: a Content-Security-Policy forbids every fetch
-but ``data:`` images, and nothing refers to any URL.
+(a PNG per layer) is shown beside the contours. With a check report (``view --check``, :mod:`gpuslice.checks`) the
+islands, resin traps and suction cups are outlined on their layers and listed, each a link to its layer. It needs no
+network: a Content-Security-Policy forbids every fetch but ``data:`` images, and nothing refers to any URL.
 
 Data layout inside the page: one ``<script type="application/json">`` holding base64 strings of little-endian
 typed arrays (decoded once at load, then every layer is a view into them), built from the result's columns::
@@ -173,6 +174,7 @@ def build_view_html(
     title: str | None = None,
     masks: MaskLayers | Mapping[int, bytes] | None = None,
     mask_label: str = "",
+    checks: Any = None,
 ) -> str:
     """The viewer page for ``result`` as one HTML string (UTF-8, self-contained, no network).
 
@@ -181,6 +183,8 @@ def build_view_html(
         and beside them; see :func:`raster_masks`) or a plain ``{layer index: PNG bytes}`` (beside them only). The
         page shows the current layer's mask or says there is none for it. ``mask_label`` (e.g.
         ``"1920×1080 px, 0.05 mm"``) is shown with it (default: the :class:`MaskLayers` label).
+    checks : a :class:`gpuslice.checks.CheckReport`: its islands and cavities are marked on their layers (islands
+        red, traps purple, suction cups orange) and listed, each a link to its layer.
 
     Raises :class:`~gpuslice.errors.ParameterError` for a result with more than :data:`MAX_VIEW_POINTS` points or
     a mask for a layer that does not exist.
@@ -202,7 +206,13 @@ def build_view_html(
         "arrays": _columns(result),
         "repairs": {k: _pack(v, "i4") for k, v in sorted(result.repairs.items()) if np.any(v)},
         "masks": None,
+        "checks": None,
     }
+    if checks is not None:
+        data["checks"] = checks.view_data()
+        bad = [row[0] for row in data["checks"]["islands"] if not 0 <= row[0] < n_layers]
+        if bad:
+            raise ParameterError(f"check report for layer {bad[0]}, but the result has {n_layers} layers")
     if masks is not None:
         placed = masks if isinstance(masks, MaskLayers) else MaskLayers(dict(masks))
         bad = [i for i in placed.png if not 0 <= int(i) < n_layers]

@@ -1,0 +1,208 @@
+"""Pre-print checks, a stage of the pipeline after slicing: islands and unsupported area (:mod:`.islands`), resin
+traps and suction cups (:mod:`.cavities`), cross-section per layer, print time and resin (:mod:`.summary`), for
+every layer in one pass, as columns (:class:`CheckReport`, ``to_json()``).
+
+``run_checks(result)`` checks the contours (islands contour-exact, shapely/GEOS); ``run_checks(result, spec)`` the
+pixels of a printer's display (islands pixel-exact on its grid). Traps and cups use a voxel grid of
+:attr:`CheckOptions.trap_grid` mm cells (default 0.2 mm; 0: the display's pixels), see :mod:`.cavities` for its
+resolution and error. ``gpuslice check``, ``raster --check`` and ``view --check`` run them through
+:func:`gpuslice.pipeline.run_job`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from ..errors import ParameterError
+from ..options import option
+from .cavities import DEFAULT_GRID_MM, KINDS, SUCTION_CUP, TRAP, Cavities, CavityFinder
+from .islands import Islands, PixelIslands, contour_islands
+from .summary import CheckReport, peel_and_time
+
+__all__ = ["CheckOptions", "CheckReport", "Islands", "Cavities", "run_checks", "contour_islands", "pixel_islands",
+           "layer_intervals", "KINDS", "TRAP", "SUCTION_CUP", "DEFAULT_GRID_MM"]
+
+
+@dataclass(frozen=True)
+class CheckOptions:
+    """Options of the pre-print checks (lengths in mm)."""
+
+    overhang_tolerance: float | None = option(
+        None, "Grow the layer below by this much before measuring a layer's unsupported area (default: one pixel "
+        "of the printer's display, or of the default 0.05 mm display)", unit="mm")
+    trap_grid: float = option(DEFAULT_GRID_MM, "Cell of the voxel grid for resin traps and suction cups (0: the "
+                              "printer's pixels, with --printer)", unit="mm")
+
+    def __post_init__(self) -> None:
+        t = self.overhang_tolerance
+        if t is not None and not (isinstance(t, int | float) and math.isfinite(t) and t >= 0):
+            raise ParameterError(f"overhang_tolerance must be >= 0 mm, got {t}", param="overhang_tolerance")
+        g = self.trap_grid
+        if not (isinstance(g, int | float) and math.isfinite(g) and g >= 0):
+            raise ParameterError(f"trap_grid must be >= 0 mm, got {g}", param="trap_grid")
+
+
+def _pixel_mm(spec) -> tuple[float, float]:
+    """A pixel's size (mm) along the PNG's columns and along its rows."""
+    return (spec.py, spec.px) if spec.portrait else (spec.px, spec.py)
+
+
+def _to_mm(spec, bounds) -> np.ndarray:
+    return np.linalg.inv(np.vstack([spec.affine(bounds), [0.0, 0.0, 1.0]]))[:2]
+
+
+def _coarse_spec(bounds, grid: float):
+    """A display of ``grid`` mm cells over ``bounds`` plus two empty cells all round (the model centred on it)."""
+    from ..raster.spec import RasterSpec
+
+    xmin, ymin, xmax, ymax = bounds
+    nx = int(math.ceil((xmax - xmin) / grid)) + 4
+    ny = int(math.ceil((ymax - ymin) / grid)) + 4
+    if nx * ny > 2**31 - 1:
+        raise ParameterError(f"trap_grid {grid:g} mm is too fine for a {xmax - xmin:.0f} x {ymax - ymin:.0f} mm model",
+                             param="trap_grid")
+    return RasterSpec(resolution=(nx, ny), pixel=grid, gamma=0.0)
+
+
+def hole_layers(result) -> np.ndarray:
+    """The layers next to empty space enclosed in a layer: those with a hole loop, and the layers just above and
+    below them (sorted). Only there can a trap or a suction cup be: a layer without a hole has no enclosed empty
+    space (every empty point of it reaches the outside within the layer)."""
+    holes = np.asarray(result.loop_is_hole, bool) & np.asarray(result.loop_closed, bool)
+    lay = np.unique(np.asarray(result.loop_layer)[holes])
+    near = np.unique(np.concatenate([lay - 1, lay, lay + 1])) if lay.size else lay
+    return near[(near >= 0) & (near < result.n_layers)].astype(np.int64)
+
+
+def layer_intervals(result, spec, bounds=None, *, backend: str = "auto", device=None,
+                    max_batch_pieces: int | None = None, layers=None):
+    """Yield ``(first layer, layers, (layer, row, start, end))`` per batch of consecutive layers: the pixels of
+    ``spec``'s display that ``result``'s polygons cover at least half (:func:`gpuslice.raster.runs.iter_runs` with a
+    hard threshold), as merged row intervals. ``bounds``: what is centred (default: the result's points);
+    ``max_batch_pieces``: the rasteriser's batch size (memory), default its own; ``layers``: these (sorted) only,
+    a batch per run of consecutive ones."""
+    from ..raster.edges import result_bounds
+    from ..raster.runs import iter_runs
+    from .intervals import solid_intervals
+
+    backend, device = _backend(backend, device)
+    extra = {} if max_batch_pieces is None else {"max_batch_pieces": int(max_batch_pieces)}
+    bounds = bounds if bounds is not None else result_bounds(result)
+    sel = None if layers is None else np.asarray(layers, np.int64)
+    if sel is not None and sel.size == 0:
+        return
+    for runs in iter_runs(result, replace(spec, gamma=0.0), backend=backend, device=device, bounds=bounds,
+                          layers=sel, **extra):
+        lay = np.asarray(runs.layers, np.int64)
+        if not lay.size:
+            continue
+        parts = solid_intervals(runs, 128)
+        cut = np.flatnonzero(np.diff(lay) != 1) + 1  # runs of consecutive layers
+        for a, b in zip(np.r_[0, cut], np.r_[cut, lay.size], strict=True):
+            i, j = np.searchsorted(parts[0], [lay[a], lay[b - 1] + 1])
+            yield int(lay[a]), int(b - a), tuple(p[i:j] for p in parts)
+
+
+def pixel_islands(result, spec, *, tolerance: float | None = None, bounds=None, backend: str = "auto",
+                  device=None) -> Islands:
+    """Islands and unsupported area on ``spec``'s pixels alone (:class:`~gpuslice.checks.islands.PixelIslands`);
+    ``tolerance`` mm (default: one pixel), other arguments as :func:`run_checks`."""
+    from ..raster.edges import result_bounds
+
+    bounds = bounds if bounds is not None else result_bounds(result)
+    tol = float(max(spec.px, spec.py) if tolerance is None else tolerance)
+    cw, rh = _pixel_mm(spec)
+    pix = PixelIslands(result.n_layers, spec.shape[0], spec.shape[1], _to_mm(spec, bounds), cw, rh, tol)
+    if bounds is not None:
+        for layer0, k, parts in layer_intervals(result, spec, bounds, backend=backend, device=device):
+            pix.feed(layer0, k, parts)
+    return pix.result()
+
+
+def _backend(backend: str, device) -> tuple[str, Any]:
+    if backend == "numpy":
+        return "numpy", None
+    if device is not None:
+        return "opencl", device
+    try:
+        from ..device import get_device
+
+        return "opencl", get_device()
+    except Exception:  # no OpenCL: the runs' numpy twin
+        if backend == "opencl":
+            raise
+        return "numpy", None
+
+
+def run_checks(result, spec=None, settings=None, *, options: CheckOptions | None = None,
+               bounds: tuple[float, float, float, float] | None = None, backend: str = "auto", device=None,
+               workers: int | None = None, name: str = "model") -> CheckReport:
+    """Check ``result`` (a :class:`~gpuslice.slicing.result.SliceResult`) before printing; see the package docstring.
+
+    spec : a :class:`~gpuslice.raster.spec.RasterSpec` (a printer's display): islands and unsupported area on its
+        pixels, placed as the archive places them (``bounds``, default the result's, centred unless ``keep_xy``);
+        None: on the contours. settings : :class:`~gpuslice.raster.settings.PrintSettings` for the print time and
+        the resin's mass (default: the defaults). options : :class:`CheckOptions`. backend : the rasteriser of the
+        masks, ``"opencl"``, ``"numpy"`` or ``"auto"`` (OpenCL when there is a device); device : the OpenCL device.
+        workers : threads for the contour checks (default: the CPUs). name : the file named in errors.
+    """
+    from ..raster.edges import check_fits, result_bounds
+    from ..raster.settings import PrintSettings
+    from ..raster.spec import RasterSpec
+
+    options = options or CheckOptions()
+    settings = settings or PrintSettings()
+    timings: dict[str, float] = {}
+    n = result.n_layers
+    if options.trap_grid == 0 and spec is None:
+        raise ParameterError("trap_grid 0 (the printer's pixels) needs a printer's display", param="trap_grid")
+    bounds = bounds if bounds is not None else result_bounds(result)
+    if options.overhang_tolerance is not None:
+        tol = float(options.overhang_tolerance)
+    else:
+        tol = float(max(spec.px, spec.py) if spec is not None else RasterSpec().pixel)
+    backend, device = _backend(backend, device)
+    empty = bounds is None or n == 0
+    finder = None
+    if not empty:
+        grid_spec = spec if options.trap_grid == 0 else _coarse_spec(bounds, float(options.trap_grid))
+        cw, rh = _pixel_mm(grid_spec)
+        finder = CavityFinder(grid_spec.shape[0], grid_spec.shape[1], _to_mm(grid_spec, bounds), cw * rh,
+                              result.thickness, result.z, cw if cw == rh else math.sqrt(cw * rh))
+    t = time.perf_counter()
+    if spec is None or empty:
+        islands = contour_islands(result, tol, workers=workers) if not empty else Islands.concat([], n)
+    else:
+        check_fits(result, spec, bounds, name=name)
+        cw, rh = _pixel_mm(spec)
+        pix = PixelIslands(n, spec.shape[0], spec.shape[1], _to_mm(spec, bounds), cw, rh, tol)
+        shared = options.trap_grid == 0
+        for layer0, k, parts in layer_intervals(result, spec, bounds, backend=backend, device=device):
+            pix.feed(layer0, k, parts)
+            if shared:
+                finder.feed(layer0, k, parts)
+        islands = pix.result()
+    timings["islands"] = time.perf_counter() - t
+    t = time.perf_counter()
+    if finder is None:
+        cavities = CavityFinder(1, 1, np.eye(3)[:2], 1.0, np.zeros(0), np.zeros(0), float(options.trap_grid)).result()
+    else:
+        if not (spec is not None and options.trap_grid == 0):
+            near = hole_layers(result)  # the other layers have no enclosed empty space: not rasterised
+            for layer0, k, parts in layer_intervals(result, grid_spec, bounds, backend=backend, device=device,
+                                                    layers=near):
+                finder.feed(layer0, k, parts)
+        cavities = finder.result()
+    timings["cavities"] = time.perf_counter() - t
+    peel = peel_and_time(result, settings)
+    display = None
+    if spec is not None:
+        display = {"resolution": [spec.nx, spec.ny], "pixel": [spec.px, spec.py], "portrait": spec.portrait}
+    return CheckReport(islands, cavities, peel["area"], peel["max_area"], peel["max_area_layer"],
+                       peel["print_time_s"], peel["resin_ml"], peel["resin_g"], peel["resin_density"],
+                       "pixels" if spec is not None else "contours", tol, display, np.asarray(result.z), timings)

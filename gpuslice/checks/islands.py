@@ -1,0 +1,259 @@
+"""Islands and unsupported area: what a layer adds with nothing under it in the layer below.
+
+An **island** is a connected region of layer i (a polygon with its holes, or a component of solid pixels) that
+shares no area with layer i − 1: it cures onto nothing. Layer 0 lies on the build plate and has none. The
+**unsupported area** of layer i is the area of layer i farther than a tolerance ``t`` from layer i − 1 (layer
+i − 1 grown by ``t``, then subtracted): the overhang signal, 0 for layer 0.
+
+Two exact versions:
+
+* **contours** (:func:`contour_islands`): shapely/GEOS on the result's polygons. A polygon is supported when a
+  point inside it lies strictly inside the layer below (``point_on_surface`` + prepared ``contains_properly``, the
+  usual case) or, failing that, when its intersection with the layer below has an area above
+  :data:`TOUCH_AREA_MM2` (touching along an edge or at a point is no support). The unsupported area is
+  ``area(layer_i - buffer(layer_{i-1}, t))`` (buffer arcs of 2 segments per quarter circle: at most 0.076·t inside
+  the true offset). Layers go through GEOS in chunks on a thread pool (shapely releases the GIL). A broken mesh's
+  invalid layer is made valid first (``make_valid``, structure method); an overlay GEOS still refuses gives NaN
+  (no support, unknown unsupported area).
+* **pixels** (:class:`PixelIslands`): the solid pixels (coverage ≥ 50 %) of a display's grid as row intervals
+  (:mod:`gpuslice.checks.intervals`). Components are 8-connected; a component is supported when one of its pixels
+  is solid in the layer below; the unsupported pixels are those with no solid pixel of the layer below within
+  ``t`` (pixel centres' distance, mm), counted times the pixel's area.
+
+Both report each island's layer, area (mm²), centroid (x, y mm) and bounding box (mm, model coordinates).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from .intervals import Lines, components, expand_pairs
+
+__all__ = ["Islands", "contour_islands", "PixelIslands", "TOUCH_AREA_MM2"]
+
+#: overlap below this area (mm²) is touching, not support (float32 contours give ~1e-12 on shared edges); polygons
+#: this small are degenerate slivers (zero-area facets cut edge-on), never islands
+TOUCH_AREA_MM2 = 1e-6
+#: layers per GEOS chunk (one task of the thread pool)
+CHUNK_LAYERS = 128
+
+
+@dataclass
+class Islands:
+    """Islands as columns (K rows, in layer order): ``layer`` int64, ``area`` mm², ``x``, ``y`` centroid mm,
+    ``bbox`` (K, 4) xmin, ymin, xmax, ymax mm; and ``unsupported`` (L,) mm² per layer."""
+
+    layer: np.ndarray
+    area: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    bbox: np.ndarray
+    unsupported: np.ndarray
+
+    @classmethod
+    def concat(cls, parts: list[tuple], n_layers: int, unsupported: np.ndarray | None = None) -> Islands:
+        """From ``(layer, area, x, y, bbox)`` parts; sorted by layer then x, y."""
+        if parts:
+            layer, area, x, y, bbox = (np.concatenate([np.asarray(p[k]) for p in parts]) for k in range(5))
+        else:
+            layer, area, x, y, bbox = (np.zeros(0, np.int64), *(np.zeros(0) for _ in range(3)), np.zeros((0, 4)))
+        order = np.lexsort((y, x, layer))
+        unsup = np.zeros(n_layers) if unsupported is None else unsupported
+        return cls(layer[order].astype(np.int64), area[order].astype(np.float64), x[order].astype(np.float64),
+                   y[order].astype(np.float64), bbox[order].reshape(-1, 4).astype(np.float64), unsup)
+
+
+# ---- contours ------------------------------------------------------------------------------------------------------
+def _contour_chunk(result, a: int, b: int, tolerance: float | None):
+    """Islands and unsupported area of layers a .. b-1 (each against the one below; tolerance None: no area)."""
+    import shapely
+
+    from ..slicing.geometry import polygons_shapely
+
+    lo = max(a - 1, 0)
+    lay = polygons_shapely(result, lo, b)  # layers lo .. b-1
+    bad = ~shapely.is_valid(lay)  # broken meshes: self-crossing rings that GEOS's overlays refuse
+    if bad.any():
+        lay[bad] = shapely.make_valid(lay[bad], method="structure", keep_collapsed=False)
+    shapely.prepare(lay)
+    parts, idx = shapely.get_parts(lay, return_index=True)
+    layer = idx + lo
+    sel = (layer >= max(a, 1)) & (shapely.area(parts) > TOUCH_AREA_MM2)  # layer 0 is on the plate; no slivers
+    poly, layer = parts[sel], layer[sel]
+    below = lay[layer - 1 - lo]
+    supported = np.zeros(poly.size, bool)
+    if poly.size:
+        supported = shapely.contains_properly(below, shapely.point_on_surface(poly))
+        rest = np.flatnonzero(~supported)
+        if rest.size:
+            hit = shapely.intersects(below[rest], poly[rest])
+            r2 = rest[hit]
+            if r2.size:
+                supported[r2] = _overlay_area(shapely.intersection, poly[r2], below[r2]) > TOUCH_AREA_MM2
+    isl = poly[~supported]
+    cen = shapely.centroid(isl)
+    found = (layer[~supported], shapely.area(isl), shapely.get_x(cen), shapely.get_y(cen),
+             shapely.bounds(isl).reshape(-1, 4))
+    # unsupported area: layer i outside layer i-1 grown by the tolerance; 0 where layer i lies inside layer i-1
+    first = max(a, 1)
+    unsup = np.zeros(b - a)
+    if b > first and tolerance is not None:
+        cur, prev = lay[first - lo : b - lo], lay[first - 1 - lo : b - 1 - lo]
+        todo = np.flatnonzero(~shapely.contains(prev, cur) & ~shapely.is_empty(cur))
+        if todo.size:
+            grown = shapely.buffer(prev[todo], tolerance, quad_segs=2) if tolerance > 0 else prev[todo]
+            shapely.prepare(grown)
+            out = ~shapely.contains(grown, cur[todo])  # a prepared test first: about half the layers lie inside
+            todo, grown = todo[out], grown[out]
+            unsup[todo + first - a] = _overlay_area(shapely.difference, cur[todo], grown)
+    return found, unsup
+
+
+def _overlay_area(op, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``area(op(a, b))`` element-wise; where GEOS still fails (a topology exception on a broken mesh's layer),
+    that element is retried on a 1e-6 mm precision grid, then counted NaN."""
+    import shapely
+    from shapely.errors import GEOSException
+
+    try:
+        return shapely.area(op(a, b))
+    except GEOSException:
+        out = np.full(a.size, np.nan)
+        for k in range(a.size):  # only on failure: a loop over the chunk's elements
+            for grid in (None, 1e-6):
+                try:
+                    out[k] = shapely.area(op(a[k], b[k], grid_size=grid))
+                    break
+                except GEOSException:
+                    continue
+        return out
+
+
+def contour_islands(result, tolerance: float | None, *, workers: int | None = None) -> Islands:
+    """Islands (contour-exact) and the unsupported area per layer of ``result`` (module docstring); ``tolerance``
+    in mm (None: islands only, the unsupported area left 0); ``workers``: threads (default: the CPUs)."""
+    n = result.n_layers
+    chunks = [(a, min(a + CHUNK_LAYERS, n)) for a in range(0, n, CHUNK_LAYERS)]
+    workers = max(1, min(workers or os.cpu_count() or 1, len(chunks) or 1))
+    if workers == 1:
+        done = [_contour_chunk(result, a, b, tolerance) for a, b in chunks]
+    else:
+        with ThreadPoolExecutor(workers) as pool:
+            done = list(pool.map(lambda ab: _contour_chunk(result, ab[0], ab[1], tolerance), chunks))
+    unsup = np.concatenate([d[1] for d in done]) if done else np.zeros(0)
+    return Islands.concat([d[0] for d in done], n, unsup)
+
+
+# ---- pixels ----------------------------------------------------------------------------------------------------------
+class PixelIslands:
+    """Islands and unsupported area on a display's pixel grid, fed batches of consecutive layers' solid intervals
+    (:meth:`feed`), then :meth:`result`.
+
+    to_mm : (2, 3) affine map from pixel coordinates (u = column, v = row) to model mm; col_mm, row_mm : a pixel's
+    width and height in mm (along the columns and the rows); tolerance : mm.
+    """
+
+    def __init__(self, n_layers: int, rows: int, cols: int, to_mm: np.ndarray, col_mm: float, row_mm: float,
+                 tolerance: float) -> None:
+        self.n_layers, self.rows, self.cols = n_layers, rows, cols
+        self.to_mm = np.asarray(to_mm, np.float64)
+        self.pixel_area = col_mm * row_mm
+        self.unsupported = np.zeros(n_layers)
+        self.parts: list[tuple] = []
+        # the grown neighbourhood: for each row offset dy, the columns +-hx(dy) within the tolerance (mm)
+        ry = int(math.floor(tolerance / row_mm + 1e-9))
+        dys = np.arange(-ry, ry + 1)
+        rest = np.maximum(tolerance**2 - (dys * row_mm) ** 2, 0.0)
+        self.grow = [(int(dy), int(math.floor(math.sqrt(r) / col_mm + 1e-9))) for dy, r in zip(dys, rest, strict=True)]
+        self.context: tuple | None = None  # the last layer of the previous batch: (layer, row, start, end)
+
+    def feed(self, layer0: int, n: int, parts: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]) -> None:
+        """Layers ``layer0 .. layer0 + n - 1``: their solid intervals ``(layer, row, start, end)``."""
+        ctx = self.context if self.context is not None and self.context[0].size and \
+            int(self.context[0][0]) == layer0 - 1 else None
+        base = layer0 - 1
+        lines = Lines.from_parts(base, n + 1, self.rows, self.cols, [ctx, parts] if ctx is not None else [parts])
+        own = lines.line >= self.rows  # intervals of this batch (not the context layer)
+        idx = np.flatnonzero(own)
+        if idx.size:
+            self._islands(lines, idx)
+            self._unsupported(lines, idx)
+        last = lines.layer_slice(n)
+        sel = slice(last.start, last.stop)
+        self.context = (lines.layer[sel], lines.row[sel], lines.start[sel], lines.end[sel]) if n else self.context
+
+    def _islands(self, lines: Lines, idx: np.ndarray) -> None:
+        line, a, b = lines.line[idx], lines.start[idx], lines.end[idx]
+        # 8-connected components inside each layer: an interval touches those of the next row within one column
+        nxt = line + 1
+        valid = (lines.row[idx] + 1) < lines.rows
+        lo, hi = lines.overlapping(nxt, a - 1, b + 1, valid)
+        q, j = expand_pairs(lo, hi)
+        pos = np.full(lines.n, -1, np.int64)
+        pos[idx] = np.arange(idx.size)
+        comp = components(idx.size, q, pos[j])
+        # support: a solid pixel of the same row in the layer below (layer 0: the plate)
+        lay = lines.layer[idx]
+        lo, hi = lines.overlapping(line - lines.rows, a, b, lay >= 1)
+        sup = (hi > lo) | (lay == 0)
+        n_comp = int(comp.max()) + 1 if comp.size else 0
+        comp_sup = np.zeros(n_comp, bool)
+        comp_sup[comp[sup]] = True
+        bad = ~comp_sup[comp]
+        if not bad.any():
+            return
+        c, a, b, row, lay = comp[bad], a[bad], b[bad], lines.row[idx][bad], lay[bad]
+        uniq, c = np.unique(c, return_inverse=True)
+        length = (b - a).astype(np.float64)
+        cells = np.bincount(c, length)
+        su = np.bincount(c, length * (a + b) / 2.0) / cells  # mean column centre (u)
+        sv = np.bincount(c, length * (row + 0.5)) / cells
+        umin = np.full(uniq.size, np.inf)
+        np.minimum.at(umin, c, a)
+        umax = np.full(uniq.size, -np.inf)
+        np.maximum.at(umax, c, b)
+        vmin = np.full(uniq.size, np.inf)
+        np.minimum.at(vmin, c, row)
+        vmax = np.full(uniq.size, -np.inf)
+        np.maximum.at(vmax, c, row + 1)
+        comp_layer = np.zeros(uniq.size, np.int64)
+        comp_layer[c] = lay
+        x, y = self._mm(su, sv)
+        corners = [self._mm(u, v) for u, v in ((umin, vmin), (umax, vmin), (umin, vmax), (umax, vmax))]
+        xs, ys = np.stack([p[0] for p in corners]), np.stack([p[1] for p in corners])
+        bbox = np.stack([xs.min(0), ys.min(0), xs.max(0), ys.max(0)], axis=1)
+        self.parts.append((comp_layer, cells * self.pixel_area, x, y, bbox))
+
+    def _mm(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        t = self.to_mm
+        return t[0, 0] * u + t[0, 1] * v + t[0, 2], t[1, 0] * u + t[1, 1] * v + t[1, 2]
+
+    def _unsupported(self, lines: Lines, idx: np.ndarray) -> None:
+        """Pixels of each layer with no solid pixel of the layer below within the tolerance."""
+        below = np.flatnonzero(lines.line < (lines.n_layers - 1) * lines.rows)  # every layer but the last
+        pieces = []
+        for dy, hx in self.grow:  # a few offsets: the tolerance in pixels
+            row = lines.row[below] + dy
+            ok = (row >= 0) & (row < lines.rows)
+            k = lines.line[below][ok] // lines.rows + 1  # the layer above, on the batch's axis
+            pieces.append((k, row[ok], np.maximum(lines.start[below][ok] - hx, 0),
+                           np.minimum(lines.end[below][ok] + hx, lines.cols)))
+        from .intervals import merge_intervals
+
+        k, row, s, e = (np.concatenate([p[i] for p in pieces]) for i in range(4))
+        k, row, s, e = merge_intervals(k, row, s, e, sort=True)
+        grown = Lines(lines.layer0, lines.n_layers, lines.rows, lines.cols, k * lines.rows + row, s, e)
+        line, a, b = lines.line[idx], lines.start[idx], lines.end[idx]
+        lay = lines.layer[idx]
+        free = (b - a) - grown.covered(line, a, b)
+        free[lay == 0] = 0
+        self.unsupported += np.bincount(lay, free.astype(np.float64), minlength=self.n_layers)[: self.n_layers] \
+            * self.pixel_area
+
+    def result(self) -> Islands:
+        return Islands.concat(self.parts, self.n_layers, self.unsupported)
