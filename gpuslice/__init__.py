@@ -3,7 +3,6 @@
 Importing the package is cheap: pyopencl, trimesh and moderngl are imported only when a function needs them.
 """
 
-from .bench.quality import cusp_summary, schedule_quality, volume_deviation
 from .errors import (
     DeviceError,
     EmptyMeshError,
@@ -55,7 +54,15 @@ __all__ = [
     "volume_deviation",
 ]
 
-_LAZY = {"BatchOptions": "batch.options", "run_batch": "batch.runner"}  # heavier modules, imported on first use
+# heavier modules, imported on first use (the bench ones pull in bench/runner.py, statistics, csv: not needed by
+# `gpuslice slice`)
+_LAZY = {
+    "BatchOptions": "batch.options",
+    "run_batch": "batch.runner",
+    "cusp_summary": "bench.quality",
+    "schedule_quality": "bench.quality",
+    "volume_deviation": "bench.quality",
+}
 
 
 #: sub-packages reachable as attributes (``gpuslice.formats.export(...)``), imported on first use

@@ -74,7 +74,7 @@ __kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
 void emit_segments(__global const float *verts, __global const int *faces, __global const int *face_edges,
                    const int n_faces, __global const float *zs,
                    __global const int *first_layer, __global const int *count, __global const long *offsets,
-                   __global int *seg_layer, __global int2 *seg_edges, __global float4 *seg_points) {
+                   __global int *seg_layer, __global int *seg_edges, __global float4 *seg_points) {
     const int f = get_global_id(0);
     if (f >= n_faces) return;
     const int n = count[f];
@@ -101,7 +101,10 @@ void emit_segments(__global const float *verts, __global const int *faces, __glo
         const float2 a = edge_point(verts, v[down], v[(down + 1) % 3], p);
         const float2 b = edge_point(verts, v[up], v[(up + 1) % 3], p);
         seg_layer[out] = layer;
-        seg_edges[out] = (int2)(e[down], e[up]);
+        // seg_edges holds int2 pairs. vstore2, not `seg_edges[out] = (int2)(...)`: the same 8 bytes, but clang 14
+        // (Oclgrind's) lowers that store to a store of `undef` then two lane stores, which Oclgrind's
+        // uninitialised-value check reports (jrprice/Oclgrind#126; tests/kernels/test_oclgrind.py)
+        vstore2((int2)(e[down], e[up]), (size_t)out, seg_edges);
         seg_points[out] = (float4)(a.x, a.y, b.x, b.y);
     }
 }

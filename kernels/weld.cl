@@ -61,11 +61,8 @@ void weld_insert_corners(__global const uint *corners, const int n, volatile __g
     const uint x = corners[3 * i], y = corners[3 * i + 1], z = corners[3 * i + 2];
     uint s = weld_corner_hash(x, y, z) & hash_and & mask;
     for (;;) {
-        int v = slots[s];
-        if (v == WELD_EMPTY) {
-            v = atomic_cmpxchg(&slots[s], WELD_EMPTY, i);
-            if (v == WELD_EMPTY) break;  // claimed
-        }
+        const int v = atomic_cmpxchg(&slots[s], WELD_EMPTY, i);
+        if (v == WELD_EMPTY) break;  // claimed
         // v: an item already in the slot; the slot keeps its key, though v may since have been lowered
         if (corners[3 * v] == x && corners[3 * v + 1] == y && corners[3 * v + 2] == z) {
             if (i < v) atomic_min(&slots[s], i);
@@ -85,11 +82,8 @@ void weld_insert_sides(__global const int *faces, const int n, volatile __global
     const int2 key = weld_side_key(faces, i);
     uint s = weld_edge_hash((uint)key.x, (uint)key.y) & hash_and & mask;
     for (;;) {
-        int v = slots[s];
-        if (v == WELD_EMPTY) {
-            v = atomic_cmpxchg(&slots[s], WELD_EMPTY, i);
-            if (v == WELD_EMPTY) break;
-        }
+        const int v = atomic_cmpxchg(&slots[s], WELD_EMPTY, i);
+        if (v == WELD_EMPTY) break;
         const int2 other = weld_side_key(faces, v);
         if (other.x == key.x && other.y == key.y) {
             if (i < v) atomic_min(&slots[s], i);

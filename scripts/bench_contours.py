@@ -4,6 +4,11 @@ Usage::
 
     python scripts/bench_contours.py [--repeat 5] [--meshes nefertiti,benchy,icosphere] [--json out.json]
                                      [--skip-peers] [--skip-paper]
+    python scripts/bench_contours.py --large [--large-dir /tmp/gpuslice-large] [--large-thickness 0.02,0.05]
+                                     [--large-meshes nefertiti_loop2,benchy_plate12,nefertiti_loop3]
+
+``--large`` runs only the big-mesh benchmark of issue 14 (``scripts/bench_large.py``: whole process, peak RSS and
+stages of ``gpuslice slice`` on the meshes of ``scripts/make_large.py``).
 
 Meshes (0.05 mm layers, planes at the middle of each layer, z_i = (i + 0.5) h):
 
@@ -56,6 +61,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_large  # noqa: E402  (scripts/bench_large.py, --large)
 import peers  # noqa: E402  (scripts/peers.py, the peer harness)
 
 H = 0.05
@@ -622,7 +628,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--skip-peers", action="store_true", help="gpuslice only (no peers)")
     ap.add_argument("--skip-paper", action="store_true", help="skip the 226 mm / 0.1 mm paper comparison")
     ap.add_argument("--meshes-dir", type=Path, default=DEFAULT_MESHES_DIR, help="holds nefertiti.stl")
+    bench_large.add_arguments(ap)
     args = ap.parse_args(argv)
+    if args.large:
+        exe = gpuslice_exe()[0]
+        return bench_large.main_large(args, environment(), log, [exe] if exe else None)
     if args.repeat < 1:
         ap.error("--repeat must be >= 1")
     wanted = [m.strip() for m in args.meshes.split(",") if m.strip()]

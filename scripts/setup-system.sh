@@ -4,9 +4,11 @@
 #                                     without them the process aborts on the first kernel build.
 #   libegl1 libegl-mesa0 libgl1 libgl1-mesa-dri   headless OpenGL (EGL + Mesa llvmpipe) for the moderngl rasteriser.
 #   chromium                          the headless browser the viewer's test drives (through playwright).
+#   oclgrind                          the OpenCL simulator tests/kernels/test_oclgrind.py runs every kernel under
+#                                     (races, out-of-bounds, uninitialised values) through its own ICD file.
 # Needs root (or sudo). Idempotent; prints what it installed.
 set -euo pipefail
-pkgs="binutils libgcc-12-dev libc6-dev libegl1 libegl-mesa0 libgl1 libgl1-mesa-dri chromium"
+pkgs="binutils libgcc-12-dev libc6-dev libegl1 libegl-mesa0 libgl1 libgl1-mesa-dri chromium oclgrind"
 need=""
 for p in $pkgs; do
   dpkg -s "$p" >/dev/null 2>&1 || need="$need $p"

@@ -1,0 +1,39 @@
+"""Start-up: what ``gpuslice`` and its command line import before any work (issue 14, part 3).
+
+Every module imported at start-up costs every command its import time, so heavy libraries are imported where a
+function needs them: PyOpenCL when a device is chosen, shapely when layers are nested, matplotlib for plots,
+trimesh and scipy for the formats and checks that use them, and the benchmark helpers (``gpuslice.bench``) for
+cusp heights in reports and ``gpuslice bench``.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+HEAVY = ("pyopencl", "shapely", "matplotlib", "scipy", "trimesh", "moderngl", "PIL", "rich", "dask")
+LAZY_PACKAGES = ("gpuslice.bench", "gpuslice.batch", "gpuslice.raster", "gpuslice.view", "gpuslice.pipeline")
+
+
+def _imported_by(statement: str) -> list[str]:
+    """Modules a fresh interpreter has imported after ``statement``."""
+    code = f"import json, sys\n{statement}\nprint(json.dumps(sorted(sys.modules)))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    return json.loads(out.stdout.splitlines()[-1])
+
+
+@pytest.mark.parametrize("statement", ["import gpuslice", "import gpuslice.cli.main"])
+def test_start_up_imports_nothing_heavy(statement):
+    mods = _imported_by(statement)
+    heavy = sorted(m for m in mods if m.split(".")[0] in HEAVY)
+    lazy = sorted(m for m in mods if m.startswith(LAZY_PACKAGES))
+    assert not heavy, f"{statement} imports {heavy}"
+    assert not lazy, f"{statement} imports {lazy}"
+
+
+def test_lazy_names_still_importable():
+    mods = _imported_by("from gpuslice import cusp_summary, schedule_quality, volume_deviation, BatchOptions")
+    assert "gpuslice.bench.quality" in mods and "gpuslice.batch.options" in mods
