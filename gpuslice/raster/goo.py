@@ -51,7 +51,7 @@ import numpy as np
 from ..errors import ParameterError
 from ..io.atomic import atomic_path
 from .coverage import Tile
-from .layers import RunLayer, pixel_runs
+from .layers import RunLayer, image_segments, pixel_runs
 from .png import encode_all
 from .settings import layer_table, print_time_s, resin_ml
 
@@ -89,31 +89,7 @@ def encode_runs(start: np.ndarray, length: np.ndarray, grey: np.ndarray, n_pixel
     index), ``length`` (pixels) and ``grey`` (1-255) of the non-blank runs, sorted and not overlapping, over an image
     of ``n_pixels`` pixels. The blank gaps between them (and before the first, after the last) become 0x00 chunks;
     touching runs of one grey (across a row end) are merged. Vectorised: a few numpy passes over the runs."""
-    start = np.asarray(start, np.int64)
-    length = np.asarray(length, np.int64)
-    grey = np.asarray(grey, np.uint8)
-    m = start.size
-    if m:
-        end = start + length
-        join = (start[1:] == end[:-1]) & (grey[1:] == grey[:-1])
-        if join.any():  # a run that continues the previous one (same grey, no gap): one chunk
-            head = np.flatnonzero(np.concatenate(([True], ~join)))
-            last = np.append(head[1:] - 1, m - 1)
-            start, grey = start[head], grey[head]
-            length = end[last] - start
-            end = start + length
-            m = start.size
-        gaps = start - np.concatenate(([0], end[:-1]))
-        tail = n_pixels - int(end[-1])
-    else:
-        gaps, tail = np.zeros(0, np.int64), n_pixels
-    # chunks in order: gap 0, run 0, gap 1, run 1, ..., the tail gap; empty gaps dropped
-    n = np.empty(2 * m + 1, np.int64)
-    n[0:-1:2], n[1::2], n[-1] = gaps, length, tail
-    v = np.zeros(2 * m + 1, np.uint8)
-    v[1::2] = grey
-    keep = n > 0
-    n, v = n[keep], v[keep]
+    n, v = image_segments(start, length, grey, n_pixels)
     if n.size and int(n.max()) > MAX_RUN:  # only blank gaps get this long (a row holds at most 65,535 pixels)
         pieces = -(-n // MAX_RUN)
         last = np.cumsum(pieces) - 1

@@ -16,7 +16,7 @@ from .coverage import Tile
 from .png import PngEncoder
 from .runs import Runs
 
-__all__ = ["RunLayer", "iter_run_layers", "encode_png", "sample", "pixel_runs"]
+__all__ = ["RunLayer", "iter_run_layers", "encode_png", "sample", "pixel_runs", "image_segments"]
 
 
 @dataclass(frozen=True)
@@ -120,3 +120,36 @@ def pixel_runs(item: Tile | RunLayer, cols: int) -> tuple[np.ndarray, np.ndarray
     keep = grey != 0
     start = (r[keep] + item.row0).astype(np.int64) * cols + (c[keep] + item.col0)
     return start, length[keep].astype(np.int64), grey[keep]
+
+
+def image_segments(start: np.ndarray, length: np.ndarray, value: np.ndarray,
+                   n_pixels: int) -> tuple[np.ndarray, np.ndarray]:
+    """A whole image of ``n_pixels`` as consecutive segments of one value each, what run-length archive formats
+    encode: ``(n, v)``, int64 lengths (>= 1) and uint8 values, in pixel order, blank gaps (value 0) included, from
+    the non-blank runs ``start`` (row-major pixel index), ``length``, ``value`` (sorted, not overlapping, as
+    :func:`pixel_runs` gives them). Touching runs of one value (across a row end, or equal after a format's
+    quantisation) become one segment; empty gaps are dropped. Vectorised over the runs."""
+    start = np.asarray(start, np.int64)
+    length = np.asarray(length, np.int64)
+    value = np.asarray(value, np.uint8)
+    m = start.size
+    if m:
+        end = start + length
+        join = (start[1:] == end[:-1]) & (value[1:] == value[:-1])
+        if join.any():
+            head = np.flatnonzero(np.concatenate(([True], ~join)))
+            last = np.append(head[1:] - 1, m - 1)
+            start, value = start[head], value[head]
+            length = end[last] - start
+            end = start + length
+            m = start.size
+        gaps = start - np.concatenate(([0], end[:-1]))
+        tail = n_pixels - int(end[-1])
+    else:
+        gaps, tail = np.zeros(0, np.int64), n_pixels
+    n = np.empty(2 * m + 1, np.int64)  # gap 0, run 0, gap 1, run 1, ..., the tail gap
+    n[0:-1:2], n[1::2], n[-1] = gaps, length, tail
+    v = np.zeros(2 * m + 1, np.uint8)
+    v[1::2] = value
+    keep = n > 0
+    return n[keep], v[keep]

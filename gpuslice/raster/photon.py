@@ -64,7 +64,7 @@ import numpy as np
 from ..errors import ParameterError
 from ..io.atomic import atomic_path
 from .coverage import Tile
-from .layers import RunLayer, pixel_runs, sample
+from .layers import RunLayer, image_segments, pixel_runs, sample
 from .png import encode_all
 from .settings import layer_table, print_time_s, resin_ml
 
@@ -144,27 +144,7 @@ def encode_pw0(start: np.ndarray, length: np.ndarray, grey: np.ndarray, n_pixels
     code = np.asarray(grey, np.uint8) >> 4
     keep = code > 0
     start, length, code = start[keep], length[keep], code[keep]
-    m = start.size
-    if m:
-        end = start + length
-        join = (start[1:] == end[:-1]) & (code[1:] == code[:-1])
-        if join.any():  # touching runs of one code (after quantisation, or across a row end): one run
-            head = np.flatnonzero(np.concatenate(([True], ~join)))
-            last = np.append(head[1:] - 1, m - 1)
-            start, code = start[head], code[head]
-            length = end[last] - start
-            end = start + length
-            m = start.size
-        gaps = start - np.concatenate(([0], end[:-1]))
-        tail = n_pixels - int(end[-1])
-    else:
-        gaps, tail = np.zeros(0, np.int64), n_pixels
-    n = np.empty(2 * m + 1, np.int64)  # segments: gap 0, run 0, gap 1, ..., the tail gap
-    n[0:-1:2], n[1::2], n[-1] = gaps, length, tail
-    c = np.zeros(2 * m + 1, np.uint8)
-    c[1::2] = code
-    sel = n > 0
-    n, c = n[sel], c[sel]
+    n, c = image_segments(start, length, code, n_pixels)
     two = (c == 0) | (c == 15)
     cap = np.where(two, 0xFFF, 0xF)
     pieces = -(-n // cap)  # records a segment needs
