@@ -47,7 +47,12 @@ class ResinOutput:
     settings: PrintSettings | None = None
 
     def __post_init__(self) -> None:
-        self.options.check_format(self.format)  # a printer that cannot read it: refused before any work
+        from .errors import ParameterError
+
+        try:
+            self.options.check_format(self.format)  # a printer that cannot read it: refused before any work
+        except ParameterError as exc:
+            raise ParameterError(f"{self.path}: {exc}") from None
 
 
 @dataclass(frozen=True)
@@ -279,6 +284,10 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
 
         dev = get_device(job.params.device)
     bounds = _bounds(out.mesh)
+    if out.result.n_layers == 0:
+        from .errors import ParameterError
+
+        raise ParameterError(f"{job.model_name}: no layers to write (the model is thinner than one layer)")
     check_fits(out.result, r.spec, bounds, name=job.model_name)
     if k > 1 and backend != "opencl":
         from .errors import ParameterError

@@ -104,7 +104,10 @@ def raster(model: str, output: str, progress: bool | None, report: str | None, c
     timings = {**done.timings, "total": time.perf_counter() - t_start}
     stats, n = done.stats, done.result.n_layers
     ml = resin_ml(done.result.area, done.result.thickness)
-    estimate = {"print_time_s": round(print_time_s(settings, n), 3), "resin_ml": round(ml, 4),
+    # the format's own estimate where it keeps one (SL1: exposures and tilts), else the settings' (lifts, waits)
+    t_print = stats.pop("print_time_s", None)
+    t_print = print_time_s(settings, n) if t_print is None else t_print
+    estimate = {"print_time_s": round(t_print, 3), "resin_ml": round(ml, 4),
                 "resin_g": round(ml * settings.resin_density, 4)}
     if report is not None:
         write_report({"layers": n, "raster_backend": stats["raster_backend"], "output": output, "timings_s": timings,

@@ -28,6 +28,7 @@ or a printer of its own::
 from __future__ import annotations
 
 import difflib
+import functools
 import json
 import math
 import os
@@ -267,13 +268,22 @@ def _canonical(name: str) -> str:
     return re.sub(r"[\s_]+", "-", name.strip().lower())
 
 
+@functools.lru_cache(maxsize=32)
+def _load_cached(path: str, mtime_ns: int, size: int) -> Printer:
+    return load_printer_file(path)
+
+
 def find_printer(name: str) -> Printer:
     """The preset ``name`` (:data:`PRINTERS`; case, spaces and underscores do not matter), or a user's preset when
     ``name`` is a path to a ``.toml`` or ``.json`` file; :class:`ParameterError` otherwise."""
     if name in PRINTERS:
         return PRINTERS[name]
     if name.lower().endswith((".toml", ".json")):
-        return load_printer_file(name)
+        try:  # read once per version of the file: a job asks for its preset many times (display, settings, format)
+            st = os.stat(name)
+        except OSError:
+            return load_printer_file(name)  # its one-line error
+        return _load_cached(os.path.abspath(name), st.st_mtime_ns, st.st_size)
     key = _canonical(name)
     if key in PRINTERS:
         return PRINTERS[key]

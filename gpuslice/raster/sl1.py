@@ -59,17 +59,35 @@ def _fmt(v) -> str:
     return str(v)
 
 
+def sl1_print_time(info: SL1Info, n_layers: int) -> float:
+    """config.ini's ``printTime`` (s): the first layer's exposure, the others', and one tilt per layer (PrusaSlicer's
+    model of a tilting SL1; no lift moves)."""
+    return info.initial_exposure_time + max(n_layers - 1, 0) * info.exposure_time + n_layers * info.tilt_time
+
+
+def sl1_values(target) -> dict[str, object]:
+    """The :class:`SL1Info` values of a job's print settings and preset, for the SL1 family's writers. SL1's
+    config.ini exposes the first layer with ``expTimeFirst`` and fades over ``numFade`` layers; it has no count of
+    bottom layers and no lift settings (the printer tilts its vat): ``bottom_layers`` other than 1 is refused
+    (:class:`ParameterError` naming the output) rather than dropped."""
+    s, preset = target.settings, target.options.preset
+    if s.bottom_layers != 1:
+        raise ParameterError(f"{target.path}: an SL1 archive has one bottom layer (expTimeFirst), then "
+                             f"--transition-layers fade layers; --bottom-layers {s.bottom_layers} cannot be written")
+    values: dict[str, object] = {"exposure_time": s.exposure, "initial_exposure_time": s.bottom_exposure,
+                                 "faded_layers": s.transition_layers}
+    if preset is not None and preset.machine:  # the firmware refuses a project made for another model
+        values.update(printer_model=preset.machine, printer_variant="default")
+    return values
+
+
 def config_ini(info: SL1Info, n_layers: int, now: _dt.datetime | None = None) -> str:
     """``config.ini`` text: the keys PrusaSlicer 2.5 writes, sorted as it writes them."""
     from .. import __version__
 
     now = now or _dt.datetime.now(_dt.timezone.utc)
     n_fade = min(info.faded_layers, max(n_layers - 1, 0))
-    print_time = (
-        info.initial_exposure_time
-        + max(n_layers - 1, 0) * info.exposure_time
-        + n_layers * info.tilt_time
-    )
+    print_time = sl1_print_time(info, n_layers)
     keys = {
         "action": "print",
         "expTime": info.exposure_time,
@@ -297,12 +315,8 @@ def check_one_layer_height(thickness: np.ndarray, path: Path, first_may_differ: 
 def write_target(tiles: Iterable[Tile], target) -> dict[str, float]:
     """The registry's writer (:mod:`gpuslice.raster.outputs`): an SL1 archive of ``target.result``'s layers."""
     check_one_layer_height(target.result.thickness, Path(target.path))
-    o, s = target.options, target.settings
-    values = {"exposure_time": s.exposure, "initial_exposure_time": s.bottom_exposure,
-              "faded_layers": s.transition_layers}
-    preset = o.preset
-    if preset is not None and preset.machine:  # the firmware refuses a project made for another model
-        values.update(printer_model=preset.machine, printer_variant="default")
-    info = info_from(target.result, target.name, values)
-    return write_sl1(tiles, target.spec, target.path, info, target.result.n_layers, level=o.png_level,
-                     deflater=target.deflater, workers=target.workers, progress=target.progress, now=target.now)
+    info = info_from(target.result, target.name, sl1_values(target))
+    n = target.result.n_layers
+    stats = write_sl1(tiles, target.spec, target.path, info, n, level=target.options.png_level,
+                      deflater=target.deflater, workers=target.workers, progress=target.progress, now=target.now)
+    return {**stats, "print_time_s": sl1_print_time(info, n)}

@@ -26,7 +26,7 @@ from pathlib import Path
 
 from ..errors import ParameterError
 from .coverage import Tile
-from .sl1 import check_one_layer_height, info_from, write_sl1
+from .sl1 import check_one_layer_height, info_from, sl1_print_time, sl1_values, write_sl1
 from .spec import RasterSpec
 
 __all__ = ["SL1S_PNG_SIZE", "SL1S_PIXEL_MM", "SL1S_FAST_TILT_S", "SL1S_SLOW_TILT_S", "check_sl1s_display",
@@ -57,15 +57,16 @@ def write_target(tiles: Iterable[Tile], target) -> dict[str, float]:
     path = Path(target.path)
     check_sl1s_display(target.spec, path)
     check_one_layer_height(target.result.thickness, path)
-    o, s = target.options, target.settings
+    o = target.options
     preset = o.preset
     model = preset.machine if preset is not None and preset.machine else "SL1S"
     profile = preset.title if preset is not None else ""
     extra = {"printer_model": model, "printer_variant": "default", "printer_settings_id": profile,
              "fast_tilt_time": SL1S_FAST_TILT_S, "slow_tilt_time": SL1S_SLOW_TILT_S, "sla_archive_format": "SL1"}
-    values = {"exposure_time": s.exposure, "initial_exposure_time": s.bottom_exposure,
-              "faded_layers": s.transition_layers, "printer_model": model, "printer_variant": "default",
+    values = {**sl1_values(target), "printer_model": model, "printer_variant": "default",
               "printer_profile": profile, "tilt_time": SL1S_FAST_TILT_S, "extra": extra}
     info = info_from(target.result, target.name, values)
-    return write_sl1(tiles, target.spec, path, info, target.result.n_layers, level=o.png_level,
-                     deflater=target.deflater, workers=target.workers, progress=target.progress, now=target.now)
+    n = target.result.n_layers
+    stats = write_sl1(tiles, target.spec, path, info, n, level=o.png_level, deflater=target.deflater,
+                      workers=target.workers, progress=target.progress, now=target.now)
+    return {**stats, "print_time_s": sl1_print_time(info, n)}

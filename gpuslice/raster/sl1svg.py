@@ -42,7 +42,18 @@ from ..io.atomic import atomic_path
 from ..ragged import expand_ranges
 from .coverage import Tile
 from .edges import result_bounds
-from .sl1 import THUMBNAILS, SL1Info, _Thumb, _zip_time, check_one_layer_height, config_ini, info_from, prusaslicer_ini
+from .sl1 import (
+    THUMBNAILS,
+    SL1Info,
+    _Thumb,
+    _zip_time,
+    check_one_layer_height,
+    config_ini,
+    info_from,
+    prusaslicer_ini,
+    sl1_print_time,
+    sl1_values,
+)
 from .spec import RasterSpec
 
 __all__ = ["PRECISION_MM", "svg_resolution", "svg_header", "layer_svgs", "write_sl1svg", "write_target"]
@@ -235,12 +246,11 @@ def write_target(tiles: Iterable[Tile], target) -> dict[str, float]:
     """The registry's writer (:mod:`gpuslice.raster.outputs`): an SL1_SVG archive of ``target.result``."""
     path = Path(target.path)
     check_one_layer_height(target.result.thickness, path)
-    s = target.settings
     preset = target.options.preset
-    values = {"exposure_time": s.exposure, "initial_exposure_time": s.bottom_exposure,
-              "faded_layers": s.transition_layers}
+    values = sl1_values(target)
     if preset is not None and preset.machine:
-        values.update(printer_model=preset.machine, printer_profile=preset.title)
+        values.update(printer_profile=preset.title)
     info = info_from(target.result, target.name, values)
-    return write_sl1svg(tiles, target.result, target.spec, path, info, bounds=target.bounds,
-                        progress=target.progress, now=target.now)
+    stats = write_sl1svg(tiles, target.result, target.spec, path, info, bounds=target.bounds,
+                         progress=target.progress, now=target.now)
+    return {**stats, "print_time_s": sl1_print_time(info, target.result.n_layers)}

@@ -169,11 +169,18 @@ def test_cli_preset_settings_overridden_and_estimates_reported(tmp_path, capsys)
     preset = _small_preset(tmp_path, bottom_layers=2, bottom_exposure=10.0, exposure=4.0, transition_layers=0,
                            lift_height=5.0, lift_speed=60.0, retract_speed=300.0)
     out, rep = tmp_path / "cube.sl1", tmp_path / "r.json"
-    args = ["raster", str(stl), "-t", "1", "--printer", preset, *FAST, "-o", str(out), "--report", str(rep)]
-    assert main([*args, "--exposure", "3"]) == 0
+    args = ["raster", str(stl), "-t", "1", "--printer", preset, *FAST, "--report", str(rep), "--exposure", "3"]
+    # SL1 holds one bottom layer: refused with the preset's two, written with one
+    assert main([*args, "-o", str(out)]) == 2 and not out.exists()
+    assert "--bottom-layers 2" in capsys.readouterr().err
+    assert main([*args, "-o", str(out), "--bottom-layers", "1"]) == 0
     with zipfile.ZipFile(out) as z:
         cfg = dict(line.split(" = ", 1) for line in z.read("config.ini").decode().splitlines())
     assert (float(cfg["expTime"]), float(cfg["expTimeFirst"])) == (3.0, 10.0)  # the flag wins, the preset stays
+    # SL1's estimate is its config.ini's (exposures and tilts), printed and reported alike
+    assert json.loads(rep.read_text())["print_time_s"] == pytest.approx(float(cfg["printTime"]))
+    capsys.readouterr()
+    assert main([*args, "-o", f"{tmp_path / 'stack'}/"]) == 0  # a PNG stack: the settings' own estimate
     # 20 layers: 2 x 10 s + 18 x 3 s of light, and each layer lifts 5 mm at 60 mm/min (5 s), retracts at 300 (1 s)
     expected = 2 * 10.0 + 18 * 3.0 + 20 * (5.0 + 1.0)
     report = json.loads(rep.read_text())

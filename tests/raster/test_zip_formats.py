@@ -61,7 +61,9 @@ def benchy(shared_meshes):
 
 def _target(tmp_path, name, result, spec, printer=None, **kw):
     opts = ResinOptions(printer=printer, workers=2)
-    return ResinTarget(tmp_path / name, spec, opts, result, "part", now=WHEN, settings=SETTINGS, **kw)
+    # the SL1 family holds one bottom layer (expTimeFirst): the others take the shared settings' three
+    settings = replace(SETTINGS, bottom_layers=1) if ".sl1" in name else SETTINGS
+    return ResinTarget(tmp_path / name, spec, opts, result, "part", now=WHEN, settings=settings, **kw)
 
 
 def _write(fmt, target, backend="numpy", device=None):
@@ -322,6 +324,11 @@ def test_sl1_refuses_adaptive_layers_and_names_the_preset_model(tmp_path, torus)
     with pytest.raises(ParameterError, match="one layer height"):
         _write("sl1", _target(tmp_path, "u.sl1", uneven, SMALL))
     assert not (tmp_path / "u.sl1").exists()
+    for fmt, name in (("sl1", "b.sl1"), ("sl1svg", "b.sl1_svg")):  # bottom layers it cannot hold: refused, not dropped
+        t = replace(_target(tmp_path, name, torus, SMALL), settings=SETTINGS)
+        with pytest.raises(ParameterError, match="--bottom-layers 3"):
+            _write(fmt, t)
+        assert not (tmp_path / name).exists()
     from gpuslice.raster.printers import find_printer
     from gpuslice.raster.spec import with_printer
 
