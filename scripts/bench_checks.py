@@ -1,13 +1,16 @@
 """Benchmark of the pre-print checks (issue 13): ``gpuslice check`` on shared meshes, the checks' cost against the
-slicing's, as the pipeline times them (one :func:`gpuslice.pipeline.run_job` per run, best of ``--repeat``).
+slicing's, as the pipeline times them (one :func:`gpuslice.pipeline.run_job` per run after one warm-up run; the
+median of ``--repeat`` runs, and the best).
 
     python scripts/bench_checks.py                       # nefertiti at 80 mm, benchy at 60 mm, 0.05 mm layers
     python scripts/bench_checks.py --printer generic-4k  # also the pixel-exact checks on that display
+    python scripts/bench_checks.py --no-simplify         # the unsupported area on the true outlines (the reference)
     python scripts/bench_checks.py --json bench_checks.json
 
 "slicing" is the pipeline's load + topology + schedule + crossings + chaining + nesting (the device's one-off
 kernel build left out); "checks" is the ``checks`` stage, split into ``islands`` (islands and unsupported area) and
-``cavities`` (the voxel grid's rasterisation, traps and suction cups). Timings are wall-clock seconds.
+``cavities`` (the voxel grid's rasterisation, traps and suction cups). Timings are wall-clock seconds; the machine's
+load average (1 min) is printed before and after each mesh, since other work on the machine slows both.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import argparse
 import json
 import os
 import platform
+import statistics
 import time
 from pathlib import Path
 
@@ -50,9 +54,15 @@ def main() -> None:
     ap.add_argument("--thickness", type=float, default=0.05)
     ap.add_argument("--printer", default=None, help="also run the checks on this printer's pixels")
     ap.add_argument("--backend", default="opencl", choices=("opencl", "numpy"))
-    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--no-simplify", action="store_true",
+                    help="measure the unsupported area on the true outlines (gpuslice.checks.islands.SIMPLIFY = 0)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
+    if args.no_simplify:
+        import gpuslice.checks.islands as islands
+
+        islands.SIMPLIFY = 0.0
     rows = []
     for name, fit in MESHES.items():
         path = Path(args.meshes) / f"{name}.stl"
@@ -60,17 +70,22 @@ def main() -> None:
             print(f"{name}: {path} not found, skipped")
             continue
         for printer in (None, args.printer) if args.printer else (None,):
+            load0 = os.getloadavg()[0]
             runs = [run_once(path, fit, args.thickness, printer, args.backend) for _ in range(args.repeat + 1)][1:]
-            best = {k: min(r[k] for r in runs) for k in ("slicing_s", "checks_s", "islands_s", "cavities_s",
-                                                             "total_s")}
+            load1 = os.getloadavg()[0]
+            keys = ("slicing_s", "checks_s", "islands_s", "cavities_s", "total_s")
+            med = {k: float(statistics.median(r[k] for r in runs)) for k in keys}
+            best = {k: min(r[k] for r in runs) for k in keys}
             row = {"mesh": name, "fit_mm": fit, "mode": f"pixels {printer}" if printer else "contours",
-                   "layers": runs[0]["layers"], "points": runs[0]["points"], **best, "counts": runs[0]["counts"],
-                   "ratio": best["checks_s"] / best["slicing_s"]}
+                   "layers": runs[0]["layers"], "points": runs[0]["points"], **med,
+                   "best": best, "counts": runs[0]["counts"], "ratio": med["checks_s"] / med["slicing_s"],
+                   "load_avg_1min": [load0, load1], "simplify": not args.no_simplify}
             rows.append(row)
-            print(f"{name} ({fit:g} mm, {row['layers']} layers, {row['points']:,} points), {row['mode']}: slicing "
-                  f"{best['slicing_s']:.3f} s, checks {best['checks_s']:.3f} s (islands + unsupported "
-                  f"{best['islands_s']:.3f}, traps/cups {best['cavities_s']:.3f}) = {row['ratio']:.2f}x slicing; "
-                  f"{row['counts']}", flush=True)
+            print(f"{name} ({fit:g} mm, {row['layers']} layers, {row['points']:,} points), {row['mode']}, median of "
+                  f"{len(runs)} (best): slicing {med['slicing_s']:.3f} s ({best['slicing_s']:.3f}), checks "
+                  f"{med['checks_s']:.3f} s ({best['checks_s']:.3f}; islands + unsupported {med['islands_s']:.3f}, "
+                  f"traps/cups {med['cavities_s']:.3f}) = {row['ratio']:.2f}x slicing; load {load0:.1f} -> "
+                  f"{load1:.1f}; {row['counts']}", flush=True)
     if args.json:
         from gpuslice.device import get_device
 

@@ -15,7 +15,27 @@ from ..mesh.mesh import Placement
 from ..options import option, options_of, parse_value
 from ..slicing.params import SliceParams
 
-__all__ = ["BatchOptions", "raster_option_fields", "typed_raster_options"]
+__all__ = ["BatchOptions", "check_path", "raster_option_fields", "typed_raster_options"]
+
+#: what ends the name of a model's check report, next to its output (``--check``)
+CHECK_SUFFIX = ".check.json"
+
+
+def check_path(target: str | Path) -> Path:
+    """Where a model's check report goes: its output's path + ``.check.json`` (``part.goo`` → ``part.goo.check.json``;
+    a PNG stack folder ``part`` → ``part.check.json``)."""
+    target = Path(target)
+    return target.with_name(target.name + CHECK_SUFFIX)
+
+
+def write_check_report(report, path: str | Path) -> None:
+    """Write ``report`` (:class:`gpuslice.checks.CheckReport`) as JSON to ``path``, atomically, without its timings:
+    the file's bytes depend only on the model and the options, as the batch's outputs do."""
+    from ..io.report import write_report
+
+    data = report.to_json()
+    data.pop("timings_s", None)
+    write_report(data, path)
 
 #: the SliceParams fields of an adaptive schedule (recorded in the manifest only when one is asked for)
 _SCHEDULE_FIELDS = ("adaptive", "max_cusp", "max_area", "min_height", "max_height", "smooth", "roi_ladder",
@@ -76,6 +96,9 @@ class BatchOptions:
         ``raster_options``: (name, value) pairs of :class:`~gpuslice.raster.spec.RasterSpec` and
         :class:`~gpuslice.raster.spec.ResinOptions` fields (``printer``, ``resolution``, ``gamma``, …); values may
         be the command line's text (``"3840x2400"``), typed by the fields when used.
+    check : also run the pre-print checks (:mod:`gpuslice.checks`, default options) on every model and write its
+        report next to its output (:func:`check_path`): on the display's pixels with a resin output (as
+        ``raster --check``), else on the contours (as ``gpuslice check``).
     """
 
     params: SliceParams = SliceParams()
@@ -84,6 +107,9 @@ class BatchOptions:
     raster: str | None = option(None, "Rasterise each model to a resin output instead (a file, or a folder for png)",
                                 choices=_resin_names)
     raster_options: tuple[tuple[str, Any], ...] = ()
+    check: bool = option(False, "Also run the pre-print checks on every model (islands, unsupported area, resin "
+                         "traps, suction cups, print time, resin: as `gpuslice check`, on the printer's pixels with "
+                         "--raster) and write each report next to its output as <output>.check.json")
 
     def __post_init__(self) -> None:
         if self.fmt not in CONTOUR_FORMATS:
@@ -123,16 +149,20 @@ class BatchOptions:
         """The :class:`~gpuslice.pipeline.Job` of one model: read ``source`` (or ``data``), write ``target``;
         portable (no device or backend in the output)."""
         from dataclasses import replace
+        from functools import partial
 
-        from ..pipeline import Job, ResinOutput
+        from ..pipeline import CheckOutput, Job, ResinOutput
 
-        resin = None
+        resin = checks = None
         if self.raster is not None:
             spec, ropts, settings = self.resin()
             resin = ResinOutput(str(target), self.raster, spec, replace(ropts, workers=ropts.workers or workers),
                                 settings)
+        if self.check:
+            pixels = (resin.spec, resin.settings) if resin is not None else (None, None)
+            checks = CheckOutput(*pixels, on_report=partial(write_check_report, path=check_path(target)))
         return Job(source=source, name=name, label=label, data=data, placement=self.placement, params=self.params,
-                   contours=None if resin is not None else str(target), resin=resin, portable=True)
+                   contours=None if resin is not None else str(target), resin=resin, checks=checks, portable=True)
 
     def shaping(self) -> dict[str, Any]:
         """The options that shape output bytes (not the backend or device: both give bit-identical results), as the
@@ -144,6 +174,8 @@ class BatchOptions:
                  raster_options=[[k, _as_recorded(v)] for k, v in self.raster_options])
         d["schedule"] = {k: list(v) if isinstance(v, tuple) else v for k, v in
                          ((k, getattr(p, k)) for k in _SCHEDULE_FIELDS)} if p.adaptive else {}
+        if self.check:  # only then: folders made without --check keep their fingerprint
+            d["check"] = True
         return d
 
     def fingerprint(self) -> str:

@@ -7,17 +7,31 @@ from typing import Any
 __all__ = ["format_summary"]
 
 
+def _checks_cell(r: dict[str, Any]) -> str:
+    """A model's pre-print checks in one cell: islands, traps, suction cups (``-``: not checked)."""
+    c = r.get("checks")
+    if c is None:
+        return "-"
+    found = [f"{c[k]} {label}" for k, label in (("islands", "isl"), ("traps", "trap"), ("suction_cups", "cup"))
+             if c.get(k)]
+    return ", ".join(found) or "ok"
+
+
 def format_summary(report: dict[str, Any], max_rows: int = 40) -> str:
     """A plain-text summary table of a batch report: one row per model (failed ones first; at most
-    ``max_rows``), then the totals."""
+    ``max_rows``), then the totals; with ``--check``, a ``checks`` column (islands, resin traps, suction cups)."""
     rows = sorted(report["models"], key=lambda r: (r["status"] != "failed", r["model"]))
     width = min(60, max([len(r["model"]) for r in rows] + [5]))
-    lines = [f"{'model':{width}s} {'status':8s} {'facets':>9s} {'layers':>7s} {'time s':>8s}  error"]
+    checked = "checks" in report["summary"]
+    cw = max([len(_checks_cell(r)) for r in rows[:max_rows]] + [6]) if checked else 0
+    head = f" {'checks':{cw}s}" if checked else ""
+    lines = [f"{'model':{width}s} {'status':8s} {'facets':>9s} {'layers':>7s} {'time s':>8s}{head}  error"]
     for r in rows[:max_rows]:
         t = r.get("timings_s", {}).get("total")
         name = r["model"] if len(r["model"]) <= width else "…" + r["model"][-width + 1:]
+        cell = f" {_checks_cell(r):{cw}s}" if checked else ""
         lines.append(f"{name:{width}s} {r['status']:8s} {r.get('facets', ''):>9} {r.get('layers', ''):>7} "
-                     f"{'' if t is None else f'{t:.3f}':>8s}  {r.get('error') or ''}")
+                     f"{'' if t is None else f'{t:.3f}':>8s}{cell}  {r.get('error') or ''}")
     if len(rows) > max_rows:
         lines.append(f"… {len(rows) - max_rows} more in the JSON report")
     s = report["summary"]
@@ -29,4 +43,8 @@ def format_summary(report: dict[str, Any], max_rows: int = 40) -> str:
         + (f", {s['workers_lost']} lost" if s["workers_lost"] else "")
         + (f", {s['retries']} retries" if s["retries"] else "") + ")"
     )
+    if checked:
+        c = s["checks"]
+        lines.append(f"checks: {c['models']} models checked, {c['with_islands']} with islands, {c['with_traps']} with "
+                     f"resin traps, {c['with_suction_cups']} with suction cups (<output>.check.json)")
     return "\n".join(lines)

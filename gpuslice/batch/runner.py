@@ -5,7 +5,8 @@ Dask ``distributed.Client`` (the scheduler re-runs a lost worker's tasks itself;
 another worker), and collects their records into the batch report (:meth:`BatchRunner.report`).
 
 Skipping: a model whose output exists is skipped (``force`` redoes it); outputs are only ever renamed into place
-complete, so existing means complete. The output folder holds a small manifest (``.gpuslice-batch.json``) with the
+complete, so existing means complete (with ``--check``, its check report must exist too: a contour file is written
+before the checks run). The output folder holds a small manifest (``.gpuslice-batch.json``) with the
 options that shape the outputs; a batch with other options into the same folder is refused unless ``force`` is
 given, so a re-run never skips a model whose output was made with different options.
 """
@@ -27,7 +28,7 @@ from typing import Any
 
 from ..errors import BatchError, one_line
 from .discover import Model, discover
-from .options import BatchOptions
+from .options import BatchOptions, check_path
 from .task import _worker_device, init_worker, pocl_thread_env, run_model
 
 __all__ = ["BatchRunner", "MANIFEST_NAME", "default_workers", "run_batch"]
@@ -146,7 +147,7 @@ class BatchRunner:
         tasks = []
         for i, m in enumerate(self.models):
             target = out / m.out
-            if not self.force and target.exists():
+            if not self.force and target.exists() and (not self.opts.check or check_path(target).exists()):
                 self._finish(i, {"model": m.rel, "output": m.out, "status": "skipped", "error": None}, None)
             else:
                 tasks.append(_Task(i))
@@ -161,6 +162,8 @@ class BatchRunner:
         for m in self.models:
             target = self.out_dir / m.out
             by_dir[target.parent].add(target.name)
+            if self.opts.check:
+                by_dir[target.parent].add(check_path(target).name)
         for folder, names in by_dir.items():
             with contextlib.suppress(OSError):
                 for entry in os.scandir(folder):
@@ -341,6 +344,8 @@ class BatchRunner:
                            "error": f"{m.src}: {one_line(exc)}"}
                     worker = "?"
                 fut.release()
+                if rec["status"] == "done" and "check_payload" in rec:  # first: an output means a full model
+                    _write_payload(check_path(self.out_dir / m.out), rec.pop("check_payload"))
                 if rec["status"] == "done" and "payload" in rec:
                     _write_payload(self.out_dir / m.out, rec.pop("payload"))
                 retry = self._outcome(task, rec, worker, n_workers)
@@ -403,7 +408,7 @@ class BatchRunner:
         for i, m in enumerate(self.models):
             rec = self.records.get(i) or {"model": m.rel, "input": m.src, "output": m.out, "status": "not run",
                                           "error": None}
-            records.append({k: v for k, v in rec.items() if k != "payload"})
+            records.append({k: v for k, v in rec.items() if k not in ("payload", "check_payload")})
         counts = collections.Counter(r["status"] for r in records)
         done = [r for r in records if r["status"] == "done"]
         info = dict(self.info)
@@ -420,6 +425,7 @@ class BatchRunner:
             "facets": sum(r.get("facets", 0) for r in done),
             "layers": sum(r.get("layers", 0) for r in done),
             "task_s": sum(r["timings_s"]["total"] for r in done if "timings_s" in r),
+            **({"checks": _checks_summary(done)} if self.opts.check else {}),
             "worker_init_s": init,
             **info,
         }
@@ -432,6 +438,14 @@ class BatchRunner:
             "models": records,
             "summary": summary,
         }
+
+
+def _checks_summary(done: list[dict]) -> dict[str, int]:
+    """How many of the checked models have islands, resin traps, suction cups (``--check``)."""
+    checks = [r["checks"] for r in done if "checks" in r]
+    return {"models": len(checks), "with_islands": sum(c["islands"] > 0 for c in checks),
+            "with_traps": sum(c["traps"] > 0 for c in checks),
+            "with_suction_cups": sum(c["suction_cups"] > 0 for c in checks)}
 
 
 def _write_payload(target: Path, payload: bytes | dict[str, bytes]) -> None:

@@ -18,9 +18,9 @@ from typing import Any
 
 from ..errors import BatchError, GpusliceError, one_line
 from .discover import Model
-from .options import BatchOptions
+from .options import BatchOptions, check_path
 
-__all__ = ["connect", "init_worker", "pocl_thread_env", "run_model"]
+__all__ = ["check_summary", "connect", "init_worker", "pocl_thread_env", "run_model"]
 
 _WORKER: dict[str, Any] = {}
 
@@ -80,6 +80,17 @@ def _collect(path: Path) -> bytes | dict[str, bytes]:
     return path.read_bytes()
 
 
+def check_summary(report) -> dict[str, Any]:
+    """A model's pre-print checks in its batch record: the counts (``islands``, ``island_layers``, ``traps``,
+    ``suction_cups``), the largest unsupported area of a layer (mm²) and the print time (s) and resin (ml)."""
+    unsup = report.islands.unsupported
+    worst = float(max((v for v in unsup.tolist() if v == v), default=0.0))  # NaN: a layer GEOS refused
+    cav = report.cavities
+    return {"islands": report.n_islands, "island_layers": int(report.island_layers.size), "traps": cav.n_traps,
+            "suction_cups": cav.n_cups, "max_unsupported_mm2": worst, "print_time_s": float(report.print_time_s),
+            "resin_ml": float(report.resin_ml)}
+
+
 def run_model(model: Model, opts: BatchOptions, out_root: str | None, data: bytes | None = None) -> dict[str, Any]:
     """Slice one model and write its output; never raises.
 
@@ -98,7 +109,8 @@ def run_model(model: Model, opts: BatchOptions, out_root: str | None, data: byte
         None), ``facets``, ``layers``, ``loops``, ``points``, ``open_chains``, ``device``, ``pid``, ``host``,
         ``timings_s`` (the pipeline's stages, :mod:`gpuslice.pipeline`, and ``total``; s), ``worker_init_s``
         (the worker's one-off device and kernel set-up, on the first
-        task a worker runs, else 0).
+        task a worker runs, else 0); with ``opts.check``, ``checks`` (:func:`check_summary`) and, when the output
+        travels as bytes, ``check_payload`` (the check report's bytes, written next to the output by the driver).
     """
     t0 = time.perf_counter()
     rec: dict[str, Any] = {"model": model.rel, "output": model.out, "status": "failed", "error": None,
@@ -127,6 +139,10 @@ def run_model(model: Model, opts: BatchOptions, out_root: str | None, data: byte
                 target = Path(tmp) / (Path(model.out).name or "out")
                 done = run(target)
                 rec["payload"] = _collect(target)
+                if opts.check:
+                    rec["check_payload"] = check_path(target).read_bytes()
+        if "checks" in done.stats:
+            rec["checks"] = check_summary(done.stats["checks"])
         meta = done.result.meta
         for k, v in done.timings.items():
             if k != "device":

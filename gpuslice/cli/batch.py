@@ -93,6 +93,7 @@ class _Progress:
               help="In folders, the models to take, e.g. '**/*.stl' (case-insensitive; default: every .stl .3mf "
                    ".obj .ply .off).")
 @with_options(click_options(BatchOptions, only=("raster",)))
+@with_options(click_options(BatchOptions, only=("check",)))
 @click.option("--raster-opt", "raster_opt", multiple=True, metavar="KEY=VALUE",
               help="A resin option (a `gpuslice raster` option's name), e.g. pixel=0.05, resolution=3840x2400, "
                    "printer=generic-4k (repeatable).")

@@ -29,7 +29,7 @@ from gpuslice.checks import (  # noqa: E402
     run_checks,
 )
 from gpuslice.checks.cavities import CavityFinder  # noqa: E402
-from gpuslice.checks.islands import PixelIslands  # noqa: E402
+from gpuslice.checks.islands import SIMPLIFY, SIMPLIFY_SHARE, PixelIslands, _collinear_share  # noqa: E402
 from gpuslice.cli import main  # noqa: E402
 from gpuslice.errors import ParameterError  # noqa: E402
 from gpuslice.raster.settings import PrintSettings, print_time_s, resin_ml  # noqa: E402
@@ -61,8 +61,8 @@ def _box(sx, sy, sz, x=0.0, y=0.0, z0=0.0):
     return _at(trimesh.creation.box([sx, sy, sz]), x, y, z0 + sz / 2)
 
 
-def _revolve(profile):
-    m = trimesh.creation.revolve(np.asarray(profile, float), sections=128)
+def _revolve(profile, sections=128):
+    m = trimesh.creation.revolve(np.asarray(profile, float), sections=sections)
     if m.volume < 0:
         m.invert()
     return m
@@ -208,6 +208,51 @@ def test_contour_and_pixel_islands_agree_on_shared_meshes(shared_meshes):
             assert diff <= perim * px + 4 * px * px, (name, k, c.area[ic], p.area[ip])
 
 
+def frustum(r0=2.0, r1=10.0, height=4.0, sections=512):
+    """A cone widening upwards, radius ``r0`` on the plate to ``r1`` at the top, ``sections`` facets round: every
+    layer is the regular ``sections``-gon inscribed in the circle of radius r(z), its points nearly collinear."""
+    return _revolve([[0, 0], [r0, 0], [r1, height], [0, height]], sections)
+
+
+def _simplify_bound(res, tolerance):
+    """Per layer, the bound on the simplified outlines' error: 2ε·(P_i + P_(i-1) + 2π·t) (islands' docstring)."""
+    per = shapely.length(res.to_shapely())
+    eps = SIMPLIFY * tolerance
+    return np.r_[0.0, 2 * eps * (per[1:] + per[:-1] + 2 * np.pi * tolerance)]
+
+
+def test_simplified_unsupported_area_is_within_its_bound(shared_meshes):
+    """The unsupported area on simplified outlines (the default) against the true outlines (``simplify=0``): on a
+    frustum (both against the exact value: an n-gon of radius r grown by t has area A + P·t + π·t²), on the other
+    solids here, and on benchy, where the simplification is used (most points sit on tiny edges along arcs)."""
+    t = 0.05
+    r0, r1, h, n = 2.0, 10.0, 4.0, 512
+    res = _slice(frustum(r0, r1, h, n))
+    assert _collinear_share(res, 0, res.n_layers, SIMPLIFY * t) >= SIMPLIFY_SHARE  # the simplified path is taken
+    r = r0 + (r1 - r0) * np.asarray(res.z) / h
+    area, perim = n / 2 * r**2 * np.sin(2 * np.pi / n), 2 * n * r * np.sin(np.pi / n)
+    want = np.r_[0.0, area[1:] - (area[:-1] + perim[:-1] * t + np.pi * t * t)]
+    exact = contour_islands(res, t, simplify=0).unsupported
+    fast = contour_islands(res, t).unsupported
+    assert np.all(want[1:] > 1.0)
+    assert exact == pytest.approx(want, abs=2e-3)  # float32 points at 10 mm: ~1e-6 mm each
+    bound = _simplify_bound(res, t)
+    assert np.all(np.abs(fast - exact) <= bound) and np.any(fast != exact)
+    assert np.all(np.abs(fast - exact) <= 2e-3 * exact)  # the bound is loose: 0.2 % of the value here
+    for mesh in (floating_box(), t_shape(False), cup(), _cat(*rings())):
+        res = _slice(mesh)
+        exact, fast = contour_islands(res, t, simplify=0), contour_islands(res, t)
+        assert np.all(np.abs(fast.unsupported - exact.unsupported) <= _simplify_bound(res, t))
+        assert np.array_equal(fast.layer, exact.layer) and np.array_equal(fast.area, exact.area)
+    res = slice_mesh(shared_meshes / "benchy.stl", thickness=0.1)
+    assert _collinear_share(res, 0, res.n_layers, SIMPLIFY * t) >= SIMPLIFY_SHARE
+    exact, fast = contour_islands(res, t, simplify=0), contour_islands(res, t)
+    bound = _simplify_bound(res, t)
+    diff = np.abs(fast.unsupported - exact.unsupported)
+    assert np.all(diff <= bound) and diff.max() < 0.05, (diff.max(), int(np.argmax(diff)))
+    assert np.array_equal(fast.layer, exact.layer)
+
+
 # ---- traps and suction cups --------------------------------------------------------------------------------------
 def test_cup_upright_is_one_suction_cup_over_its_wall_layers():
     res = _slice(cup())
@@ -289,6 +334,69 @@ def test_batches_give_the_same_answers():
     for name in ("volume", "layer_min", "layer_max", "x", "y", "z", "max_area"):
         assert np.array_equal(getattr(c1, name), getattr(c2, name)), name
     assert np.array_equal(i1.unsupported, i2.unsupported) and np.array_equal(i1.layer, i2.layer)
+
+
+# ---- batch --check --------------------------------------------------------------------------------------------------
+def test_batch_check_writes_a_report_per_model(tmp_path, capsys, monkeypatch):
+    """``batch --check``: every model's check report next to its output (its numbers those of ``run_checks`` on
+    the same slicing, no timings, so the bytes repeat), a checks column and totals in the batch report; a model
+    is skipped only with its report; folders made without ``--check`` keep their fingerprint; a resin batch checks
+    the display's pixels; a task whose output travels as bytes brings its report back the same way."""
+    from gpuslice.batch import run_batch
+    from gpuslice.batch.discover import discover
+    from gpuslice.batch.options import BatchOptions, check_path
+    from gpuslice.batch.runner import MANIFEST_NAME
+    from gpuslice.batch.task import run_model
+    from gpuslice.mesh.mesh import Placement
+    from gpuslice.slicing.params import SliceParams
+
+    src = tmp_path / "models"
+    src.mkdir()
+    floating_box().export(src / "floating.stl")
+    t_shape(True).export(src / "tee.stl")
+    out = tmp_path / "out"
+    rc = main(["batch", str(src), "-o", str(out), "-t", str(H), "-j", "0", "--check", "--report",
+               str(tmp_path / "batch.json")])
+    text = capsys.readouterr().out
+    assert rc == 0
+    report = json.loads((tmp_path / "batch.json").read_text())
+    rec = {r["model"]: r for r in report["models"]}
+    assert rec["floating.stl"]["checks"]["islands"] == 1 and rec["tee.stl"]["checks"]["islands"] == 0
+    assert report["summary"]["checks"] == {"models": 2, "with_islands": 1, "with_traps": 0, "with_suction_cups": 0}
+    assert "checks" in text.splitlines()[0] and "1 isl" in text and "1 with islands" in text
+    res = _slice(floating_box())
+    want = _check(res).to_json()
+    got = json.loads(check_path(out / "floating.npz").read_text())
+    assert "timings_s" not in got and got["mode"] == "contours"
+    assert got["counts"] == want["counts"] and got["islands"][0]["layer"] == want["islands"][0]["layer"]
+    assert got["islands"][0]["area_mm2"] == pytest.approx(25.0, abs=1e-4)
+    assert json.loads(check_path(out / "tee.npz").read_text())["counts"]["islands"] == 0
+    assert json.loads((out / MANIFEST_NAME).read_text())["options"]["check"] is True
+    # a re-run skips both; a model whose report is missing is redone, and its report is the same bytes
+    first = check_path(out / "tee.npz").read_bytes()
+    check_path(out / "tee.npz").unlink()
+    opts = BatchOptions(SliceParams(thickness=H), Placement(), check=True)
+    again = run_batch([src], out, opts, workers=0)
+    assert {r["model"]: r["status"] for r in again["models"]} == {"floating.stl": "skipped", "tee.stl": "done"}
+    assert check_path(out / "tee.npz").read_bytes() == first
+    # without --check: the manifest as before (no key), no reports, no column; a --check folder is refused
+    plain = BatchOptions(SliceParams(thickness=H), Placement())
+    assert "check" not in plain.shaping() and plain.fingerprint() != opts.fingerprint()
+    rep = run_batch([src], tmp_path / "plain", plain, workers=0)
+    assert "checks" not in rep["summary"] and not list((tmp_path / "plain").glob("*.check.json"))
+    assert main(["batch", str(src), "-o", str(out), "-t", str(H), "-j", "0", "-q"]) == 2
+    # a resin batch: the checks on the display's pixels
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
+    resin = BatchOptions(SliceParams(thickness=H), Placement(), raster="sl1", check=True,
+                         raster_options=(("resolution", "400x300"), ("pixel", 0.1), ("raster_backend", "numpy")))
+    rep = run_batch([src / "floating.stl"], tmp_path / "sl1", resin, workers=0)
+    assert rep["models"][0]["checks"]["islands"] == 1
+    got = json.loads(check_path(tmp_path / "sl1" / "floating.sl1").read_text())
+    assert got["mode"] == "pixels" and got["display"]["resolution"] == [400, 300]
+    # output as bytes (batch over Dask): the report comes back in the record
+    model = discover([src / "tee.stl"], None, opts.suffix, tmp_path / "bytes")[0]
+    r = run_model(model, opts, None)
+    assert r["status"] == "done" and r["payload"] and r["check_payload"] == first
 
 
 # ---- peel, time, resin, report ------------------------------------------------------------------------------------
