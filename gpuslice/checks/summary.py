@@ -103,13 +103,13 @@ class CheckReport:
     def lines(self) -> list[str]:
         """A few lines of text: the counts and the estimates (for logs and one-line summaries)."""
         cav, unsup = self.cavities, self.islands.unsupported
-        worst = int(np.argmax(unsup)) if unsup.size else -1
+        worst = int(np.argmax(np.where(np.isfinite(unsup), unsup, -1.0))) if unsup.size else -1  # NaN: not computed
         h, m = divmod(int(round(self.print_time_s)) // 60, 60)
         return [
             f"islands: {self.n_islands} in {self.island_layers.size} layers"
             + (f" (first at layer {int(self.islands.layer[0])})" if self.n_islands else ""),
             f"unsupported area: largest {unsup[worst] if worst >= 0 else 0.0:.3f} mm2 at layer {worst}, "
-            f"total {float(unsup.sum()):.1f} mm2 (tolerance {self.overhang_tolerance:g} mm)",
+            f"total {float(np.nansum(unsup)):.1f} mm2 (tolerance {self.overhang_tolerance:g} mm)",
             f"resin traps: {cav.n_traps} ({float(cav.volume[cav.kind == TRAP].sum()):.1f} mm3), suction cups: "
             f"{cav.n_cups} (grid {cav.grid_mm:g} mm)",
             f"largest cross-section: {self.max_area:.1f} mm2 at layer {self.max_area_layer}",

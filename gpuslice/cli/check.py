@@ -46,9 +46,12 @@ def print_report(report, name: str, *, console=None, max_rows: int = MAX_ROWS) -
     t.add_column("result")
     n_isl = report.n_islands
     t.add_row("islands", f"[red]{n_isl} in {report.island_layers.size} layers[/red]" if n_isl else "none")
-    worst = int(np.argmax(unsup)) if unsup.size else -1
-    t.add_row("unsupported area", f"largest {unsup[worst]:.3f} mm² at layer {worst}, total {unsup.sum():.1f} mm² "
-              f"(tolerance {report.overhang_tolerance:g} mm)" if worst >= 0 and unsup[worst] > 0 else "none")
+    ok = np.isfinite(unsup)  # NaN: a layer whose polygons GEOS could not process
+    worst = int(np.argmax(np.where(ok, unsup, -1.0))) if unsup.size else -1
+    failed = f"; not computed on {int((~ok).sum())} layers" if (~ok).any() else ""
+    t.add_row("unsupported area", (f"largest {unsup[worst]:.3f} mm² at layer {worst}, total {np.nansum(unsup):.1f} "
+              f"mm² (tolerance {report.overhang_tolerance:g} mm)" if worst >= 0 and ok[worst] and unsup[worst] > 0
+              else "none") + failed)
     traps = cav.kind == 0
     t.add_row("resin traps", f"[red]{cav.n_traps}, {cav.volume[traps].sum():.1f} mm³[/red]" if cav.n_traps else "none")
     t.add_row("suction cups", f"[yellow]{cav.n_cups}, largest {cav.max_area[~traps].max():.1f} mm²[/yellow]"

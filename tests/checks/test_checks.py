@@ -520,3 +520,26 @@ def test_viewer_list_jumps_to_the_island(tmp_path):
             assert "here" in (items.first.get_attribute("class") or "") and not errors
         finally:
             b.close()
+
+
+
+def test_layers_whose_unsupported_area_failed_are_reported_not_hidden():
+    """A layer whose unsupported area could not be computed (NaN) never becomes the 'largest' one, the total skips
+    it, and the table says how many layers failed."""
+    import io
+
+    from rich.console import Console
+
+    from gpuslice.cli.check import print_report
+
+    box = trimesh.creation.box((10.0, 10.0, 4.0))
+    box.apply_translation([0.0, 0.0, 2.0])
+    res = slice_mesh(box, thickness=1.0)
+    report = run_checks(res)
+    report.islands.unsupported[:] = [np.nan, 0.5, 0.25, 0.0]
+    line = [t for t in report.lines() if t.startswith("unsupported area")][0]
+    assert "nan" not in line and "0.500 mm2 at layer 1" in line and "total 0.8 mm2" in line
+    buf = io.StringIO()
+    print_report(report, "box", console=Console(file=buf, width=200))
+    out = buf.getvalue()
+    assert "largest 0.500 mm² at layer 1" in out and "not computed on 1 layers" in out
