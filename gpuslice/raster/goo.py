@@ -215,23 +215,10 @@ def _preview_step(spec) -> int:
 
 def _previews(thumb, spec) -> tuple[bytes, ...]:
     """The previews (:data:`PREVIEWS`) as RGB565: SL1's top view (:class:`gpuslice.raster.sl1._Thumb`, a height map
-    of the sampled pixels), its rows first stretched by the pixels' aspect ratio so that the part keeps its shape
-    on a display of non-square pixels (a 12K Saturn's 0.019 x 0.024 mm)."""
-    import copy
-
+    of the sampled pixels, whose rows it stretches by the pixels' aspect ratio on a display of non-square pixels)."""
     from PIL import Image
 
-    cw, rh = _pitch(spec)
-    h, w = thumb.img.shape
-    rows = max(1, round(h * rh / cw))
-    view = thumb
-    if rows != h:
-        view = copy.copy(thumb)
-        view.img = thumb.img[(np.arange(rows) * h) // rows]  # nearest row
-    out = []
-    for size in PREVIEWS:
-        out.append(rgb565(np.asarray(Image.open(io.BytesIO(view.png(size))).convert("RGB"))))
-    return tuple(out)
+    return tuple(rgb565(np.asarray(Image.open(io.BytesIO(thumb.png(size))).convert("RGB"))) for size in PREVIEWS)
 
 
 def write_goo(layers: Iterable[Tile | RunLayer], target) -> dict[str, Any]:

@@ -168,6 +168,9 @@ class _Thumb:
         self.n = max(n_layers - 1, 1)
         rows, cols = spec.shape
         self.img = np.zeros(((rows + self.step - 1) // self.step, (cols + self.step - 1) // self.step), np.uint8)
+        # a row's height over a column's width (non-square pixels, e.g. a 12K Saturn's 0.019 x 0.024 mm): the
+        # thumbnails stretch the rows by it so that the part keeps its shape
+        self.aspect = spec.px / spec.py if spec.portrait else spec.py / spec.px
 
     def add(self, item: Tile | RunLayer) -> None:
         """Raise the height map where the layer (a tile or runs) covers a sampled pixel at least half."""
@@ -179,8 +182,12 @@ class _Thumb:
     def png(self, size: tuple[int, int]) -> bytes:
         from PIL import Image
 
-        ys, xs = np.nonzero(self.img)
         src = self.img
+        if src.shape[0] and abs(self.aspect - 1.0) > 1e-9:  # nearest rows: the map at square cells
+            h = src.shape[0]
+            rows = max(1, round(h * self.aspect))
+            src = src[(np.arange(rows) * h) // rows]
+        ys, xs = np.nonzero(src)
         if ys.size:  # crop to the part with a margin, keep the aspect ratio
             m = 4
             src = src[max(ys.min() - m, 0) : ys.max() + m + 1, max(xs.min() - m, 0) : xs.max() + m + 1]

@@ -362,3 +362,24 @@ def test_cli_writes_each_format_reproducibly(tmp_path, device, monkeypatch, caps
     assert main([*base, *small, "-o", str(tmp_path / "bad.sl1s")]) == 2
     err = capsys.readouterr().err.strip()
     assert "1620x2560" in err and len(err.splitlines()) == 1 and not (tmp_path / "bad.sl1s").exists()
+
+
+def test_thumbnails_keep_the_parts_shape_on_non_square_pixels():
+    """A 10 x 10 mm square on 0.019 x 0.024 mm pixels (526 x 417 pixels) is drawn square in every archive's previews
+    (the SL1 family, CTB, GOO and NanoDLP share this top view); on square pixels the map is not resampled."""
+    import io
+
+    from PIL import Image
+
+    from gpuslice.raster.coverage import Tile
+    from gpuslice.raster.sl1 import _Thumb
+
+    for spec, (h, w) in ((RasterSpec(resolution=(1000, 800), pixel=0.019, pixel_y=0.024), (417, 526)),
+                         (RasterSpec(resolution=(1000, 800), pixel=0.02), (500, 500))):
+        thumb = _Thumb(spec, 2, step=1)
+        thumb.add(Tile(1, 100, 100, np.full((h, w), 255, np.uint8)))
+        img = np.asarray(Image.open(io.BytesIO(thumb.png((400, 400)))).convert("RGB")).astype(int)
+        part = np.abs(img - np.array([40, 40, 40])).sum(axis=2) > 30
+        ys, xs = np.nonzero(part)
+        ratio = (ys.max() - ys.min() + 1) / (xs.max() - xs.min() + 1)
+        assert ratio == pytest.approx(1.0, abs=0.03), (spec.py, ratio)
