@@ -349,23 +349,6 @@ def test_cli_saturn_ctb_reproducible(tmp_path, device, monkeypatch):
     assert np.array_equal(f.image(10), _q(ref)) and ref.max() == 255
 
 
-@pytest.fixture(scope="module")
-def shared_results(shared_meshes):
-    import trimesh
-
-    cache = {}
-
-    def get(name: str, fit: float):
-        if name not in cache:
-            m = trimesh.load(shared_meshes / f"{name}.stl", force="mesh")
-            mesh = mesh_from_triangles(m.vertices[m.faces], fit=fit)
-            b = mesh.bounds
-            cache[name] = (slice_mesh(mesh, thickness=0.05, backend="opencl"), (b[0, 0], b[0, 1], b[1, 0], b[1, 1]))
-        return cache[name]
-
-    return get
-
-
 def _digest(runs) -> str:
     return hashlib.sha1(b"".join(np.ascontiguousarray(a).tobytes() for a in runs)).hexdigest()
 

@@ -282,23 +282,6 @@ def test_cli_errors_leave_nothing(tmp_path, device, capsys):
 
 
 # ---- shared meshes on the 12K Saturn 3 Ultra: every layer ----------------------------------------------------------
-@pytest.fixture(scope="module")
-def shared_results(shared_meshes):
-    import trimesh
-
-    cache = {}
-
-    def get(name: str, fit: float):
-        if name not in cache:
-            m = trimesh.load(shared_meshes / f"{name}.stl", force="mesh")
-            mesh = mesh_from_triangles(m.vertices[m.faces], fit=fit)
-            b = mesh.bounds
-            cache[name] = (slice_mesh(mesh, thickness=0.05, backend="opencl"), (b[0, 0], b[0, 1], b[1, 0], b[1, 1]))
-        return cache[name]
-
-    return get
-
-
 def _digest(runs: np.ndarray) -> str:
     return hashlib.sha1(np.ascontiguousarray(runs).tobytes()).hexdigest()
 
