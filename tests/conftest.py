@@ -58,3 +58,25 @@ def shared_meshes() -> Path:
     if not SHARED_MESHES.is_dir():
         pytest.skip("../shared/meshes not found: real-mesh tests need the shared data folder beside the repo")
     return SHARED_MESHES
+
+
+@pytest.fixture(scope="session")
+def shared_results(shared_meshes):
+    """``get(name, fit)`` -> (SliceResult at 0.05 mm on OpenCL, the mesh's XY bounds): each shared mesh sliced once
+    per session for every archive format's 12K test."""
+    import trimesh
+
+    from gpuslice import mesh_from_triangles, slice_mesh
+
+    cache = {}
+
+    def get(name: str, fit: float):
+        if (name, fit) not in cache:
+            m = trimesh.load(shared_meshes / f"{name}.stl", force="mesh")
+            mesh = mesh_from_triangles(m.vertices[m.faces], fit=fit)
+            b = mesh.bounds
+            cache[name, fit] = (slice_mesh(mesh, thickness=0.05, backend="opencl"),
+                                (b[0, 0], b[0, 1], b[1, 0], b[1, 1]))
+        return cache[name, fit]
+
+    return get
