@@ -250,20 +250,12 @@ def _check_printer_fits(job: Job, mesh: Mesh) -> None:
     """:class:`ParameterError` when the placed mesh's XY box leaves the display or its height exceeds the printer
     preset's build height (the exact per-layer check follows after slicing: ``raster.edges.check_fits``)."""
     from .errors import ParameterError
+    from .raster.edges import check_points_fit
 
     r = job.resin
-    spec, preset = r.spec, r.options.preset
+    preset = r.options.preset
     b = mesh.bounds
-    if b.size == 0:
-        return
-    corners = np.array([[b[0, 0], b[0, 1]], [b[1, 0], b[1, 1]]], np.float64)
-    uv = spec.to_pixels(corners, _bounds(mesh))
-    cols, rows = spec.png_size
-    eps = 1e-6
-    if uv[:, 0].min() < -eps or uv[:, 1].min() < -eps or uv[:, 0].max() > cols + eps or uv[:, 1].max() > rows + eps:
-        bx, by = spec.bed_mm
-        raise ParameterError(f"{job.model_name}: the model ({b[1, 0] - b[0, 0]:.2f} x {b[1, 1] - b[0, 1]:.2f} mm) "
-                             f"does not fit on the display ({bx:.2f} x {by:.2f} mm) at this placement")
+    check_points_fit(b[:, :2].astype(np.float64), r.spec, _bounds(mesh), job.model_name)  # the XY box's corners
     if preset is not None and preset.build_height > 0 and mesh.height > preset.build_height + 1e-6:
         raise ParameterError(f"{job.model_name}: the model is {mesh.height:.2f} mm tall, more than the "
                              f"{preset.name}'s build height ({preset.build_height:g} mm)")

@@ -4,7 +4,15 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["format_summary"]
+__all__ = ["checks_summary", "format_summary"]
+
+
+def checks_summary(done: list[dict[str, Any]]) -> dict[str, int]:
+    """How many of the checked models have islands, resin traps, suction cups (``--check``)."""
+    checks = [r["checks"] for r in done if "checks" in r]
+    return {"models": len(checks), "with_islands": sum(c["islands"] > 0 for c in checks),
+            "with_traps": sum(c["traps"] > 0 for c in checks),
+            "with_suction_cups": sum(c["suction_cups"] > 0 for c in checks)}
 
 
 def _checks_cell(r: dict[str, Any]) -> str:

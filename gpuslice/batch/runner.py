@@ -27,8 +27,10 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import BatchError, one_line
+from ..io.atomic import atomic_write_tree
 from .discover import Model, discover
 from .options import BatchOptions, check_path
+from .report import checks_summary
 from .task import _worker_device, init_worker, pocl_thread_env, run_model
 
 __all__ = ["BatchRunner", "MANIFEST_NAME", "default_workers", "run_batch"]
@@ -345,9 +347,9 @@ class BatchRunner:
                     worker = "?"
                 fut.release()
                 if rec["status"] == "done" and "check_payload" in rec:  # first: an output means a full model
-                    _write_payload(check_path(self.out_dir / m.out), rec.pop("check_payload"))
+                    atomic_write_tree(check_path(self.out_dir / m.out), rec.pop("check_payload"))
                 if rec["status"] == "done" and "payload" in rec:
-                    _write_payload(self.out_dir / m.out, rec.pop("payload"))
+                    atomic_write_tree(self.out_dir / m.out, rec.pop("payload"))
                 retry = self._outcome(task, rec, worker, n_workers)
                 if retry is not None:
                     queue.appendleft(retry)
@@ -425,7 +427,7 @@ class BatchRunner:
             "facets": sum(r.get("facets", 0) for r in done),
             "layers": sum(r.get("layers", 0) for r in done),
             "task_s": sum(r["timings_s"]["total"] for r in done if "timings_s" in r),
-            **({"checks": _checks_summary(done)} if self.opts.check else {}),
+            **({"checks": checks_summary(done)} if self.opts.check else {}),
             "worker_init_s": init,
             **info,
         }
@@ -438,28 +440,6 @@ class BatchRunner:
             "models": records,
             "summary": summary,
         }
-
-
-def _checks_summary(done: list[dict]) -> dict[str, int]:
-    """How many of the checked models have islands, resin traps, suction cups (``--check``)."""
-    checks = [r["checks"] for r in done if "checks" in r]
-    return {"models": len(checks), "with_islands": sum(c["islands"] > 0 for c in checks),
-            "with_traps": sum(c["traps"] > 0 for c in checks),
-            "with_suction_cups": sum(c["suction_cups"] > 0 for c in checks)}
-
-
-def _write_payload(target: Path, payload: bytes | dict[str, bytes]) -> None:
-    from ..io.atomic import atomic_path, atomic_write_bytes
-
-    target.parent.mkdir(parents=True, exist_ok=True)
-    if isinstance(payload, bytes):
-        atomic_write_bytes(target, payload)
-        return
-    with atomic_path(target) as tmp:
-        tmp.mkdir()
-        for rel, data in payload.items():
-            (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
-            (tmp / rel).write_bytes(data)
 
 
 def _stop_slots(slots: Iterable[_Slot]) -> None:

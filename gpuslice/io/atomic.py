@@ -22,7 +22,7 @@ if TYPE_CHECKING:
 
 PathLike = str | os.PathLike
 
-__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_text", "remove_path"]
+__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_text", "atomic_write_tree", "remove_path"]
 
 
 def remove_path(path: Path) -> None:
@@ -149,3 +149,18 @@ def atomic_write_bytes(path: PathLike, data: bytes | bytearray | memoryview) -> 
 def atomic_write_text(path: PathLike, text: str, *, encoding: str = "utf-8") -> None:
     """Write ``text`` to ``path`` atomically, encoded with ``encoding``, newlines written as given."""
     atomic_write_bytes(path, text.encode(encoding))
+
+
+def atomic_write_tree(path: PathLike, payload: bytes | dict[str, bytes]) -> None:
+    """Write ``payload`` at ``path`` atomically, making its parent folders: a file (bytes), or a folder of files
+    (relative path -> bytes; a PNG stack's layers), built under a temporary name and renamed whole."""
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    if isinstance(payload, bytes):
+        atomic_write_bytes(target, payload)
+        return
+    with atomic_path(target) as tmp:
+        tmp.mkdir()
+        for rel, data in payload.items():
+            (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
+            (tmp / rel).write_bytes(data)

@@ -155,6 +155,7 @@ def inflate_3mf(name: str, data: bytes | None = None) -> io.BytesIO:
                                 raise MeshFileError(f"{name}: 3MF inflates past the limit of {limit} bytes")
                             chunks.append(chunk)
                     dst.writestr(info.filename, b"".join(chunks))
+    # zipfile raises NotImplementedError for a compression method it lacks, RuntimeError for encrypted members
     except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, RuntimeError, ValueError) as exc:
         reason = flatten(str(exc), 200) or type(exc).__name__
         raise MeshFileError(f"{name}: cannot read 3MF file: {type(exc).__name__}: {reason}") from None

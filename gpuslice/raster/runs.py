@@ -35,7 +35,7 @@ import numpy as np
 from ..device import KernelDriver, get_device
 from ..errors import ParameterError
 from ..ragged import expand_ranges, group_ranks
-from .edges import LayerEdges, layer_edges, merge_layer_groups, result_bounds
+from .edges import LayerEdges, iter_layer_edges
 from .spec import RasterSpec, gamma_lut
 
 __all__ = ["Runs", "runs_numpy", "RunsKernel", "layer_runs", "iter_runs", "runs_to_mask", "BACKENDS"]
@@ -481,7 +481,7 @@ def iter_runs(
     if lut[0] != 0:  # pragma: no cover - gamma_lut maps no coverage to black for every gamma
         raise ParameterError("the gamma table must map coverage 0 to grey 0")
     kern = RunsKernel.of(device if device is not None else get_device()) if backend == "opencl" else None
-    for pos, le in _edge_chunks(result, spec, bounds, layers, edges, k):
+    for pos, le in iter_layer_edges(result, spec, bounds, layers, edges, k):
         if le.edges.dtype != np.float32:  # every backend computes on float32: convert once, not per batch
             le = LayerEdges(le.edges.astype(np.float32), le.edge_offsets, le.tiles)
         for batch in _batches(le, max_batch_pieces):
@@ -490,26 +490,6 @@ def iter_runs(
                 yield runs_numpy(le, lut, spec.shape, batch, sel)
             else:
                 yield kern.run(le, batch, lut, spec.shape, sel)
-
-
-#: layers whose pixel edges are made at once (memory: their edges, not the model's; 1,900 12K layers of a 346k-facet
-#: scan held 170 MB of float64 temporaries at once)
-EDGE_CHUNK = 256
-
-
-def _edge_chunks(result, spec, bounds, layers, edges, k: int) -> Iterator[tuple[int, LayerEdges]]:
-    """(position of the chunk's first entry among the selected layers, its :class:`LayerEdges`), chunk by chunk of
-    :data:`EDGE_CHUNK` layers (``k`` sub-layers each, merged); ``edges`` given: one chunk, as given."""
-    if edges is not None:
-        yield 0, merge_layer_groups(edges, k) if k > 1 else edges
-        return
-    if bounds is None:  # one centring for every chunk: the whole result's
-        bounds = result_bounds(result)
-    sel = np.arange(result.n_layers) if layers is None else np.asarray(layers, dtype=np.int64)
-    step = EDGE_CHUNK * max(k, 1)
-    for a in range(0, max(sel.size, 1), step):
-        le = layer_edges(result, spec, bounds, sel[a : a + step])
-        yield a // max(k, 1), merge_layer_groups(le, k) if k > 1 else le
 
 
 def layer_runs(result, spec: RasterSpec | None = None, **options) -> Runs:
