@@ -68,7 +68,7 @@ import numpy as np
 from ..errors import ParameterError
 from ..io.atomic import atomic_path
 from .coverage import Tile
-from .layers import RunLayer, pixel_runs, sample
+from .layers import RunLayer, pixel_runs
 from .png import encode_all
 from .settings import PrintSettings, layer_table, print_time_s, resin_ml
 from .sl1 import _Thumb
@@ -186,20 +186,6 @@ def rgb15_rle(rgb: np.ndarray) -> bytes:
     return out.astype("<u2").tobytes()
 
 
-class _TopView(_Thumb):
-    """The SL1 thumbnails' top view (a height map at a quarter of the display's resolution), its samples taken on
-    the worker threads (:meth:`cells`) and written in layer order on the writing thread (:meth:`fill`): the last
-    layer covering a cell is the highest, so a plain assignment keeps the maximum."""
-
-    def cells(self, item: Tile | RunLayer) -> np.ndarray:
-        r, c = sample(item, self.step)
-        return r * self.img.shape[1] + c
-
-    def fill(self, k: int, cells: np.ndarray) -> None:
-        if cells.size:
-            self.img.reshape(-1)[cells] = np.uint8(1 + (254 * k) // self.n)
-
-
 def _preview_images(thumb: _Thumb) -> list[np.ndarray]:
     from PIL import Image
 
@@ -282,22 +268,20 @@ def write_ctb(
     light_off = _light_off(table, version).astype(np.float32)
     at = _layout(version, machine, n)
     entries = np.zeros((n, 9), np.uint32)  # the layer table, filled as layers are written
-    thumb = _TopView(spec, n)
+    thumb = _Thumb(spec, n)
     ex_floats = _ex_columns(table, version)
 
     with atomic_path(p) as tmp, open(tmp, "wb") as f:
         f.seek(at["layers"])
         pos = at["layers"]
 
-        def encode(item: Tile | RunLayer) -> tuple[bytes, np.ndarray]:  # on a worker thread
-            return rle7(*pixel_runs(item, cols), n_pixels), thumb.cells(item)
+        def encode(item: Tile | RunLayer) -> bytes:  # on a worker thread
+            return rle7(*pixel_runs(item, cols), n_pixels)
 
-        def sink(k: int, encoded: tuple[bytes, np.ndarray]) -> None:
+        def sink(k: int, data: bytes) -> None:
             nonlocal pos
             if k >= n:
                 raise ParameterError(f"{p}: more than the {n} layers expected")
-            data, cells = encoded
-            thumb.fill(k, cells)
             if version >= 3:
                 start = pos + LAYER_EX.size
                 entry = _entry(z[k], table["exposure"][k], light_off[k], start, len(data), version)
@@ -309,7 +293,7 @@ def write_ctb(
             pos = start + len(data)
             entries[k] = np.frombuffer(LAYER_DEF.pack(*entry), "<u4")
 
-        stats = encode_all(layers, encode, sink, workers, progress=progress)
+        stats = encode_all(layers, encode, sink, workers, on_tile=thumb.add, progress=progress)
         if stats["layers"] != n:
             raise ParameterError(f"{p}: expected {n} layers, got {stats['layers']}")
         file_size = pos

@@ -16,7 +16,7 @@ from .coverage import Tile
 from .png import PngEncoder
 from .runs import Runs
 
-__all__ = ["RunLayer", "iter_run_layers", "encode_png", "sample", "pixel_runs", "image_segments"]
+__all__ = ["RunLayer", "HeightMap", "iter_run_layers", "encode_png", "sample", "pixel_runs", "image_segments"]
 
 
 @dataclass(frozen=True)
@@ -83,13 +83,82 @@ def sample(item: Tile | RunLayer, step: int, threshold: int = 128) -> tuple[np.n
         return (item.row0 + dr) // step + r, (item.col0 + dc) // step + c
     runs, j = item.runs, item.j
     a, b = int(runs.layer_offsets[j]), int(runs.layer_offsets[j + 1])
+    _, r, c = _sample_runs(runs, a, b, step, threshold)
+    return r, c
+
+
+def _sample_runs(runs: Runs, a: int, b: int, step: int, threshold: int):
+    """(run index, sampled row, sampled column) of the runs ``a:b`` of a batch, as :func:`sample`."""
+    idx, r, first, end = _sampled_intervals(runs, a, b, step, threshold)
+    owner, cols = expand_ranges(first, end - first)
+    return idx[owner], r[owner], cols
+
+
+def _sampled_intervals(runs: Runs, a: int, b: int, step: int, threshold: int):
+    """(run index, sampled row, first, end) of the runs ``a:b`` that cover at least one sampled pixel: the sampled
+    columns ``first <= c < end`` (units of ``step``); a row's intervals are disjoint and sorted."""
     row, x = runs.row[a:b].astype(np.int64), runs.x[a:b].astype(np.int64)
-    end = x + runs.length[a:b]
-    keep = (row % step == 0) & (runs.grey[a:b] >= threshold)
+    keep = np.flatnonzero((row % step == 0) & (runs.grey[a:b] >= threshold))
     first = -(-x[keep] // step)  # the first sampled column of each run, in units of step
-    count = np.maximum((end[keep] - 1) // step - first + 1, 0)
-    owner, cols = expand_ranges(first, count)
-    return row[keep][owner] // step, cols
+    end = (x[keep] + runs.length[a:b][keep] - 1) // step + 1
+    ok = end > first
+    return a + keep[ok], row[keep[ok]] // step, first[ok], end[ok]
+
+
+class HeightMap:
+    """The part seen from above, for archive previews: on every ``step``-th row and column of the display (a pixel
+    counts when its grey is at least half), the highest layer covering it, as ``img`` uint8: 0 where no layer
+    does, else ``1 + 254 * index // (n_layers - 1)``. Layers may come in any order.
+
+    Runs are taken a whole batch at a time (when its first layer comes), and only the sampled pixels a layer covers
+    and the next layer of its batch does not are written: the highest layer covering a pixel is one of those (the
+    layer above it does not cover it), every other layer written there is lower, so the maximum is the same as over
+    every covered pixel of every layer, at the cost of the part's sides instead of its volume."""
+
+    def __init__(self, shape: tuple[int, int], n_layers: int, step: int) -> None:
+        rows, cols = shape
+        self.step = int(step)
+        self.n = max(n_layers - 1, 1)
+        self.img = np.zeros((-(-rows // self.step), -(-cols // self.step)), np.uint8)
+        self._batch: Runs | None = None
+
+    def add(self, item: Tile | RunLayer) -> None:
+        """Raise the map where the layer (a tile, or runs: then every layer of its batch) covers a sampled pixel."""
+        flat = self.img.reshape(-1)
+        if isinstance(item, RunLayer):
+            if item.runs is not self._batch:
+                self._batch = item.runs
+                self._add_runs(item.runs)
+            return
+        r, c = sample(item, self.step)
+        if r.size:  # the sampled pixels of one layer are distinct: a plain fancy-indexed maximum
+            cells = r * self.img.shape[1] + c
+            flat[cells] = np.maximum(flat[cells], np.uint8(1 + (254 * item.index) // self.n))
+
+    def _add_runs(self, runs: Runs) -> None:
+        idx, r, first, end = _sampled_intervals(runs, 0, runs.n_runs, self.step, 128)
+        if not idx.size:
+            return
+        k = np.searchsorted(runs.layer_offsets, idx, side="right") - 1  # each interval's layer in the batch
+        rows, width = self.img.shape
+        group = k * rows + r  # (layer in the batch, sampled row)
+        if len(runs.layers) > 1 and np.all(np.diff(runs.layers) > 0):
+            # A \ B per group, with A = the layer's intervals and B = the next layer's (moved to this layer's group):
+            # coverage code A + 2B along the row from +-1 / +-2 events; the stretches of code 1 are A \ B. Each of
+            # the four event lists is sorted by (group, column), so the stable sort only merges them.
+            nb = np.flatnonzero(k >= 1)
+            g = np.concatenate([group, group, group[nb] - rows, group[nb] - rows])
+            col = np.concatenate([first, end, first[nb], end[nb]])
+            delta = np.concatenate([np.ones(idx.size, np.int8), np.full(idx.size, -1, np.int8),
+                                    np.full(nb.size, 2, np.int8), np.full(nb.size, -2, np.int8)])
+            order = np.argsort(g * (width + 1) + col, kind="stable")
+            g, col = g[order], col[order]
+            code = np.cumsum(delta[order], dtype=np.int16)
+            seg = np.flatnonzero((code[:-1] == 1) & (g[1:] == g[:-1]) & (col[1:] > col[:-1]))
+            group, first, end = g[seg], col[seg], col[seg + 1]
+        owner, cols = expand_ranges(first, end - first)
+        level = (1 + (254 * runs.layers.astype(np.int64)) // self.n).astype(np.uint8)
+        np.maximum.at(self.img.reshape(-1), (group % rows)[owner] * width + cols, level[group // rows][owner])
 
 
 def pixel_runs(item: Tile | RunLayer, cols: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

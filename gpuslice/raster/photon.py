@@ -64,7 +64,7 @@ import numpy as np
 from ..errors import ParameterError
 from ..io.atomic import atomic_path
 from .coverage import Tile
-from .layers import RunLayer, image_segments, pixel_runs, sample
+from .layers import HeightMap, RunLayer, image_segments, pixel_runs
 from .png import encode_all
 from .settings import layer_table, print_time_s, resin_ml
 
@@ -165,20 +165,13 @@ def _pitch(spec) -> tuple[float, float]:
     return (spec.py, spec.px) if spec.portrait else (spec.px, spec.py)
 
 
-class _TopView:
-    """The part seen from above for the previews: per sampled pixel the last (highest) layer covering it."""
+class _TopView(HeightMap):
+    """The part seen from above for the previews: per sampled pixel the highest layer covering it."""
 
     def __init__(self, spec, n_layers: int) -> None:
         rows, cols = spec.shape
-        self.step = max(1, min(rows, cols) // 512)
-        self.n = max(n_layers - 1, 1)
+        super().__init__(spec.shape, n_layers, max(1, min(rows, cols) // 512))
         self.pitch = _pitch(spec)
-        self.img = np.zeros((-(-rows // self.step), -(-cols // self.step)), np.uint8)
-
-    def add(self, item: Tile | RunLayer) -> None:
-        r, c = sample(item, self.step)
-        if r.size:  # layers come in order: the last one written is the highest
-            self.img[r, c] = 1 + (254 * item.index) // self.n
 
     def rgb565(self, size: tuple[int, int]) -> bytes:
         """The view fitted into ``size`` (width, height) with its true aspect, as RGB565 little endian."""

@@ -23,7 +23,7 @@ import numpy as np
 from ..errors import ParameterError
 from ..io.atomic import atomic_path
 from .coverage import Tile
-from .layers import RunLayer, encode_png, sample
+from .layers import HeightMap, RunLayer, encode_png
 from .png import PngEncoder, encode_all
 from .spec import RasterSpec
 
@@ -157,27 +157,18 @@ def read_sl1_config(path: str | os.PathLike) -> tuple[dict[str, str], dict[str, 
         return ini("config.ini"), ini("prusaslicer.ini"), names
 
 
-class _Thumb:
-    """Top view of the part for the thumbnails: a height map (the highest layer covering each spot, shaded from dark
-    at the bed to bright at the top) on every ``step``-th pixel of the display."""
+class _Thumb(HeightMap):
+    """Top view of the part for the thumbnails: a height map (:class:`~gpuslice.raster.layers.HeightMap`: the
+    highest layer covering each spot, shaded from dark at the bed to bright at the top) on every ``step``-th pixel
+    of the display."""
 
     def __init__(self, spec: RasterSpec, n_layers: int, step: int | None = None) -> None:
         # every 4th pixel up to 4K displays; coarser above, so the map stays about 960 samples wide (the largest
         # thumbnail is 800 wide) and sampling costs the same on any display (a 12K display at 4 took 4 s)
-        self.step = step if step is not None else max(4, -(-max(spec.shape) // 960))
-        self.n = max(n_layers - 1, 1)
-        rows, cols = spec.shape
-        self.img = np.zeros(((rows + self.step - 1) // self.step, (cols + self.step - 1) // self.step), np.uint8)
+        super().__init__(spec.shape, n_layers, step if step is not None else max(4, -(-max(spec.shape) // 960)))
         # a row's height over a column's width (non-square pixels, e.g. a 12K Saturn's 0.019 x 0.024 mm): the
         # thumbnails stretch the rows by it so that the part keeps its shape
         self.aspect = spec.px / spec.py if spec.portrait else spec.py / spec.px
-
-    def add(self, item: Tile | RunLayer) -> None:
-        """Raise the height map where the layer (a tile or runs) covers a sampled pixel at least half."""
-        r, c = sample(item, self.step)
-        if r.size:  # the sampled pixels of one layer are distinct: a plain fancy-indexed maximum (not ufunc.at)
-            level = np.uint8(1 + (254 * item.index) // self.n)
-            self.img[r, c] = np.maximum(self.img[r, c], level)
 
     def png(self, size: tuple[int, int]) -> bytes:
         from PIL import Image

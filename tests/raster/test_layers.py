@@ -1,0 +1,69 @@
+"""The previews' height map (gpuslice.raster.layers.HeightMap): from runs a batch at a time, only the pixels a layer
+covers and the next does not, against the plain maximum over every layer's mask."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gpuslice import mesh_from_triangles, slice_mesh
+from gpuslice.mesh import shapes
+from gpuslice.raster import RasterSpec, masks
+from gpuslice.raster.coverage import Tile
+from gpuslice.raster.layers import HeightMap, RunLayer
+from gpuslice.raster.runs import iter_runs
+
+
+def reference(res, spec, step: int, layers) -> np.ndarray:
+    """The highest of ``layers`` whose mask is at least 128 on each sampled pixel, level-coded as HeightMap."""
+    rows, cols = spec.shape
+    img = np.zeros((-(-rows // step), -(-cols // step)), np.uint8)
+    n = max(res.n_layers - 1, 1)
+    for i, m in zip(layers, masks(res, spec, layers=list(layers)), strict=True):
+        level = np.uint8(1 + (254 * i) // n)
+        cov = m[::step, ::step] >= 128
+        img[cov] = np.maximum(img[cov], level)
+    return img
+
+
+@pytest.fixture(scope="module")
+def hollow():
+    # a closed cavity: the middle layers have a hole that the lid's layers cover again (a pixel covered by a layer,
+    # not by the next one, but by a later one), plus a torus beside it (sides sloping both ways)
+    tris = np.concatenate([shapes.hollow_box(20.0, 8.0), shapes.torus(9.0, 3.0, 48, 24) + [30.0, 0.0, 0.0]])
+    return slice_mesh(mesh_from_triangles(tris), thickness=0.5, backend="numpy")
+
+
+@pytest.mark.parametrize("pieces", [1, 3_000, 1 << 22])  # a layer per batch, several batches, one batch
+@pytest.mark.parametrize("step", [1, 3, 8])
+def test_height_map_from_runs_equals_every_layers_maximum(device, hollow, pieces, step):
+    spec = RasterSpec(resolution=(1200, 700), pixel=0.05)
+    hm = HeightMap(spec.shape, hollow.n_layers, step)
+    seen = 0
+    for runs in iter_runs(hollow, spec, device=device, max_batch_pieces=pieces):
+        for j in range(len(runs.layers)):
+            hm.add(RunLayer(int(runs.layers[j]), runs, j))
+            seen += 1
+    assert seen == hollow.n_layers
+    ref = reference(hollow, spec, step, range(hollow.n_layers))
+    assert np.count_nonzero(ref) > 100 and len(np.unique(ref)) > 5  # a real height map, not a blank one
+    assert np.array_equal(hm.img, ref)
+
+
+def test_height_map_of_a_selection_out_of_order(device, hollow):
+    """Layers of a batch not in increasing order: every covered pixel is written (the shortcut needs the order)."""
+    spec = RasterSpec(resolution=(1200, 700), pixel=0.05)
+    pick = [30, 5, 18, 17]
+    hm = HeightMap(spec.shape, hollow.n_layers, 4)
+    for runs in iter_runs(hollow, spec, device=device, layers=pick):
+        for j in range(len(runs.layers)):
+            hm.add(RunLayer(int(runs.layers[j]), runs, j))
+    assert np.array_equal(hm.img, reference(hollow, spec, 4, pick))
+
+
+def test_height_map_from_tiles(hollow):
+    spec = RasterSpec(resolution=(1200, 700), pixel=0.05)
+    hm = HeightMap(spec.shape, hollow.n_layers, 5)
+    for i, m in enumerate(masks(hollow, spec)):
+        hm.add(Tile(i, 0, 0, m))
+    assert np.array_equal(hm.img, reference(hollow, spec, 5, range(hollow.n_layers)))
