@@ -195,6 +195,10 @@ def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | Non
         if job.resin is not None:
             _check_printer_fits(job, mesh)  # before slicing: a model larger than the printer is refused now
         result = _slice(job, mesh, dev, timings)
+        if job.resin is not None:  # the slicer's scratch memory back before the layers' (peak RSS: issue 18)
+            from .device import release_scratch
+
+            release_scratch(dev)
     out = JobResult(mesh, result, dev, timings, stats)
     if job.contours is not None:
         from .formats import export

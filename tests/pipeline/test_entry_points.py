@@ -124,3 +124,20 @@ def test_view_job_with_masks(model, reference, tmp_path):
     np.testing.assert_array_equal(data["arrays"]["area"], reference.area)
     assert sorted(data["masks"]["png"]) == list(range(0, reference.n_layers, 5))
     assert done.stats["view_bytes"] == (tmp_path / "m.html").stat().st_size
+
+
+def test_release_scratch_drops_the_drivers_buffers_and_slicing_still_agrees(model, reference, device):
+    """The pipeline gives the slicer's scratch memory back before resin layers (``device.release_scratch``): the
+    drivers' buffers are gone afterwards, and the next slice (buffers made again) gives the same layers."""
+    from gpuslice import load_mesh, slice_mesh
+    from gpuslice.device import KernelDriver, release_scratch
+
+    mesh = load_mesh(model, fit=30)
+    first = slice_mesh(mesh, thickness=0.25, device=device)
+    held = [d for (_, i), d in KernelDriver._instances.items() if i == id(device) and d._buffers]
+    assert held  # slicing on the device left reusable buffers behind
+    release_scratch(device)
+    assert not any(d._buffers for (_, i), d in KernelDriver._instances.items() if i == id(device))
+    again = slice_mesh(mesh, thickness=0.25, device=device)
+    assert np.array_equal(first.points, again.points) and np.array_equal(first.loop_offsets, again.loop_offsets)
+    assert np.allclose(again.area, reference.area)
