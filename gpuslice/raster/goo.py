@@ -123,8 +123,8 @@ def rgb565(rgb: np.ndarray) -> bytes:
 
 
 def _text(value: str, size: int) -> bytes:
-    """A NUL-terminated string field of ``size`` bytes (UTF-8, cut to fit)."""
-    return value.encode("utf-8")[: size - 1]
+    """A NUL-terminated string field of ``size`` bytes (UTF-8, cut to fit at a character boundary)."""
+    return value.encode("utf-8")[: size - 1].decode("utf-8", "ignore").encode("utf-8")
 
 
 def _image_size(path, spec) -> tuple[int, int]:

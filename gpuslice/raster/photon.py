@@ -197,7 +197,8 @@ class _TopView(HeightMap):
 
 
 def _name(text: str, size: int) -> bytes:
-    return text.encode("utf-8")[: size - 1].ljust(size, b"\0")
+    """A NUL-padded string field of ``size`` bytes (UTF-8, cut to fit at a character boundary)."""
+    return text.encode("utf-8")[: size - 1].decode("utf-8", "ignore").encode("utf-8").ljust(size, b"\0")
 
 
 def _table(name: str, length: int, body: bytes) -> bytes:

@@ -317,3 +317,13 @@ def test_shared_meshes_every_layer_on_the_12k_preset(tmp_path, device, shared_re
     ref = masks(res, spec, layers=k, bounds=bounds, device=device)
     for i, m in zip(k, ref, strict=True):
         assert np.array_equal(layer_mask(goo, i), m) and m.max() == 255, i
+
+
+def test_text_fields_are_cut_at_a_character_boundary():
+    """A long non-ASCII name is cut to fit its field without splitting a UTF-8 character."""
+    from gpuslice.raster.goo import _text
+
+    for name in ("é" * 40, "a" + "€" * 40, "plain"):
+        b = _text(name, 32)
+        assert len(b) <= 31 and name.startswith(b.decode("utf-8"))  # decodes: no half character left
+    assert len(_text("é" * 40, 32)) == 30 and len(_text("a" + "€" * 40, 32)) == 31

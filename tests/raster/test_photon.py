@@ -334,3 +334,12 @@ def test_real_file_layout_facts():
         at = np.cumsum(list(s.values()))
         assert tuple(at) == first, version
     assert struct.calcsize("<10f3I2f5I") == 80
+
+
+def test_name_fields_are_cut_at_a_character_boundary():
+    from gpuslice.raster.photon import _name
+
+    b = _name("ü" * 40, 32)
+    assert len(b) == 32 and b.endswith(b"\0")
+    text = b.rstrip(b"\0").decode("utf-8")  # decodes: no half character left
+    assert text == "ü" * 15
