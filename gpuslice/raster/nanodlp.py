@@ -16,8 +16,9 @@ layers as ``1.png`` upward (no leading zeros, 8-bit; on a mono display one byte 
 * ``profile.json``: ``Title``, ``Depth``/``SupportDepth`` (layer and first-layer thickness, µm), ``CureTime``,
   ``SupportCureTime`` (s), ``SupportLayerNumber``, ``TransitionalLayer``, ``WaitHeight``/``SupportWaitHeight`` (lift,
   mm), ``TopWait``/``SupportTopWait`` (wait after the lift, s), ``WaitBeforePrint``/``WaitAfterPrint`` (waits before
-  and after the exposure, s, also as the ``Support*`` ones), ``CustomValues.UvPwmValue`` (light PWM / 255, 2
-  decimals), colours; field meanings as UVtools maps them.
+  and after the exposure, s; the ``Support*`` ones are the bottom layers' values), ``CustomValues.UvPwmValue``
+  (the normal layers' light PWM / 255, 2 decimals: the profile has no bottom PWM field), colours; field meanings
+  as UVtools maps them.
 * ``options.json`` = ``slicer.json``: ``PWidth``/``PHeight`` (the PNG's size), ``XPixelSize``/``YPixelSize`` (mm
   along the PNG's columns and rows), ``XRes``/``YRes`` (the same in µm), ``Thickness``/``SupportDepth`` (µm),
   ``SupportLayerNumber``, ``LayerCount``, ``XOffset``/``YOffset`` (half the PNG), ``ImageMirror`` (1 when the
@@ -147,16 +148,17 @@ def write_nanodlp(
                "YMin": round((lo[1] - rows / 2) * pitch[1], 4), "YMax": round((hi[1] - rows / 2) * pitch[1], 4)}
     z_max = float(result.bottom[-1] + th[-1]) if n else 0.0
     s = settings
+    bot = s.group(True)  # the bottom layers' values (their twins where given)
     waits = {"WaitBeforePrint": s.wait_before_cure, "WaitAfterPrint": s.wait_after_cure,
-             "SupportWaitBeforePrint": s.wait_before_cure, "SupportWaitAfterPrint": s.wait_after_cure}
+             "SupportWaitBeforePrint": bot["wait_before_cure"], "SupportWaitAfterPrint": bot["wait_after_cure"]}
     meta = {"FormatVersion": 2, "Distro": "generic", "Program": "gpuslice", "Version": __version__, "OS": "",
             "Arch": "", "Profile": False}
     profile = {"ResinID": 0, "ProfileID": 0, "Title": title or "gpuslice", "Desc": "", "Depth": um(depth),
                "SupportDepth": um(first), "CureTime": s.exposure, "SupportCureTime": s.bottom_exposure,
                "SupportLayerNumber": s.bottom_layers, "TransitionalLayer": s.transition_layers,
                "WaitHeight": s.lift_height,
-               "SupportWaitHeight": s.bottom_lift_height if s.bottom_lift_height is not None else s.lift_height,
-               "TopWait": s.wait_after_lift, "SupportTopWait": s.wait_after_lift, **waits, "Updated": stamp,
+               "SupportWaitHeight": bot["lift_height"],
+               "TopWait": s.wait_after_lift, "SupportTopWait": bot["wait_after_lift"], **waits, "Updated": stamp,
                "CustomValues": {"UvPwmValue": f"{round(s.light_pwm / 255, 2):g}"}, "FillColor": "#ffffff",
                "BlankColor": "#000000", "IgnoreMask": 1}
     options = {"PWidth": cols, "PHeight": rows, "XPixelSize": pitch[0], "YPixelSize": pitch[1],

@@ -36,7 +36,8 @@ SMALL = RasterSpec(resolution=(900, 900), pixel=0.05)  # 45 x 45 mm
 SL1S = RasterSpec(resolution=(2560, 1620), pixel=0.05, portrait=True, mirror_x=True)
 WHEN = dt.datetime(2023, 11, 14, 22, 13, 20)
 SETTINGS = PrintSettings(bottom_layers=3, bottom_exposure=22.5, exposure=2.5, transition_layers=4, lift_height=6.0,
-                         wait_after_lift=1.5, wait_before_cure=0.5, light_pwm=204)
+                         wait_after_lift=1.5, wait_before_cure=0.5, light_pwm=204, bottom_lift_height=7.0,
+                         bottom_wait_before_cure=2.0, bottom_wait_after_cure=1.0, bottom_wait_after_lift=3.0)
 
 
 @pytest.fixture(scope="module")
@@ -274,6 +275,10 @@ def _check_nanodlp(path, result, spec, settings, backend="numpy", device=None):
     assert prof["Depth"] == pytest.approx(th * 1000) and opt["Thickness"] == pytest.approx(th * 1000)
     assert (prof["WaitHeight"], prof["TopWait"], prof["WaitBeforePrint"]) == (
         settings.lift_height, settings.wait_after_lift, settings.wait_before_cure)
+    assert (prof["SupportWaitHeight"], prof["SupportTopWait"], prof["SupportWaitBeforePrint"],
+            prof["SupportWaitAfterPrint"], prof["WaitAfterPrint"]) == (
+        settings.group(True)["lift_height"], settings.group(True)["wait_after_lift"],
+        settings.group(True)["wait_before_cure"], settings.group(True)["wait_after_cure"], settings.wait_after_cure)
     assert float(prof["CustomValues"]["UvPwmValue"]) == pytest.approx(settings.light_pwm / 255, abs=0.005)
     cols, rows = spec.png_size
     assert (opt["PWidth"], opt["PHeight"]) == (cols, rows)
