@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ParameterError
+from ..formats.numbers import point_bounds
 from ..slicing.result import SliceResult
 from .spec import RasterSpec
 
@@ -37,8 +38,7 @@ def result_bounds(result: SliceResult) -> tuple[float, float, float, float] | No
     """(xmin, ymin, xmax, ymax) of all points of ``result``, mm; None when it has none."""
     if result.points.shape[0] == 0:
         return None
-    lo = result.points.min(axis=0).astype(np.float64)
-    hi = result.points.max(axis=0).astype(np.float64)
+    lo, hi = point_bounds(result.points)
     return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
 
 
@@ -48,13 +48,12 @@ def check_points_fit(xy: np.ndarray, spec: RasterSpec, bounds, name: str = "mode
     xy = np.asarray(xy)
     if xy.shape[0] == 0:
         return
-    uv = spec.to_pixels(xy, bounds)
-    lo, hi = uv.min(axis=0), uv.max(axis=0)
+    lo, hi = point_bounds(spec.to_pixels(xy, bounds))
     eps = 1e-6
     cols, rows = spec.png_size
     if lo[0] < -eps or lo[1] < -eps or hi[0] > cols + eps or hi[1] > rows + eps:
         bx, by = spec.bed_mm
-        w, h = (float(v) for v in xy.max(axis=0).astype(np.float64) - xy.min(axis=0).astype(np.float64))
+        w, h = (float(v) for v in np.subtract(*point_bounds(xy)[::-1]))
         raise ParameterError(f"{name}: the model ({w:.2f} x {h:.2f} mm) does not fit on the display "
                              f"({bx:.2f} x {by:.2f} mm) at this placement")
 

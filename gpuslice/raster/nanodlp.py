@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ParameterError
+from ..formats.numbers import point_bounds
 from ..io.atomic import atomic_path
 from .coverage import Tile
 from .layers import RunLayer, encode_png, pixel_runs
@@ -143,7 +144,7 @@ def write_nanodlp(
     box = {"XMin": 0.0, "XMax": 0.0, "YMin": 0.0, "YMax": 0.0}
     if result.points.shape[0]:
         uv = spec.to_pixels(result.points, bounds if bounds is not None else result_bounds(result))
-        lo, hi = uv.min(axis=0), uv.max(axis=0)
+        lo, hi = point_bounds(uv)
         box = {"XMin": round((lo[0] - cols / 2) * pitch[0], 4), "XMax": round((hi[0] - cols / 2) * pitch[0], 4),
                "YMin": round((lo[1] - rows / 2) * pitch[1], 4), "YMax": round((hi[1] - rows / 2) * pitch[1], 4)}
     z_max = float(result.bottom[-1] + th[-1]) if n else 0.0

@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import MeshFileError, ParameterError
+from ..formats.numbers import point_bounds
 from ..slicing.result import SliceResult
 
 __all__ = ["MaskLayers", "raster_masks", "build_view_html", "write_view", "read_view_data", "MAX_VIEW_POINTS"]
@@ -89,7 +90,7 @@ def _columns(result: SliceResult) -> dict[str, dict[str, Any]]:
 def _bbox(points: np.ndarray) -> list[float]:
     if points.shape[0] == 0:
         return [0.0, 0.0, 1.0, 1.0]
-    lo, hi = points.min(axis=0), points.max(axis=0)
+    lo, hi = point_bounds(points)
     return [float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])]
 
 
