@@ -83,9 +83,10 @@ def vertex_layers(mesh: Mesh, zs: np.ndarray) -> np.ndarray:
 
 def facet_layer_ranges(mesh: Mesh, zs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(first layer, count) of the layers each facet crosses: layers k with zmin < zs[k] <= zmax."""
-    fv = vertex_layers(mesh, zs)[mesh.faces]
-    lo = fv.min(axis=1)
-    return lo, fv.max(axis=1) - lo
+    vl = vertex_layers(mesh, zs)
+    a, b, c = (vl[mesh.faces[:, i]] for i in range(3))  # three columns: min(axis=1) on (F, 3) is ~6x slower
+    lo = np.minimum(np.minimum(a, b), c)
+    return lo, np.maximum(np.maximum(a, b), c) - lo
 
 
 def _edge_points(verts: np.ndarray, a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray:
