@@ -39,13 +39,16 @@ REPAIR_KINDS = ("joined_by_id", "reversed", "gap_closed", "open_chains", "degene
 @dataclass
 class Loops:
     """Chained loops before nesting: ``points`` (P, 2) float32, ``offsets`` (R + 1,) int64, ``layer`` (R,)
-    int32, ``closed`` (R,) bool, and per-layer repair counts."""
+    int32, ``closed`` (R,) bool, per-layer repair counts, and ``simple`` (R,) bool or None: True for the loops
+    the device's screen (``simple_loops`` in ``kernels/walk.cl``) proved simple, so nesting need not test them
+    for self-crossings (None: no screen ran; every loop is tested)."""
 
     points: np.ndarray
     offsets: np.ndarray
     layer: np.ndarray
     closed: np.ndarray
     repairs: dict[str, np.ndarray] = field(default_factory=dict)
+    simple: np.ndarray | None = None
 
 
 def edge_slots(mesh: Mesh, zs: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
@@ -142,13 +145,14 @@ def chain_segments(seg, mesh: Mesh, zs: np.ndarray, n_layers: int, *, max_gap: f
     segment ends, no open chain), and fetched and chained on the host otherwise.
     """
     chain_layer = None
+    gathered = None  # the segments' start points in chain order and their zero-length flags, from the device
     if not isinstance(seg, Segments):
         from .walk import chain_kernels
 
         done = chain_kernels(device).chain_on_device(seg, mesh, zs, n_layers)
         if done is not None:
             order, coff, cclosed, chain_layer = done
-            seg_points = seg.fetch_points()
+            gathered = chain_kernels(device).gather_starts(seg, order)
         else:
             seg = seg.fetch()
     if chain_layer is None:
@@ -163,6 +167,17 @@ def chain_segments(seg, mesh: Mesh, zs: np.ndarray, n_layers: int, *, max_gap: f
         chain_layer = seg.layer[order[coff[:-1]]] if coff.size > 1 else np.zeros(0, np.int32)
     lengths = np.diff(coff)
     n_chains = lengths.size
+    if gathered is not None:  # every chain closed: the points are the segments' starts but for zero-length ones
+        starts, zero_at = gathered
+        offsets, resident = coff, True
+        if zero_at.any():
+            keep = ~zero_at
+            kept = np.bincount(np.repeat(np.arange(n_chains), lengths)[keep], minlength=n_chains)
+            offsets = np.zeros(n_chains + 1, dtype=np.int64)
+            np.cumsum(kept, out=offsets[1:])
+            starts, resident = starts[keep], False
+        points = starts.view(np.float32).reshape(-1, 2)
+        return _finish(points, offsets, chain_layer, cclosed, None, max_gap, n_layers, device, resident)
     # points: the start of every segment, plus the end of the last segment of open chains. A zero-length segment
     # (through a vertex on the plane) starts where its successor starts: its start point is skipped, which
     # removes every consecutive duplicate.
@@ -193,11 +208,21 @@ def chain_segments(seg, mesh: Mesh, zs: np.ndarray, n_layers: int, *, max_gap: f
         packed[~is_extra] = first_pt[points_of]
         packed[is_extra] = last_pt[tails]
     points = packed.view(np.float32).reshape(-1, 2)
-    repairs = {k: np.zeros(n_layers, dtype=np.int32) for k in REPAIR_KINDS}
+    open_ends = None
     if open_idx.size:
         heads = order[coff[open_idx]]
+        open_ends = (open_idx, start_slot[heads], end_slot[tails])
+    return _finish(points, offsets, chain_layer, cclosed, open_ends, max_gap, n_layers, device, False)
+
+
+def _finish(points, offsets, chain_layer, cclosed, open_ends, max_gap, n_layers, device, resident) -> Loops:
+    """Repairs of open chains (``open_ends``: their indices, head and tail slots), degenerate loops dropped, counts,
+    and the device's self-crossing screen (``resident``: the points are still on the device)."""
+    repairs = {k: np.zeros(n_layers, dtype=np.int32) for k in REPAIR_KINDS}
+    if open_ends is not None:
+        open_idx, head_slot, tail_slot = open_ends
         points, offsets, chain_layer, cclosed = _repair(
-            points, offsets, chain_layer, cclosed, open_idx, start_slot[heads], end_slot[tails], max_gap, repairs
+            points, offsets, chain_layer, cclosed, open_idx, head_slot, tail_slot, max_gap, repairs
         )
     counts = np.diff(offsets)
     degenerate = (cclosed & (counts < 3)) | (~cclosed & (counts < 2))
@@ -209,8 +234,14 @@ def chain_segments(seg, mesh: Mesh, zs: np.ndarray, n_layers: int, *, max_gap: f
         offsets = np.zeros(int(keep.sum()) + 1, dtype=np.int64)
         np.cumsum(counts[keep], out=offsets[1:])
         chain_layer, cclosed = chain_layer[keep], cclosed[keep]
+        resident = False
     np.add.at(repairs["open_chains"], chain_layer[~cclosed], 1)
-    return Loops(points, offsets, chain_layer.astype(np.int32), cclosed, repairs)
+    simple = None
+    if device is not None:  # the self-crossing screen, while the device is at hand (see Loops)
+        from .walk import chain_kernels
+
+        simple = chain_kernels(device).simple_loops(points, offsets, resident=resident)
+    return Loops(points, offsets, chain_layer.astype(np.int32), cclosed, repairs, simple)
 
 
 def _repair(points, offsets, chain_layer, closed, open_idx, head_slot, tail_slot, max_gap, repairs):

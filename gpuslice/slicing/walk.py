@@ -6,7 +6,11 @@ twin, pointer jumping), which the tests check:
 - :func:`walk_chains` walks a successor array computed on the host (used when a mesh needs the host's general
   pairing of non-manifold slots or repairs of open chains);
 - :meth:`ChainKernels.chain_on_device` does everything on the device from the segment buffers the crossings kernel
-  left there: edge slots, successors, per-layer lists and the walk, reading back only the chain order.
+  left there: edge slots, successors, per-layer lists and the walk, reading back only the chain order;
+  :meth:`ChainKernels.gather_starts` then gathers the loops' points there in that order.
+
+:meth:`ChainKernels.simple_loops` is nesting's screen: it proves loops simple so that GEOS's self-crossing test
+runs only on the others (its oracle is GEOS itself: ``tests/slicing/test_simple_screen.py``).
 """
 
 from __future__ import annotations
@@ -53,6 +57,11 @@ class ChainKernels(KernelDriver):
         self._place = prg.place_segments
         self._link = prg.link_segments
         self._walk = prg.walk_layers
+        self._gather = prg.gather_starts
+        try:  # absent on devices without float64 (kernels/walk.cl builds it under cl_khr_fp64)
+            self._simple = prg.simple_loops
+        except Exception:
+            self._simple = None
 
     def _run_walk(self, d_next, d_has_prev, d_perm, d_off, n: int, n_layers: int):
         import pyopencl as cl
@@ -133,6 +142,51 @@ class ChainKernels(KernelDriver):
         if np.any(flag == 1):
             return None  # open chains: repaired on the host
         return canonical_chain_order(order, flag, layer_off)
+
+
+    def gather_starts(self, dseg, order: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The start points of the device segments ``dseg`` in chain ``order``, gathered on the device: (S,)
+        complex64 (x + iy, mm), and (S,) bool, True where that segment has zero length. The points stay on the
+        device for :meth:`simple_loops`."""
+        import pyopencl as cl
+
+        n = int(order.size)
+        q = self.device.queue
+        starts = np.empty(n, dtype=np.complex64)
+        zero = np.empty(n, dtype=np.uint8)
+        if n == 0:
+            return starts, zero.view(bool)
+        d_order = self._put("gather_order", order.astype(np.int32, copy=False))
+        d_zero = self._buffer("zero_length", n)
+        d_out = self._buffer("loop_points", 8 * n)
+        self._gather(q, *self._grid(n), d_order, dseg.points, np.int32(n), d_out, d_zero)
+        cl.enqueue_copy(q, zero, d_zero, is_blocking=False)
+        cl.enqueue_copy(q, starts, d_out, is_blocking=True)
+        return starts, zero.view(bool)
+
+    def simple_loops(self, points: np.ndarray, offsets: np.ndarray, *, resident: bool = False) -> np.ndarray | None:
+        """(R,) bool: True for each loop ``points[offsets[r]:offsets[r + 1]]`` (float32 (P, 2), mm, closed) that
+        ``simple_loops`` in ``kernels/walk.cl`` proves simple (no two edges meet but consecutive ones at their
+        vertex); False where it may cross or touch itself. None when the device lacks float64 (no screen).
+        ``resident``: the points are already on the device, as :meth:`gather_starts` left them."""
+        import pyopencl as cl
+
+        n = int(offsets.size) - 1
+        if self._simple is None:
+            return None
+        if n <= 0 or points.shape[0] == 0:
+            return np.zeros(max(n, 0), dtype=bool)
+        q = self.device.queue
+        if resident:
+            d_points = self.buffer("loop_points")
+        else:
+            d_points = self._put("loop_points", np.ascontiguousarray(points, dtype=np.float32))
+        d_offsets = self._put("loop_offsets", offsets.astype(np.int64, copy=False))
+        d_simple = self._buffer("simple", n)
+        self._simple(q, *self._grid(n), d_points, d_offsets, np.int32(n), d_simple)
+        out = np.empty(n, dtype=np.uint8)
+        cl.enqueue_copy(q, out, d_simple, is_blocking=True)
+        return out.view(bool)
 
 
 def chain_kernels(device) -> ChainKernels:
