@@ -15,8 +15,9 @@
 //   3. weld_scan_counts: one work-group turns the chunk counts into exclusive offsets and the total (number of ids).
 //   4. weld_emit_*: each chunk walks its flags in order; the k-th first overall gets id k, its slot is overwritten
 //      with that id, and the per-id output (the first index, or the edge's two vertices) is written.
-//   5. weld_gather_ids: ids[i] = slots[slot_of[i]].
-// Kernel boundaries order the passes; only 32-bit atomic_cmpxchg and atomic_min (OpenCL 1.2 core) are used.
+//   5. weld_gather_ids: ids[i] = slots[slot_of[i]] (weld_gather_sides also counts each edge's sides, its forward
+//      sides, and keeps its last one: the pairing of the mesh check).
+// Kernel boundaries order the passes; only 32-bit atomics of OpenCL 1.2 core are used.
 
 #ifndef LOCAL_SIZE
 #define LOCAL_SIZE 64
@@ -51,20 +52,28 @@ inline int2 weld_side_key(__global const int *faces, const int s) {
     return (int2)(min(a, b), max(a, b));
 }
 
-// Pass 1 for corners: claim or find the slot of corner i's bit-identical coordinates.
+// corner i's coordinate k as bits; with zero == 0x80000000 (else 0), -0.0 is read as 0.0 (so both weld together)
+inline uint weld_coord(__global const uint *corners, const int i, const int k, const uint zero) {
+    const uint b = corners[3 * i + k];
+    return b == zero ? 0U : b;
+}
+
+// Pass 1 for corners: claim or find the slot of corner i's bit-identical coordinates (-0.0 as 0.0 if zero says so).
 // hash_and is ANDed into the hash (0xffffffff normally; tests use a few bits to force long collision chains).
 __kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
 void weld_insert_corners(__global const uint *corners, const int n, volatile __global int *slots, const uint mask,
-                    const uint hash_and, __global int *slot_of) {
+                    const uint hash_and, const uint zero, __global int *slot_of) {
     const int i = get_global_id(0);
     if (i >= n) return;
-    const uint x = corners[3 * i], y = corners[3 * i + 1], z = corners[3 * i + 2];
+    const uint x = weld_coord(corners, i, 0, zero), y = weld_coord(corners, i, 1, zero);
+    const uint z = weld_coord(corners, i, 2, zero);
     uint s = weld_corner_hash(x, y, z) & hash_and & mask;
     for (;;) {
         const int v = atomic_cmpxchg(&slots[s], WELD_EMPTY, i);
         if (v == WELD_EMPTY) break;  // claimed
         // v: an item already in the slot; the slot keeps its key, though v may since have been lowered
-        if (corners[3 * v] == x && corners[3 * v + 1] == y && corners[3 * v + 2] == z) {
+        if (weld_coord(corners, v, 0, zero) == x && weld_coord(corners, v, 1, zero) == y
+            && weld_coord(corners, v, 2, zero) == z) {
             if (i < v) atomic_min(&slots[s], i);
             break;
         }
@@ -73,14 +82,17 @@ void weld_insert_corners(__global const uint *corners, const int n, volatile __g
     slot_of[i] = (int)s;
 }
 
-// Pass 1 for facet sides: the same with the key (min, max) of the side's two vertex ids.
+// Pass 1 for facet sides: the same with the key (min, max) of the side's two vertex ids. The first probe is
+// lo * spread + (a hash of hi) % spread (spread: a power of two, about slots / vertices): vertex ids are numbered by
+// first occurrence, so the sides of nearby facets probe nearby slots (cache friendly; 3-4x faster on a CPU than a
+// scattering hash on large meshes). Collisions only lengthen the probe; the result never depends on the hash.
 __kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
 void weld_insert_sides(__global const int *faces, const int n, volatile __global int *slots, const uint mask,
-                  const uint hash_and, __global int *slot_of) {
+                  const uint hash_and, const uint spread, __global int *slot_of) {
     const int i = get_global_id(0);
     if (i >= n) return;
     const int2 key = weld_side_key(faces, i);
-    uint s = weld_edge_hash((uint)key.x, (uint)key.y) & hash_and & mask;
+    uint s = ((uint)key.x * spread + (weld_mix32((uint)key.y) & (spread - 1u))) & hash_and & mask;
     for (;;) {
         const int v = atomic_cmpxchg(&slots[s], WELD_EMPTY, i);
         if (v == WELD_EMPTY) break;
@@ -156,11 +168,13 @@ void weld_emit_corners(__global int *slots, __global const int *slot_of, const i
     }
 }
 
-// Pass 4 for sides: number the firsts in order; edge_vertices[id] = the side's (min, max) vertex ids.
+// Pass 4 for sides: number the firsts in order; edge_vertices[id] = the side's (min, max) vertex ids, first_side[id]
+// = last_side[id] = the side (3f + k) itself, count[id] = forward[id] = 0 (for pass 5).
 __kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
 void weld_emit_sides(__global int *slots, __global const int *slot_of, const int n, const int chunk,
                 const int n_chunks, __global const uchar *is_first, __global const int *offsets,
-                __global const int *faces, __global int2 *edge_vertices) {
+                __global const int *faces, __global int2 *edge_vertices, __global int *first_side,
+                __global int *count, __global int *last_side, __global int *forward) {
     const int c = get_global_id(0);
     if (c >= n_chunks) return;
     const int lo = c * chunk, hi = min(n, lo + chunk);
@@ -169,6 +183,10 @@ void weld_emit_sides(__global int *slots, __global const int *slot_of, const int
         if (is_first[i]) {
             slots[slot_of[i]] = id;
             edge_vertices[id] = weld_side_key(faces, i);
+            first_side[id] = i;
+            count[id] = 0;
+            last_side[id] = i;
+            forward[id] = 0;
             ++id;
         }
     }
@@ -180,6 +198,83 @@ void weld_gather_ids(__global const int *slots, __global const int *slot_of, con
     const int i = get_global_id(0);
     if (i >= n) return;
     ids[i] = slots[slot_of[i]];
+}
+
+// Pass 5 for sides: every side's edge id, and the pairing the mesh check needs: how many sides each edge has
+// (count), its last side (last_side; with first_side, the two facets of a manifold edge) and how many of its sides
+// run from the smaller vertex id to the larger (forward: 1 of 2 when the two facets are wound consistently), all
+// set by pass 4. Atomics only: the result does not depend on the order of the work-items.
+__kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
+void weld_gather_sides(__global const int *slots, __global const int *slot_of, const int n,
+                       __global const int *faces, __global int *ids, volatile __global int *count,
+                       volatile __global int *last_side, volatile __global int *forward) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    const int id = slots[slot_of[i]];
+    ids[i] = id;
+    atomic_inc(&count[id]);
+    atomic_max(&last_side[id], i);
+    if (faces[i] < faces[i % 3 == 2 ? i - 2 : i + 1]) atomic_inc(&forward[id]);
+}
+
+// ---- connected components (the mesh check's shells): a lock-free union-find whose roots are the smallest nodes.
+// Invariant: parent[x] <= x, and parent[x] == x for a root. Hooking sets a root's parent to a smaller root (compare
+// and swap, retried when the root was hooked meanwhile); path halving lowers parent[x] to its grandparent with
+// atomic_min (every value on x's path is an ancestor, and ancestors are smaller, so the minimum stays an ancestor).
+// Every access to parent in weld_cc_hook is atomic; weld_cc_flatten only reads. The labels (each node's root, the
+// smallest node of its component) do not depend on the order of the work-items.
+
+// parent[x], read atomically (a compare-and-swap that never matches: parents are >= 0)
+inline int weld_cc_read(volatile __global int *parent, const int x) {
+    return atomic_cmpxchg(&parent[x], -1, -1);
+}
+
+inline int weld_cc_find(volatile __global int *parent, int x) {
+    for (;;) {
+        const int p = weld_cc_read(parent, x);
+        if (p == x) return x;
+        const int g = weld_cc_read(parent, p);
+        if (g != p) atomic_min(&parent[x], g);
+        x = g;
+    }
+}
+
+__kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
+void weld_cc_init(__global int *parent, const int n) {
+    const int i = get_global_id(0);
+    if (i < n) parent[i] = i;
+}
+
+// one work-item per graph edge a[j] -- b[j]
+__kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
+void weld_cc_hook(volatile __global int *parent, __global const int *a, __global const int *b, const int m) {
+    const int j = get_global_id(0);
+    if (j >= m) return;
+    int x = a[j], y = b[j];
+    for (;;) {
+        x = weld_cc_find(parent, x);
+        y = weld_cc_find(parent, y);
+        if (x == y) return;
+        if (x < y) {
+            const int t = x;
+            x = y;
+            y = t;
+        }
+        if (atomic_cmpxchg(&parent[x], x, y) == x) return;  // root x hooked under the smaller root y
+    }
+}
+
+// label[i] = the root of i (after every hook)
+__kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
+void weld_cc_flatten(__global const int *parent, const int n, __global int *label) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    int x = i, p = parent[i];
+    while (p != x) {
+        x = p;
+        p = parent[x];
+    }
+    label[i] = x;
 }
 
 #undef WELD_EMPTY

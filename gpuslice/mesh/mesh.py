@@ -10,7 +10,11 @@ Loading (``stl.py`` reads the file) is followed by, in this order:
    kept. Coordinates are then rounded to float32.
 3. **Degenerate facets**, whose corners weld to fewer than three distinct vertices, are dropped and counted.
 4. **Edges**: side k of facet f runs from corner k to corner (k + 1) % 3; each undirected vertex pair gets one edge
-   id (numbered by first occurrence), stored in ``face_edges`` (F, 3).
+   id (numbered by first occurrence), stored in ``face_edges`` (F, 3). The same pass pairs the sides along each
+   edge (``Mesh.edge_sides``: count, first and last side, forward sides), kept for the mesh check (``defects.py``).
+
+With a ``device`` (meshes above :data:`DEVICE_WELD_MIN_FACETS` facets) steps 1 and 4 run on it (``weld.py``,
+``kernels/weld.cl``), with the same ids; the mesh remembers the device (``Mesh.device``) for its mesh check.
 
 Normals are computed from the winding (the paper's eq. 1, then normalised to unit length); stored normals are only
 compared with them (``stored_normal_mismatch``).
@@ -26,7 +30,7 @@ import numpy as np
 
 from ..errors import EmptyMeshError, InvalidGeometryError, ParameterError
 from ..options import option
-from .weld import edge_ids_device, edge_ids_numpy, weld_device, weld_numpy
+from .weld import EdgeSides, WeldKernel, edge_table_numpy, weld_numpy
 
 __all__ = ["Mesh", "Placement", "load_mesh", "mesh_from_triangles", "mesh_from_arrays"]
 
@@ -97,8 +101,36 @@ class Mesh:
         return self._cache["normals"]
 
     def edge_face_counts(self) -> np.ndarray:
-        """(E,) int: how many facets use each edge (2 on a closed manifold)."""
-        return np.bincount(self.face_edges.reshape(-1), minlength=self.edge_vertices.shape[0])
+        """(E,) int32: how many facets use each edge (2 on a closed manifold)."""
+        return self.edge_sides().count
+
+    def edge_sides(self) -> EdgeSides:
+        """Each edge's number of facet sides, first and last side (3f + k): kept from the edge numbering when the
+        mesh was built here, else computed once from ``face_edges``."""
+        if "edge_sides" not in self._cache:
+            e = self.face_edges.reshape(-1)
+            n_e = self.edge_vertices.shape[0]
+            side = np.arange(e.size, dtype=np.int32)
+            first = np.empty(n_e, dtype=np.int32)
+            last = np.empty(n_e, dtype=np.int32)
+            first[e[::-1]] = side[::-1]  # the last write wins: the smallest side
+            last[e] = side
+            count = np.bincount(e, minlength=n_e).astype(np.int32)
+            f = self.faces
+            fw = (f < np.roll(f, -1, axis=1)).reshape(-1)  # the side runs from the smaller vertex id to the larger
+            forward = np.bincount(e[fw], minlength=n_e).astype(np.int32)
+            self._cache["edge_sides"] = EdgeSides(count, first, last, forward)
+        return self._cache["edge_sides"]
+
+    @property
+    def device(self):
+        """The OpenCL device the mesh was welded on (its mesh check runs there too), or None."""
+        return self._cache.get("device")
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_cache"] = {k: v for k, v in self._cache.items() if k != "device"}  # a device does not pickle
+        return state
 
     def info(self) -> dict:
         """Summary figures: facets, vertices, distinct normals, bbox, watertight, bodies, volume (mm, mm^3)."""
@@ -150,16 +182,8 @@ def stored_normal_mismatch(stored: np.ndarray, computed: np.ndarray) -> np.ndarr
 
 def _directed_edges_paired(mesh: Mesh) -> bool:
     """True when every edge shared by exactly two facets is used once in each direction (consistent winding)."""
-    f = mesh.faces
-    a = f.reshape(-1)
-    b = np.roll(f, -1, axis=1).reshape(-1)
-    forward = (a < b).astype(np.int64)
-    e = mesh.face_edges.reshape(-1)
-    n_e = mesh.edge_vertices.shape[0]
-    fw = np.bincount(e, weights=forward, minlength=n_e)
-    total = np.bincount(e, minlength=n_e)
-    two = total == 2
-    return bool(np.all(fw[two] == 1))
+    sides = mesh.edge_sides()
+    return bool(np.all(sides.forward[sides.count == 2] == 1))
 
 
 def count_bodies(mesh: Mesh) -> int:
@@ -218,10 +242,8 @@ def mesh_from_triangles(
         raise EmptyMeshError(f"{name}: no facets")
     if scale is not None and fit is not None:
         raise ParameterError("give scale or fit, not both", param=("scale", "fit"))
-    # float32 is the precision of STL; + 0.0 turns -0.0 into 0.0 so both weld together
-    corners = np.ascontiguousarray(tri.reshape(-1, 3), dtype=np.float32) + np.float32(0.0)
-    if not np.all(np.isfinite(corners)):
-        raise InvalidGeometryError(f"{name}: NaN or infinite vertex coordinates")
+    # float32 is the precision of STL; the weld reads -0.0 as 0.0, so both weld together (no normalised copy)
+    corners = np.ascontiguousarray(tri.reshape(-1, 3), dtype=np.float32)
     return _from_corners(
         corners, normals, name=name, source_format=source_format, scale=scale, fit=fit, solids=solids,
         device=device if tri.shape[0] > DEVICE_WELD_MIN_FACETS else None,
@@ -253,9 +275,14 @@ def _placement(verts: np.ndarray, name: str, scale: float | None, fit: float | N
 def _from_corners(corners, normals, *, name, source_format, scale, fit, solids, device=None) -> Mesh:
     n_faces = corners.shape[0] // 3
 
-    # bit-identical as stored, before any transform
-    vid, first = weld_device(corners, device) if device is not None else weld_numpy(corners)
-    verts = corners[first]
+    # bit-identical as stored (-0.0 as 0.0), before any transform
+    kernel = WeldKernel.of(device) if device is not None else None
+    vid, first = (kernel.weld(corners, signed_zero=False) if kernel is not None
+                  else weld_numpy(corners, signed_zero=False))
+    verts = corners[first] + np.float32(0.0)  # + 0.0 turns -0.0 into 0.0
+    del first
+    if not np.all(np.isfinite(verts)):  # every corner is one of the vertices, bit for bit
+        raise InvalidGeometryError(f"{name}: NaN or infinite vertex coordinates")
     factor, offset = _placement(verts, name, scale, fit)
     if factor != 1.0 or offset[2] != 0.0:
         verts = (verts.astype(np.float64) * factor + offset).astype(np.float32) + np.float32(0.0)
@@ -269,11 +296,12 @@ def _from_corners(corners, normals, *, name, source_format, scale, fit, solids, 
     if faces.shape[0] == 0:
         raise EmptyMeshError(f"{name}: every facet is degenerate")
     faces = np.ascontiguousarray(faces, dtype=np.int32)
-    if device is not None:
-        face_edges, edge_vertices = edge_ids_device(faces, verts.shape[0], device)
+    if kernel is not None:
+        face_edges, edge_vertices, sides = kernel.edge_table(faces, verts.shape[0], check=False)  # the weld's ids
+        kernel.release()  # a large mesh's tables are not kept through slicing (peak memory)
     else:
-        face_edges, edge_vertices = edge_ids_numpy(faces, verts.shape[0])
-    return Mesh(
+        face_edges, edge_vertices, sides = edge_table_numpy(faces, verts.shape[0])
+    mesh = Mesh(
         vertices=np.ascontiguousarray(verts),
         faces=np.ascontiguousarray(faces, dtype=np.int32),
         face_edges=face_edges,
@@ -286,6 +314,10 @@ def _from_corners(corners, normals, *, name, source_format, scale, fit, solids, 
         dropped_degenerate=dropped,
         solids=solids,
     )
+    mesh._cache["edge_sides"] = sides  # the pairing the mesh check needs (defects.py), a by-product
+    if device is not None:
+        mesh._cache["device"] = device
+    return mesh
 
 
 def mesh_from_arrays(

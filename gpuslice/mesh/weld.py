@@ -2,30 +2,39 @@
 
 Two numberings by first occurrence (see :func:`first_occurrence_ids`):
 
-* **weld**: corners (N, 3) float32 (already ``+ 0.0``-normalised, so -0.0 is 0.0) with bit-identical coordinates
-  share a vertex id; ids are numbered in the order of their first corner. Returns ``vid`` (N,) int32 and ``first``
-  (V,) int64, the corner index of each id's first occurrence, so the vertices are ``corners[first]``.
+* **weld**: corners (N, 3) float32 with bit-identical coordinates share a vertex id (with ``signed_zero=False``,
+  -0.0 counts as 0.0); ids are numbered in the order of their first corner. Returns ``vid`` (N,) int32 and
+  ``first`` (V,) int64, the corner index of each id's first occurrence, so the vertices are ``corners[first]``.
 * **edge ids**: side k of facet f (item 3f + k) joins ``faces[f, k]`` and ``faces[f, (k + 1) % 3]``; each undirected
   vertex pair gets one id, numbered in the order of its first side. Returns ``face_edges`` (F, 3) int32 and
-  ``edge_vertices`` (E, 2) int32, the smaller vertex id first.
+  ``edge_vertices`` (E, 2) int32, the smaller vertex id first. :func:`edge_table_numpy` and
+  :meth:`WeldKernel.edge_table` also give the **pairing** the mesh check uses (:class:`EdgeSides`): each edge's
+  number of sides, its first and its last side (the two sides of a manifold edge), a by-product of the numbering.
 
 The device path uses a hash table with atomics but is deterministic: each slot ends up holding the smallest index
 with its key (atomic_min after the insert), and ids are the ranks of those firsts (a prefix sum), so the result is
 exactly that of :func:`weld_numpy` / :func:`edge_ids_numpy`, the numpy twins (the code of ``mesh.py``).
+:meth:`WeldKernel.components` is the mesh check's connected components (a union-find, roots the smallest nodes).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..device import KernelDriver
 
-__all__ = ["WeldKernel", "first_occurrence_ids", "weld_device", "edge_ids_device", "weld_numpy", "edge_ids_numpy"]
+__all__ = ["EdgeSides", "WeldKernel", "first_occurrence_ids", "weld_device", "edge_ids_device", "weld_numpy",
+           "edge_ids_numpy", "edge_table_numpy"]
 
 # items per work-item in the counting and numbering passes
 _CHUNK = 32
 # the largest item count: table slots (a power of two > items) must stay addressable by int32
 _MAX_ITEMS = 2**30 - 1
+_NEGATIVE_ZERO = np.uint32(0x80000000)
+# device buffers a driver keeps for reuse after building a mesh (WeldKernel.release)
+_KEEP_BYTES = 64 << 20
 _KERNEL_NAMES = (
     "insert_corners",
     "insert_sides",
@@ -34,7 +43,54 @@ _KERNEL_NAMES = (
     "emit_corners",
     "emit_sides",
     "gather_ids",
+    "gather_sides",
+    "cc_init",
+    "cc_hook",
+    "cc_flatten",
 )
+
+
+@dataclass
+class EdgeSides:
+    """How the facet sides pair up along each edge (by-products of the edge numbering, for the mesh check).
+
+    ``count`` (E,) int32: sides (facets) per edge (2 on a closed manifold); ``first``, ``last`` (E,) int32: the
+    smallest and the largest side index (3f + k) of the edge, equal when it has one side; ``forward`` (E,) int32:
+    how many of its sides run from the smaller vertex id to the larger (1 of 2: the two facets agree in winding).
+    """
+
+    count: np.ndarray
+    first: np.ndarray
+    last: np.ndarray
+    forward: np.ndarray
+
+    @classmethod
+    def empty(cls) -> EdgeSides:
+        return cls(*(np.zeros(0, np.int32) for _ in range(4)))
+
+
+def _first_occurrence(keys: np.ndarray, *, with_groups: bool = False, weights: np.ndarray | None = None):
+    n = keys.shape[0]
+    order = np.argsort(keys, kind="stable")
+    sk = keys[order]
+    start = np.empty(n, dtype=bool)
+    start[0] = True
+    np.not_equal(sk[1:], sk[:-1], out=start[1:])
+    del sk
+    group = np.cumsum(start) - 1
+    starts = np.flatnonzero(start)
+    firsts = order[starts]  # stable sort: the smallest index of each group
+    rank = np.empty(firsts.size, dtype=np.int64)
+    by_first = np.argsort(firsts)
+    rank[by_first] = np.arange(firsts.size)
+    ids = np.empty(n, dtype=np.int32)
+    ids[order] = rank[group]
+    if not with_groups:
+        return ids, firsts[by_first]
+    ends = np.append(starts[1:], n)
+    # per id (first-occurrence order): the group's size, its largest index (the stable sort's last), its weights' sum
+    total = np.add.reduceat(weights[order], starts) if weights is not None else None
+    return ids, firsts[by_first], (ends - starts)[by_first], order[ends - 1][by_first], total[by_first]
 
 
 def first_occurrence_ids(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -43,49 +99,60 @@ def first_occurrence_ids(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     Returns ``ids`` (N,) int32 with ``ids[i] == ids[j]`` iff ``keys[i] == keys[j]``, numbered 0, 1, … in the order
     the distinct keys first appear, and ``first`` (K,) int64, the index of each id's first occurrence.
     """
-    n = keys.shape[0]
-    if n == 0:
+    if keys.shape[0] == 0:
         return np.zeros(0, np.int32), np.zeros(0, np.int64)
-    order = np.argsort(keys, kind="stable")
-    sk = keys[order]
-    start = np.empty(n, dtype=bool)
-    start[0] = True
-    np.not_equal(sk[1:], sk[:-1], out=start[1:])
-    group = np.cumsum(start) - 1
-    firsts = order[start]  # stable sort: the smallest index of each group
-    rank = np.empty(firsts.size, dtype=np.int64)
-    by_first = np.argsort(firsts)
-    rank[by_first] = np.arange(firsts.size)
-    ids = np.empty(n, dtype=np.int32)
-    ids[order] = rank[group]
-    return ids, firsts[by_first]
+    return _first_occurrence(keys)
 
 
-def weld_numpy(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Vertex ids (N,) int32 and first corners (V,) int64 of bit-identical corners (the host weld of ``mesh.py``)."""
+def weld_numpy(corners: np.ndarray, *, signed_zero: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Vertex ids (N,) int32 and first corners (V,) int64 of bit-identical corners (the host weld of ``mesh.py``).
+
+    ``signed_zero=False``: -0.0 welds with 0.0 (the corners need not be normalised by ``+ 0.0`` first).
+    """
     corners = np.ascontiguousarray(corners, dtype=np.float32).reshape(-1, 3)
-    bits = corners.view(np.uint32).astype(np.uint64)
+    bits = corners.view(np.uint32)
+    if not signed_zero:
+        bits = np.where(bits == _NEGATIVE_ZERO, np.uint32(0), bits)
+    wide = bits.astype(np.uint64)
     # a 64-bit mix of the three 32-bit patterns; equal patterns give equal keys, collisions are checked below
-    key = bits[:, 0] * np.uint64(0x9E3779B97F4A7C15)
-    key ^= (bits[:, 1] + np.uint64(0x632BE59BD9B4E019)) * np.uint64(0xBF58476D1CE4E5B9)
-    key ^= (bits[:, 2] + np.uint64(0x8CB92BA72F3D8DD7)) * np.uint64(0x94D049BB133111EB)
+    key = wide[:, 0] * np.uint64(0x9E3779B97F4A7C15)
+    key ^= (wide[:, 1] + np.uint64(0x632BE59BD9B4E019)) * np.uint64(0xBF58476D1CE4E5B9)
+    key ^= (wide[:, 2] + np.uint64(0x8CB92BA72F3D8DD7)) * np.uint64(0x94D049BB133111EB)
+    del wide
     ids, first = first_occurrence_ids(key)
-    if not np.array_equal(corners[first][ids].view(np.uint32), corners.view(np.uint32)):
-        exact = corners.view(np.dtype((np.void, 12))).reshape(-1)
+    if not np.array_equal(bits[first][ids], bits):
+        exact = np.ascontiguousarray(bits).view(np.dtype((np.void, 12))).reshape(-1)
         ids, first = first_occurrence_ids(exact)
     return ids, first
+
+
+def _side_keys(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    a = faces.reshape(-1).astype(np.int64)
+    b = np.roll(faces, -1, axis=1).reshape(-1).astype(np.int64)
+    return np.minimum(a, b), np.maximum(a, b)
 
 
 def edge_ids_numpy(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
     """Edge id of each facet side (F, 3) int32 (side k joins corners k and k + 1) and each edge's (min, max) vertex
     ids (E, 2) int32, numbered by first occurrence (the host path of ``mesh.py``)."""
     faces = np.asarray(faces).reshape(-1, 3)
-    a = faces.reshape(-1).astype(np.int64)
-    b = np.roll(faces, -1, axis=1).reshape(-1).astype(np.int64)
-    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    lo, hi = _side_keys(faces)
     eid, efirst = first_occurrence_ids(lo * np.int64(n_vertices) + hi)
     edge_vertices = np.stack([lo[efirst], hi[efirst]], axis=1).astype(np.int32)
     return eid.reshape(-1, 3).astype(np.int32), edge_vertices
+
+
+def edge_table_numpy(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray, EdgeSides]:
+    """:func:`edge_ids_numpy` and the :class:`EdgeSides` pairing, from one sort of the sides."""
+    faces = np.asarray(faces).reshape(-1, 3)
+    if faces.size == 0:
+        return np.zeros((0, 3), np.int32), np.zeros((0, 2), np.int32), EdgeSides.empty()
+    lo, hi = _side_keys(faces)
+    forward = (faces.reshape(-1) < hi).astype(np.int32)  # the side runs from its smaller vertex to the larger
+    eid, efirst, count, last, fw = _first_occurrence(lo * np.int64(n_vertices) + hi, with_groups=True, weights=forward)
+    edge_vertices = np.stack([lo[efirst], hi[efirst]], axis=1).astype(np.int32)
+    sides = EdgeSides(count.astype(np.int32), efirst.astype(np.int32), last.astype(np.int32), fw.astype(np.int32))
+    return eid.reshape(-1, 3), edge_vertices, sides
 
 
 def _table_size(n: int, factor: float) -> int:
@@ -118,21 +185,20 @@ class WeldKernel(KernelDriver):
         self.table_factor = float(table_factor)
         self._hash_and = np.uint32((1 << hash_bits) - 1)
         prg = device.program("weld.cl")
-        k = {name: cl.Kernel(prg, f"weld_{name}") for name in _KERNEL_NAMES}
-        self._insert = {"corners": k["insert_corners"], "sides": k["insert_sides"]}
-        self._emit = {"corners": k["emit_corners"], "sides": k["emit_sides"]}
-        self._count, self._scan, self._gather = k["count_firsts"], k["scan_counts"], k["gather_ids"]
+        self._k = {name: cl.Kernel(prg, f"weld_{name}") for name in _KERNEL_NAMES}
 
-    def _number(self, kind: str, d_keys, n: int) -> tuple[int, object, object]:
+    def _number(self, kind: str, d_keys, n: int, key_arg) -> tuple[int, object, object]:
         """The passes on n > 0 items of ``kind`` ("corners" or "sides"): (number of ids, ids buffer, per-id buffer).
 
-        The per-id buffer holds ``first`` (int64) for corners and ``edge_vertices`` (2 x int32) for sides.
+        The per-id buffer holds ``first`` (int64) for corners and ``edge_vertices`` (2 x int32) for sides (then
+        also the buffers ``first_side``, ``count`` and ``last_side``). ``key_arg``: the insert kernel's extra
+        argument (corners: the bits read as 0, sides: the probe spread).
         """
         import pyopencl as cl
 
         if n > _MAX_ITEMS:
             raise ValueError(f"{n} items: more than the device weld handles ({_MAX_ITEMS})")
-        q = self.device.queue
+        q, k = self.device.queue, self._k
         size = _table_size(n, self.table_factor)
         if size > 2**31:
             raise ValueError(f"{n} items: a table of {size} slots is more than int32 slot indices address")
@@ -147,18 +213,32 @@ class WeldKernel(KernelDriver):
         d_per_id = self._buffer("per_id", 8 * n)
         n_, chunk, nc = np.int32(n), np.int32(_CHUNK), np.int32(n_chunks)
         items, chunks = self._grid(n), self._grid(n_chunks)
-        self._insert[kind](q, *items, d_keys, n_, d_slots, np.uint32(size - 1), self._hash_and, d_slot_of)
-        self._count(q, *chunks, d_slots, d_slot_of, n_, chunk, nc, d_flags, d_counts)
-        self._scan(q, *self._grid(1), d_counts, nc, d_offsets, d_total)
-        extra = (d_keys,) if kind == "sides" else ()
-        self._emit[kind](q, *chunks, d_slots, d_slot_of, n_, chunk, nc, d_flags, d_offsets, *extra, d_per_id)
-        self._gather(q, *items, d_slots, d_slot_of, n_, d_ids)
+        mask = np.uint32(size - 1)
+        if kind == "sides":  # the first probe: lo * spread + hash(hi) % spread (see weld.cl)
+            spread = np.uint32(1 << max(0, (size // max(1, int(key_arg))).bit_length() - 1))
+            k["insert_sides"](q, *items, d_keys, n_, d_slots, mask, self._hash_and, spread, d_slot_of)
+        else:
+            k["insert_corners"](q, *items, d_keys, n_, d_slots, mask, self._hash_and, np.uint32(key_arg), d_slot_of)
+        k["count_firsts"](q, *chunks, d_slots, d_slot_of, n_, chunk, nc, d_flags, d_counts)
+        k["scan_counts"](q, *self._grid(1), d_counts, nc, d_offsets, d_total)
+        if kind == "sides":
+            d_first_side = self._buffer("first_side", 4 * n)
+            d_count = self._buffer("side_count", 4 * n)
+            d_last = self._buffer("last_side", 4 * n)
+            d_forward = self._buffer("forward", 4 * n)
+            k["emit_sides"](q, *chunks, d_slots, d_slot_of, n_, chunk, nc, d_flags, d_offsets, d_keys, d_per_id,
+                            d_first_side, d_count, d_last, d_forward)
+            k["gather_sides"](q, *items, d_slots, d_slot_of, n_, d_keys, d_ids, d_count, d_last, d_forward)
+        else:
+            k["emit_corners"](q, *chunks, d_slots, d_slot_of, n_, chunk, nc, d_flags, d_offsets, d_per_id)
+            k["gather_ids"](q, *items, d_slots, d_slot_of, n_, d_ids)
         total = np.empty(1, dtype=np.int32)
         cl.enqueue_copy(q, total, d_total, is_blocking=True)
         return int(total[0]), d_ids, d_per_id
 
-    def weld(self, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(vid, first)`` of (N, 3) float32 corners: the same arrays as :func:`weld_numpy`."""
+    def weld(self, corners: np.ndarray, *, signed_zero: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """``(vid, first)`` of (N, 3) float32 corners: the same arrays as :func:`weld_numpy` (``signed_zero=False``:
+        -0.0 welds with 0.0, read so by the kernel: no normalised copy of the corners is needed)."""
         import pyopencl as cl
 
         corners = np.ascontiguousarray(corners, dtype=np.float32).reshape(-1, 3)
@@ -166,38 +246,86 @@ class WeldKernel(KernelDriver):
         if n == 0:
             return np.zeros(0, np.int32), np.zeros(0, np.int64)
         q = self.device.queue
-        n_ids, d_ids, d_first = self._number("corners", self._put("corners", corners), n)
+        zero = 0 if signed_zero else int(_NEGATIVE_ZERO)
+        n_ids, d_ids, d_first = self._number("corners", self._put("corners", corners), n, zero)
         vid = np.empty(n, dtype=np.int32)
         first = np.empty(n_ids, dtype=np.int64)
         cl.enqueue_copy(q, vid, d_ids, is_blocking=False)
         cl.enqueue_copy(q, first, d_first, is_blocking=True)
+        if corners.nbytes > _KEEP_BYTES // 4:  # not kept through the edge pass (peak memory)
+            del self._buffers["corners"]
         return vid, first
 
-    def edge_ids(self, faces: np.ndarray, n_vertices: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """``(face_edges, edge_vertices)`` of (F, 3) vertex ids: the same arrays as :func:`edge_ids_numpy`.
+    def edge_table(self, faces: np.ndarray, n_vertices: int | None = None, *, check: bool = True):
+        """``(face_edges, edge_vertices, sides)``: the arrays of :func:`edge_ids_numpy` and the :class:`EdgeSides`
+        pairing (the same as :func:`edge_table_numpy`'s), of (F, 3) vertex ids.
 
-        The ids are only used as keys; ``n_vertices`` (optional) is checked: every id must lie in [0, n_vertices).
+        The ids are only used as keys; ``n_vertices`` (optional) is checked: every id must lie in [0, n_vertices)
+        (``check=False``: trusted, e.g. the weld's own ids; it then only spreads the hash table's first probes).
         """
         import pyopencl as cl
 
         faces = np.ascontiguousarray(faces, dtype=np.int32).reshape(-1, 3)
         n = faces.size
         if n == 0:
-            return np.zeros((0, 3), np.int32), np.zeros((0, 2), np.int32)
-        if n_vertices is not None and (faces.min() < 0 or faces.max() >= n_vertices):
-            raise ValueError(f"face vertex ids outside [0, {n_vertices})")
+            return np.zeros((0, 3), np.int32), np.zeros((0, 2), np.int32), EdgeSides.empty()
+        if n_vertices is None or check:
+            lo, hi = int(faces.min()), int(faces.max())
+            if n_vertices is not None and (lo < 0 or hi >= n_vertices):
+                raise ValueError(f"face vertex ids outside [0, {n_vertices})")
+            n_vertices = max(hi + 1, 1) if n_vertices is None else n_vertices
         q = self.device.queue
-        n_ids, d_ids, d_ev = self._number("sides", self._put("faces", faces), n)
+        n_ids, d_ids, d_ev = self._number("sides", self._put("faces", faces), n, n_vertices)
         face_edges = np.empty((n // 3, 3), dtype=np.int32)
         edge_vertices = np.empty((n_ids, 2), dtype=np.int32)
+        sides = EdgeSides(*(np.empty(n_ids, np.int32) for _ in range(4)))
         cl.enqueue_copy(q, face_edges, d_ids, is_blocking=False)
-        cl.enqueue_copy(q, edge_vertices, d_ev, is_blocking=True)
-        return face_edges, edge_vertices
+        cl.enqueue_copy(q, edge_vertices, d_ev, is_blocking=False)
+        cl.enqueue_copy(q, sides.count, self.buffer("side_count"), is_blocking=False)
+        cl.enqueue_copy(q, sides.first, self.buffer("first_side"), is_blocking=False)
+        cl.enqueue_copy(q, sides.forward, self.buffer("forward"), is_blocking=False)
+        cl.enqueue_copy(q, sides.last, self.buffer("last_side"), is_blocking=True)
+        return face_edges, edge_vertices, sides
+
+    def edge_ids(self, faces: np.ndarray, n_vertices: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``(face_edges, edge_vertices)`` of (F, 3) vertex ids: the same arrays as :func:`edge_ids_numpy`."""
+        return self.edge_table(faces, n_vertices)[:2]
+
+    def release(self, keep_bytes: int = _KEEP_BYTES) -> None:
+        """Drop this driver's device buffers when together they hold more than ``keep_bytes``: a large mesh's tables
+        (~140 bytes a facet) would otherwise stay allocated through slicing, raising the job's peak memory; small
+        ones are kept for reuse (batches of small models). They are made again, at the size needed, on next use."""
+        if sum(size for _, size in self._buffers.values()) > keep_bytes:
+            self._buffers.clear()
+
+    def components(self, n: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Connected components of the graph on nodes ``0 .. n - 1`` with edges ``a[i] -- b[i]``: (n,) int32 labels,
+        each node labelled with the smallest node of its component (as :func:`gpuslice.mesh.defects.connected_labels`).
+        """
+        import pyopencl as cl
+
+        if n == 0:
+            return np.zeros(0, np.int32)
+        if n > 2**31 - 1:
+            raise ValueError(f"{n} nodes: more than int32 node ids address")
+        q, k = self.device.queue, self._k
+        m = int(np.asarray(a).shape[0])
+        d_parent = self._buffer("cc_parent", 4 * n)
+        d_label = self._buffer("cc_label", 4 * n)
+        k["cc_init"](q, *self._grid(n), d_parent, np.int32(n))
+        if m:
+            d_a = self._put("cc_a", np.asarray(a, dtype=np.int32))
+            d_b = self._put("cc_b", np.asarray(b, dtype=np.int32))
+            k["cc_hook"](q, *self._grid(m), d_parent, d_a, d_b, np.int32(m))
+        k["cc_flatten"](q, *self._grid(n), d_parent, np.int32(n), d_label)
+        label = np.empty(n, dtype=np.int32)
+        cl.enqueue_copy(q, label, d_label, is_blocking=True)
+        return label
 
 
-def weld_device(corners: np.ndarray, device) -> tuple[np.ndarray, np.ndarray]:
+def weld_device(corners: np.ndarray, device, *, signed_zero: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Vertex ids (N,) int32 and first corners (V,) int64 of bit-identical corners, on ``device``."""
-    return WeldKernel.of(device).weld(corners)
+    return WeldKernel.of(device).weld(corners, signed_zero=signed_zero)
 
 
 def edge_ids_device(faces: np.ndarray, n_vertices: int, device) -> tuple[np.ndarray, np.ndarray]:

@@ -244,6 +244,16 @@ def _workload(pass_name: str) -> dict:
     crippled = WeldKernel(dev, table_factor=1.0, hash_bits=4)
     _same(crippled.weld(corners), weld_numpy(corners), "weld, colliding hash")
     _same(crippled.edge_ids(sphere.faces, n_v), edge_ids_numpy(sphere.faces, n_v), "edge ids, colliding hash")
+    # weld.cl's pairing of the sides and its union-find (the mesh check's shells)
+    from dataclasses import astuple
+
+    from gpuslice.mesh.defects import connected_labels
+    from gpuslice.mesh.weld import edge_table_numpy
+
+    pairing = (WeldKernel.of(dev).edge_table(sphere.faces, n_v)[2], edge_table_numpy(sphere.faces, n_v)[2])
+    _same(astuple(pairing[0]), astuple(pairing[1]), "edge pairing")
+    a, b = np.random.default_rng(5).integers(0, 300, (2, 200))
+    _same([WeldKernel.of(dev).components(300, a, b)], [connected_labels(300, a, b).astype(np.int32)], "components")
     # crossings.cl, with planes through vertices (the on-plane rule); walk.cl on a host successor array
     zs = np.unique(np.concatenate([np.linspace(0.3, sphere.height - 0.3, 5), sphere.vertices[:, 2].astype(float)]))
     zs = zs[(zs > 0) & (zs <= sphere.height)]
