@@ -110,16 +110,8 @@ def slice_mesh(
 
     given_device = overrides.pop("device") if isinstance(overrides.get("device"), Device) else None
     placement = {k: overrides.pop(k) for k in ("scale", "fit", "name") if k in overrides}
-    if not isinstance(mesh, Mesh) or placement.get("scale") is not None or placement.get("fit") is not None:
-        from ..mesh.mesh import load_mesh
-
-        mesh = load_mesh(mesh, **placement)
     params = SliceParams(**{**asdict(params or SliceParams()), **overrides})
     timings: dict[str, float] = {}
-    t0 = time.perf_counter()
-    sched = schedule if schedule is not None else make_schedule(mesh, params, z, layer_thickness)
-    zs = _planes32(sched.z)
-    timings["schedule"] = time.perf_counter() - t0
     device = None
     device_name = "numpy (reference)"
     if params.backend == "opencl":
@@ -131,6 +123,14 @@ def slice_mesh(
         device.program("walk.cl")
         device_name = device.name
         timings["device"] = time.perf_counter() - t
+    if not isinstance(mesh, Mesh) or placement.get("scale") is not None or placement.get("fit") is not None:
+        from ..mesh.mesh import load_mesh
+
+        mesh = load_mesh(mesh, device=device, **placement)  # welded on the slicing device, when there is one
+    t0 = time.perf_counter()
+    sched = schedule if schedule is not None else make_schedule(mesh, params, z, layer_thickness)
+    zs = _planes32(sched.z)
+    timings["schedule"] = time.perf_counter() - t0
     n_layers = int(zs.size)
     for key in ("crossings", "chaining", "nesting"):
         timings[key] = 0.0
