@@ -48,7 +48,7 @@ class SliceParams:
                             unit="mm")
     backend: str = option("opencl", "The OpenCL kernels, or their numpy reference twins", choices=BACKENDS)
     device: str | None = option(None, "OpenCL device: 'P:D' index or a name piece (env GPUSLICE_DEVICE)")
-    max_segments_per_batch: int = option(8_000_000, "Layers are sliced in batches of at most about this many "
+    max_segments_per_batch: int = option(2_000_000, "Layers are sliced in batches of at most about this many "
                                          "segments (bounds memory)", flags=())
     adaptive: str | None = option(None, "Adaptive layers: roi (the paper's ladder), cusp (t*|n_z| <= --max-cusp), "
                                   "area (error area)", choices=ADAPTIVE_MODES)
