@@ -153,31 +153,47 @@ def _pack(val: np.ndarray, nb: np.ndarray, body: np.ndarray, pattern: int, pbits
 def _pack_words(val: np.ndarray, nb: np.ndarray, off: np.ndarray, body: np.ndarray, pattern: int, pbits: int,
                 n_words: int) -> np.ndarray:
     """``n_words`` uint64 words holding tokens ``val`` of ``nb`` bits at bit offsets ``off`` (increasing; tokens do
-    not overlap), bodies as in :func:`_pack`."""
-    words = np.zeros(n_words, _U64)
+    not overlap), bodies as in :func:`_pack`. A body's words after its first and before its last hold nothing else;
+    when ``pbits`` divides 64 (the usual case: a 1-bit <258> code and the 1-bit distance) they are all one word,
+    so all bodies' middles are laid down with one ``np.repeat``, the cost of a memset."""
+    bi = np.flatnonzero(body)
+    o, ln = off[bi], nb[bi]
+    w0, w1 = o >> 6, (o + ln - 1) >> 6
+    i = np.arange(64)
+    ph = np.arange(pbits)[:, None]
+    tape = np.bitwise_or.reduce(((pattern >> (ph + i) % pbits) & 1).astype(_U64) << i.astype(_U64), axis=1)
+    periodic = bi.size and 64 % pbits == 0
+    if periodic:  # words = zeros, then each body's middle words [w0 + 1, w1): one constant per body
+        mids = np.maximum(w1 - w0 - 1, 0)
+        gaps = (w0 + 1) - np.concatenate(([0], w0[:-1] + 1 + mids[:-1]))
+        lens = np.empty(2 * bi.size + 1, np.int64)
+        lens[0:-1:2], lens[1::2], lens[-1] = gaps, mids, n_words - (w0[-1] + 1 + mids[-1])
+        vals = np.zeros(lens.size, _U64)
+        vals[1::2] = tape[(-o) % pbits]
+        words = np.repeat(vals, lens)
+    else:
+        words = np.zeros(n_words, _U64)
     val = np.where(body, _U64(0), val)  # bodies add nothing here (zero value, and zero spill)
     w, s = off >> 6, (off & 63).astype(_U64)
     first = np.flatnonzero(np.concatenate(([True], w[1:] != w[:-1])))
-    words[w[first]] = np.bitwise_or.reduceat(val << s, first)
+    words[w[first]] = np.bitwise_or.reduceat(val << s, first)  # never a body's middle word: no token starts there
     sp = np.flatnonzero((s + nb.astype(_U64) > 64) & ~body)
     words[w[sp] + 1] |= val[sp] >> (_U64(64) - s[sp])
-    bi = np.flatnonzero(body)
     if bi.size:
-        i = np.arange(64)
-        ph = np.arange(pbits)[:, None]
-        tape = np.bitwise_or.reduce(((pattern >> (ph + i) % pbits) & 1).astype(_U64) << i.astype(_U64), axis=1)
-        o, ln = off[bi], nb[bi]
-        w0, w1 = o >> 6, (o + ln - 1) >> 6
         single = w0 == w1
         head = tape[0] << (o & 63).astype(_U64)
         head[single] &= (_ONES >> (64 - ln[single]).astype(_U64)) << (o[single] & 63).astype(_U64)
-        owner, wi = expand_ranges(w0 + 1, w1 - w0)
-        part = tape[(64 * wi - o[owner]) % pbits]
-        last = wi == w1[owner]
-        end = (o + ln)[owner[last]] - 64 * wi[last]
+        if periodic:  # only the last words are left
+            multi = np.flatnonzero(~single)
+            wi, ow = w1[multi], multi
+        else:
+            ow, wi = expand_ranges(w0 + 1, w1 - w0)
+        part = tape[(64 * wi - o[ow]) % pbits]
+        last = wi == w1[ow]
+        end = (o + ln)[ow[last]] - 64 * wi[last]
         part[last] &= _ONES >> (64 - end).astype(_U64)
-        mid = ~last
-        words[wi[mid]] = part[mid]
+        if not periodic:
+            words[wi[~last]] = part[~last]
         np.bitwise_or.at(words, np.concatenate((w0, wi[last])), np.concatenate((head, part[last])))
     return words
 
