@@ -128,14 +128,16 @@ class HeightMap:
         if isinstance(item, RunLayer):
             if item.runs is not self._batch:
                 self._batch = item.runs
-                self._add_runs(item.runs)
+                # the batch's layers as the result's indices: a caller may number them from elsewhere (the z-sampled
+                # layers come a chunk at a time, each numbered from 0), by a constant shift
+                self._add_runs(item.runs, item.index - int(item.runs.layers[item.j]))
             return
         r, c = sample(item, self.step)
         if r.size:  # the sampled pixels of one layer are distinct: a plain fancy-indexed maximum
             cells = r * self.img.shape[1] + c
             flat[cells] = np.maximum(flat[cells], np.uint8(1 + (254 * item.index) // self.n))
 
-    def _add_runs(self, runs: Runs) -> None:
+    def _add_runs(self, runs: Runs, shift: int) -> None:
         idx, r, first, end = _sampled_intervals(runs, 0, runs.n_runs, self.step, 128)
         if not idx.size:
             return
@@ -157,7 +159,7 @@ class HeightMap:
             seg = np.flatnonzero((code[:-1] == 1) & (g[1:] == g[:-1]) & (col[1:] > col[:-1]))
             group, first, end = g[seg], col[seg], col[seg + 1]
         owner, cols = expand_ranges(first, end - first)
-        level = (1 + (254 * runs.layers.astype(np.int64)) // self.n).astype(np.uint8)
+        level = (1 + (254 * (runs.layers.astype(np.int64) + shift)) // self.n).astype(np.uint8)
         np.maximum.at(self.img.reshape(-1), (group % rows)[owner] * width + cols, level[group // rows][owner])
 
 

@@ -67,3 +67,20 @@ def test_height_map_from_tiles(hollow):
     for i, m in enumerate(masks(hollow, spec)):
         hm.add(Tile(i, 0, 0, m))
     assert np.array_equal(hm.img, reference(hollow, spec, 5, range(hollow.n_layers)))
+
+
+def test_height_map_uses_the_items_index_not_the_batchs_numbering(device, hollow):
+    """Runs numbered from 0 in their own batch (the z-sampled layers come a chunk at a time) but handed in as layers
+    ``shift + k``: the levels follow the items' indices."""
+    spec = RasterSpec(resolution=(1200, 700), pixel=0.05)
+    shift, n_total = 7, hollow.n_layers + 7
+    hm = HeightMap(spec.shape, n_total, 4)
+    for runs in iter_runs(hollow, spec, device=device, max_batch_pieces=3_000):
+        for j in range(len(runs.layers)):
+            hm.add(RunLayer(int(runs.layers[j]) + shift, runs, j))
+    rows, cols = spec.shape
+    ref = np.zeros((-(-rows // 4), -(-cols // 4)), np.uint8)
+    for i, m in enumerate(masks(hollow, spec)):
+        cov = m[::4, ::4] >= 128
+        ref[cov] = np.maximum(ref[cov], np.uint8(1 + (254 * (i + shift)) // (n_total - 1)))
+    assert np.array_equal(hm.img, ref)
