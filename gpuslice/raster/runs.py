@@ -197,10 +197,13 @@ def _records_numpy(e: np.ndarray, edge_h: np.ndarray, edge_w: np.ndarray, edge_g
     ei, r, ys, ye = ei[ok], r[ok], ys[ok], ye[ok]
     xs = u0[ei] + (ys - v0[ei]) * dudv[ei]
     xe = u0[ei] + (ye - v0[ei]) * dudv[ei]
-    dy = (ye - ys) * sgn[ei]
+    return _piece_records(eg[ei] + r, ew[ei], xs, xe, (ye - ys) * sgn[ei])
+
+
+def _piece_records(g: np.ndarray, w: np.ndarray, xs: np.ndarray, xe: np.ndarray, dy: np.ndarray):
+    """The (global row, tile column, int contribution) records of row pieces: row ``g``, tile ``w`` columns wide,
+    u from ``xs`` to ``xe`` and signed height ``dy`` (float32, pixels), as ``raster_accumulate`` computes them."""
     umin, umax = np.minimum(xs, xe), np.maximum(xs, xe)
-    w = ew[ei]
-    g = eg[ei] + r
     out_g, out_c, out_a = [], [], []
 
     def add(gg, cc, aa, ww):
@@ -252,51 +255,30 @@ def runs_numpy(le: LayerEdges, lut: np.ndarray, shape: tuple[int, int], batch: r
 
 
 # ---- OpenCL -------------------------------------------------------------------------------------------------------
-_INT_MIN, _INT_MAX = -(2**31), 2**31 - 1
-
-
-def _units(e: np.ndarray, edge_h: np.ndarray, edge_w: np.ndarray, rows_max: int, cells_max: int):
-    """Work units of ``runs_pieces``: (edge, first row, last row, c0, c1), each at most ``rows_max`` rows and about
-    ``cells_max`` cells: a steep edge gets several row bands, a flat one (more than ``cells_max`` cells per row) one
-    unit per row and column range; only the first column range (c0 = INT_MIN) has the cells outside the loop."""
-    u0, v0, u1, v1 = (e[:, i] for i in range(4))
-    va, vb = np.minimum(v0, v1), np.maximum(v0, v1)
+def _units(e: np.ndarray, edge_h: np.ndarray, rows_max: int) -> np.ndarray:
+    """Work units of ``runs_pieces``: (edge, first row, last row, 0), each at most ``rows_max`` rows of an edge
+    (a piece is one descriptor whatever its width: flat edges need no cutting)."""
+    va, vb = np.minimum(e[:, 1], e[:, 3]), np.maximum(e[:, 1], e[:, 3])
     ra = np.maximum(np.floor(va).astype(np.int64), 0)
     rb = np.minimum(edge_h - 1, np.ceil(vb).astype(np.int64) - 1)
-    nr = np.where(v0 != v1, np.maximum(rb - ra + 1, 0), 0)
-    du = np.abs(u1.astype(np.float64) - u0)
-    per_row = np.minimum(du, du / np.maximum(vb.astype(np.float64) - va, 1e-30)) + 2.0
-    rpu = np.clip(cells_max // per_row, 1, rows_max).astype(np.int64)
-    lo = np.clip(np.floor(np.minimum(u0, u1)).astype(np.int64), 0, edge_w - 1)
-    hi = np.clip(np.ceil(np.maximum(u0, u1)).astype(np.int64), 0, edge_w - 1)
-    ncc = np.where(per_row > cells_max, (hi - lo) // cells_max + 1, 1)
-    nur = (nr + rpu - 1) // rpu
-    one = (nur == 1) & (ncc == 1)  # most edges: one unit, no expansion
-    s = np.flatnonzero(one)
-    ue, j = expand_ranges(np.zeros(len(e), np.int64), np.where(one, 0, nur * ncc))
-    rk, ck = j // ncc[ue], j % ncc[ue]
-    r0 = ra[ue] + rk * rpu[ue]
-    n1 = s.size
-    units = np.zeros((n1 + ue.size, 4), np.int32)
-    units[:n1, 0], units[:n1, 1], units[:n1, 2] = s, ra[s], rb[s]
-    units[n1:, 0], units[n1:, 1], units[n1:, 2] = ue, r0, np.minimum(r0 + rpu[ue] - 1, rb[ue])
-    cols = np.empty((n1 + ue.size, 2), np.int32)
-    cols[:n1, 0], cols[:n1, 1] = _INT_MIN, _INT_MAX
-    cols[n1:, 0] = np.where(ck == 0, _INT_MIN, lo[ue] + ck * cells_max)
-    cols[n1:, 1] = np.where(ck == ncc[ue] - 1, _INT_MAX, lo[ue] + (ck + 1) * cells_max - 1)
-    return units, cols
+    nr = np.where(e[:, 1] != e[:, 3], np.maximum(rb - ra + 1, 0), 0)
+    ue, j = expand_ranges(np.zeros(len(e), np.int64), (nr + rows_max - 1) // rows_max)
+    units = np.zeros((ue.size, 4), np.int32)
+    units[:, 0], units[:, 1] = ue, ra[ue] + j * rows_max
+    units[:, 2] = np.minimum(units[:, 1] + rows_max - 1, rb[ue])
+    return units
 
 
 class RunsKernel(KernelDriver):
-    """Driver of ``kernels/runs.cl`` (see the comment at its top): per-row record capacities from per-edge bounds,
-    pieces written into their rows, rows sorted and resolved on the device; rows with more than ``CH`` (<= 256)
-    records are finished on the host by the numpy back half (:attr:`long_rows` counts them). Host work: cutting the
-    few long or flat edges into units, prefix sums over rows. Should a row's records ever exceed its capacity (the
-    bound is proven, this is a safety net), the batch is redone by :func:`runs_numpy` (:attr:`fallbacks`)."""
+    """Driver of ``kernels/runs.cl`` (see the comment at its top): per-row capacities from per-edge bounds, one
+    descriptor per row piece written into its row, rows sorted and resolved cell by cell on the device; rows with
+    more than ``CH`` cell records (or many overlapping pieces) are finished on the host by the numpy back half
+    (:attr:`long_rows` counts them). Host work: cutting the few edges of many rows into units, prefix sums over
+    rows. Should a row's pieces ever exceed its capacity (the bound is proven, this is a safety net), the batch is
+    redone by :func:`runs_numpy` (:attr:`fallbacks`)."""
 
     CH = 256
-    ROWS_PER_UNIT = 16
-    CELLS_PER_UNIT = 256
+    ROWS_PER_UNIT = 16  # rows of an edge per work-item (32: ~8% less CPU on the armadillo job, fewer cut edges)
     CAP_EXTRA = 0  # added to every edge's per-row record bound (tests: negative, to force the fallback)
 
     def __init__(self, device) -> None:
@@ -334,7 +316,7 @@ class RunsKernel(KernelDriver):
         row_off_t = np.zeros(len(t) + 1, np.int64)
         np.cumsum(t[:, 2], out=row_off_t[1:])
         n_rows, n_edges = int(row_off_t[-1]), e1 - e0
-        if n_rows == 0 or n_edges == 0:
+        if n_rows == 0 or n_edges == 0 or int(t[:, 3].max()) >= 1 << 15:  # (a piece's cells are 15-bit columns)
             return runs_numpy(le, lut, shape, batch, lay)
         self._mark(None)
         e = np.asarray(le.edges[e0:e1], np.float32)
@@ -344,63 +326,57 @@ class RunsKernel(KernelDriver):
         tiles[:-1, 1], tiles[:-1, 2], tiles[:-1, 3] = t[:, 3], t[:, 0], t[:, 1]
         b_edges, b_et = self._put("edges", e), self._put("edge_tile", edge_k)
         b_tiles, b_lut = self._put("tiles", tiles), self._put("lut", lut)
+        b_rt = self._put("row_tile", np.repeat(np.arange(len(t), dtype=np.int32), t[:, 2]))
         b_whole = self._buffer("whole", n_edges)
         b_diff = self._fill("cap_diff", 4 * (n_rows + 1), np.int32(0))
         ge, le_ = self._grid(n_edges)
-        self._prep(q, ge, le_, np.int32(n_edges), np.int32(self.ROWS_PER_UNIT), np.int32(self.CELLS_PER_UNIT),
-                   np.int32(self.CAP_EXTRA), b_edges, b_et, b_tiles, b_whole, b_diff)
+        self._prep(q, ge, le_, np.int32(n_edges), np.int32(self.ROWS_PER_UNIT), np.int32(self.CAP_EXTRA), b_edges,
+                   b_et, b_tiles, b_whole, b_diff)
         whole, diff = np.empty(n_edges, np.uint8), np.empty(n_rows, np.int32)
         cl.enqueue_copy(q, whole, b_whole, is_blocking=False)
         cl.enqueue_copy(q, diff, b_diff, is_blocking=True)
+        cap = np.cumsum(diff, dtype=np.int64)  # each row's capacity (int2 slots), even: its pieces are int4
+        cap += cap & 1
         row_off = np.zeros(n_rows + 1, np.int64)
-        np.cumsum(np.cumsum(diff, dtype=np.int64), out=row_off[1:])  # each row's capacity, then its first slot
+        np.cumsum(cap, out=row_off[1:])
         if row_off[-1] >= 2**31:
             raise ParameterError("too many pieces in one batch of layers: lower max_batch_pieces")
         split = np.flatnonzero(whole == 0)
         self._mark("prep: bounds, capacities")
         b_off = self._put("row_off", row_off.astype(np.int32))
-        b_recs = self._buffer("recs", 8 * max(int(row_off[-1]), 1))
+        b_pcs = self._buffer("pcs", 8 * max(int(row_off[-1]), 2))
         b_cnt = self._fill("row_count", 4 * n_rows, np.int32(0))
-        self._edges(q, ge, le_, np.int32(n_edges), b_whole, b_edges, b_et, b_tiles, b_cnt, b_off, b_recs)
+        self._edges(q, ge, le_, np.int32(n_edges), b_whole, b_edges, b_et, b_tiles, b_cnt, b_off, b_pcs)
         self._mark("pieces: whole edges")
-        if split.size:  # long or flat edges: cut into work units
-            units, ucols = _units(e[split], t[edge_k[split], 2], t[edge_k[split], 3], self.ROWS_PER_UNIT,
-                                  self.CELLS_PER_UNIT)
+        if split.size:  # edges of many rows: cut into bands of rows
+            units = _units(e[split], t[edge_k[split], 2], self.ROWS_PER_UNIT)
             units[:, 0] = split[units[:, 0]]
             gu, lu = self._grid(len(units))
-            self._pieces(q, gu, lu, np.int32(len(units)), self._put("units", units), self._put("ucols", ucols),
-                         b_edges, b_et, b_tiles, b_cnt, b_off, b_recs)
-        cnt = np.empty(n_rows, np.int32)
-        cl.enqueue_copy(q, cnt, b_cnt, is_blocking=True)
-        if np.any(cnt > np.diff(row_off)):  # a capacity bound too low (never seen but with CAP_EXTRA < 0): the twin
-            self.fallbacks += 1
-            return runs_numpy(le, lut, shape, batch, lay)
+            self._pieces(q, gu, lu, np.int32(len(units)), self._put("units", units), b_edges, b_et, b_tiles, b_cnt,
+                         b_off, b_pcs)
         self._mark("pieces: cut edges")
+        b_recs = self._buffer("recs", 8 * max(int(row_off[-1]), 1))
         b_m, b_runs = self._buffer("row_m", 4 * n_rows), self._buffer("row_runs", 4 * n_rows)
         gr, lr = self._grid(n_rows)
-        self._rows_k(q, gr, lr, np.int32(n_rows), np.int32(min(self.CH, 256)), b_off, b_cnt, b_recs, b_lut,
-                     np.int32(lut.size - 1), b_m, b_runs)
+        self._rows_k(q, gr, lr, np.int32(n_rows), np.int32(self.CH), b_off, b_cnt, b_pcs, b_recs, b_rt, b_tiles,
+                     b_lut, np.int32(lut.size - 1), b_m, b_runs)
         row_runs = np.empty(n_rows, np.int32)
         cl.enqueue_copy(q, row_runs, b_runs, is_blocking=True)
         self._mark("rows: sort, grey changes")
-        long_rows = np.flatnonzero(cnt > min(self.CH, 256))
+        if np.any(row_runs == -2):  # a capacity bound too low (never seen but with CAP_EXTRA < 0): the twin
+            self.fallbacks += 1
+            return runs_numpy(le, lut, shape, batch, lay)
+        long_rows = np.flatnonzero(row_runs < 0)
         self.long_rows += long_rows.size
         host = None
-        if long_rows.size:  # rows too long for one work-item's sort: the numpy back half
-            rows = _rows(t)
-            recs = np.empty((int(row_off[-1]), 2), np.int32)
-            cl.enqueue_copy(q, recs, b_recs, is_blocking=True)
-            owner, idx = expand_ranges(row_off[long_rows], cnt[long_rows])
-            g, c, s = _sum_cells(long_rows[owner], recs[idx, 0].astype(np.int64), recs[idx, 1].astype(np.int64),
-                                 int(t[:, 3].max()))
-            host = _cells_to_runs(g, c, s, rows, lut)
+        if long_rows.size:  # rows too long for one work-item: the numpy back half from their pieces
+            host = self._host_rows(long_rows, row_off, b_cnt, b_pcs, t, lut)
             row_runs[long_rows] = np.bincount(host[0], minlength=n_rows)[long_rows]
         self._mark("host: long rows")
         run_off = np.zeros(n_rows + 1, np.int64)
         np.cumsum(row_runs, out=run_off[1:])
         n_runs = int(run_off[-1])
         b_ro = self._put("run_off", run_off[:-1].astype(np.int32))
-        b_rt = self._put("row_tile", np.repeat(np.arange(len(t), dtype=np.int32), t[:, 2]))
         # the outputs: new host arrays that the device writes into (USE_HOST_PTR: no copy on a CPU device; a GPU
         # driver copies when they are mapped); the reused scratch buffers never leave this call
         arrs = [_aligned_empty(n_runs, d) for d in (np.int32, np.int32, np.int32, np.uint8)]
@@ -414,6 +390,7 @@ class RunsKernel(KernelDriver):
             q.finish()
         row, x, length, grey = arrs
         if host is not None:
+            rows = _rows(t)
             pos = run_off[host[0]] + group_ranks(host[0])
             row[pos], x[pos] = rows.drow[host[0]], host[1] + rows.col0[host[0]]
             length[pos], grey[pos] = host[2], host[3]
@@ -421,6 +398,23 @@ class RunsKernel(KernelDriver):
         off[1:] = run_off[row_off_t[1:]]
         self._mark("map, long rows in")
         return Runs(lay, off, row, x, length, grey, shape)
+
+    def _host_rows(self, long_rows: np.ndarray, row_off: np.ndarray, b_cnt, b_pcs, t: np.ndarray, lut: np.ndarray):
+        """The runs (g, x tile-local, length, grey) of the rows ``long_rows`` from their pieces on the device."""
+        import pyopencl as cl
+
+        q = self.device.queue
+        cnt = np.empty(len(row_off) - 1, np.int32)
+        pcs = np.empty((int(row_off[-1]) // 2, 4), np.int32)
+        cl.enqueue_copy(q, cnt, b_cnt, is_blocking=False)
+        cl.enqueue_copy(q, pcs, b_pcs, is_blocking=True)
+        owner, idx = expand_ranges(row_off[long_rows] // 2, cnt[long_rows])
+        g = long_rows[owner]
+        f = pcs[idx].view(np.float32)
+        rows = _rows(t)
+        g, c, v = _piece_records(g, rows.width[g], f[:, 1].copy(), f[:, 2].copy(), f[:, 3].copy())
+        g, c, s = _sum_cells(g, c, v, int(t[:, 3].max()))
+        return _cells_to_runs(g, c, s, rows, lut)
 
 
 def _aligned_empty(n: int, dtype) -> np.ndarray:

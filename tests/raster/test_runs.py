@@ -164,7 +164,7 @@ CORNERS = {
     # an open chain is not filled (layer_edges drops it): same as the square alone
     "open_chain": [(_ring(4, 4, 20, 20), False, -1, True),
                    (np.array([[30, 5], [50, 5], [50, 40], [30.5, 40.2]]), False, -1, False)],
-    # a thin sliver whose single row piece spans 60 columns: split into column ranges of work units
+    # a thin sliver whose single row piece spans 60 columns
     "flat_sliver": [(np.array([[1.0, 20.1], [63.0, 20.6], [1.0, 20.35]]), False, -1, True)],
 }
 
@@ -239,14 +239,15 @@ def comb(teeth: int, width: float = 2000.0, y0: float = 10.2, y1: float = 13.7) 
 @pytest.mark.parametrize("teeth", [3000])
 def test_row_with_thousands_of_pieces(device, teeth):
     """Every row the teeth cross holds ~2·teeth pieces: far more than one work-item's share (RUNS_CH records); a
-    flat sliver's one row piece spans 1,990 columns: its edges are cut into column ranges of work units."""
+    flat sliver's one row piece spans 1,990 columns (one descriptor; its row has more than CH cell records: the
+    host finishes it)."""
     spec = RasterSpec(resolution=(2000, 20), pixel=1.0, keep_xy=True)
     sliver = np.array([[2.0, 10.1], [1995.0, 10.6], [2.0, 10.35]])
     res = make_result([[(comb(teeth), False, -1, True)], [(sliver, False, -1, True)]])
     le = layer_edges(res, spec)
     e = le.edges.astype(np.float32)
-    _, ucols = _units(e, np.full(len(e), 20), np.full(len(e), 2000), RunsKernel.ROWS_PER_UNIT, 256)
-    assert np.count_nonzero(ucols[:, 0] != np.iinfo(np.int32).min) >= 7  # the sliver's flat edges: 8 ranges each
+    units = _units(e, np.full(len(e), 20), RunsKernel.ROWS_PER_UNIT)
+    assert np.all(units[:, 2] - units[:, 1] < RunsKernel.ROWS_PER_UNIT) and np.all(units[:, 2] >= units[:, 1])
     a = runs_numpy(le, gamma_lut(1.0), spec.shape)
     b = RunsKernel.of(device).run(le, range(2), gamma_lut(1.0), spec.shape)
     assert_runs_equal(a, b)
@@ -308,3 +309,34 @@ def test_iter_runs_batches_and_empty_layers(device):
     sub = layer_runs(res, spec, backend="numpy", layers=[2, 1])
     assert sub.layers.tolist() == [2, 1]
     assert np.array_equal(sub.to_mask(0), masks(res, spec, backend="opencl-bitmap", layers=[2])[0])
+
+
+def test_edges_cut_into_row_bands_and_overlapping_pieces(device):
+    """Every edge cut into units of 2 rows (runs_pieces writes nearly all pieces), star polygons whose vertices put
+    two or more pieces in the same cells of a row (summed per cell first in runs_rows): runs == the numpy twin."""
+    rng = np.random.default_rng(7)
+    layers = []
+    for _ in range(4):
+        n = int(rng.integers(20, 60))
+        ang = np.sort(rng.uniform(0, 2 * np.pi, n))
+        rad = rng.uniform(3.0, 22.0, n)
+        pts = np.array([32.0, 24.0]) + np.c_[np.cos(ang), np.sin(ang)] * rad[:, None]
+        layers.append([(pts, False, -1, True)])
+    res = make_result(layers)
+    le = layer_edges(res, SMALL)
+    kern = RunsKernel.of(device)
+    want = runs_numpy(le, gamma_lut(1.0), SMALL.shape)
+    kern.ROWS_PER_UNIT, rpu = 2, kern.ROWS_PER_UNIT
+    try:
+        assert_runs_equal(want, kern.run(le, range(4), gamma_lut(1.0), SMALL.shape))
+    finally:
+        kern.ROWS_PER_UNIT = rpu
+    assert_runs_equal(want, kern.run(le, range(4), gamma_lut(1.0), SMALL.shape))
+
+
+def test_tile_wider_than_15_bits(device):
+    """A layer 40,000 pixels wide (piece cells are 15-bit columns on the device): the numpy twin's runs, exact."""
+    spec = RasterSpec(resolution=(40000, 6), pixel=1.0, keep_xy=True)
+    res = make_result([[(np.array([[0.5, 1.2], [39999.5, 2.7], [20000.0, 5.5]]), False, -1, True)]])
+    got, _ = check_against_raster(res, spec, [0], device)
+    assert got["opencl"].n_runs > 0
