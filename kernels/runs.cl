@@ -3,9 +3,9 @@
 // Same float32 formulas and rint as raster_accumulate, so the integer contributions are identical. Passes:
 //   runs_prep: one work-item per edge: an upper bound of the cell records (touched cells, one more at a piece's
 //       end) it gives each of its rows, added to a difference array over rows (integer atomics), and whether it is
-//       one work unit (<= 16 rows: nearly all edges); host: two prefix sums -> each row's capacity (rounded up to
-//       even) and first slot row_off (in int2 slots);
-//   runs_edges (whole edges) and runs_pieces (the host's units (edge, <= 16 rows) of the others): every row piece
+//       one work unit (<= rows_max rows, RunsKernel.ROWS_PER_UNIT: nearly all edges); host: two prefix sums ->
+//       each row's capacity (rounded up to even) and first slot row_off (in int2 slots);
+//   runs_edges (whole edges) and runs_pieces (the host's units (edge, <= rows_max rows) of the others): every row piece
 //       (the part of an edge in one row) written as one descriptor int4 (ca << 16 | ce, umin, umax, dy: its first
 //       and last touched cells, the floats as int bits) into its row's slice of pcs (int4 slot row_off / 2 + an
 //       atomic cursor: the order inside a row is arbitrary, all downstream depends only on the set of pieces); the

@@ -276,7 +276,10 @@ def _workload(pass_name: str) -> dict:
     _same(facet_slopes(sphere, dev), want, "facet slopes")
     for edges in (np.linspace(0.0, sphere.height, 33), np.array([0.0, 0.7, 3.0, 3.1, 12.0, sphere.height])):
         _same((slab_max_nz(sphere, edges, dev),), (slab_max_nz_numpy(*want, edges),), "slab max |n_z|")
-    # runs.cl (whole edges and cut ones: the box's sides span more than 16 rows) and raster.cl
+    # runs.cl (whole edges and cut ones: bands of 8 rows here, so the box's sides are cut) and raster.cl
+    from gpuslice.raster.runs import RunsKernel
+
+    RunsKernel.ROWS_PER_UNIT = 8
     spec = RasterSpec(resolution=(64, 48), pixel=0.5)
     for what in ("sphere", "box"):
         res = results[what]
