@@ -30,6 +30,22 @@ def _opencl_device():
         return exc
 
 
+def pytest_assertrepr_compare(config, op, left, right):
+    """Unequal long byte strings (archives, PNGs) explained by their lengths and first differing byte: pytest's own
+    explanation runs difflib over them, which takes minutes for a few MB."""
+    if op == "==" and isinstance(left, bytes | bytearray) and isinstance(right, bytes | bytearray):
+        if max(len(left), len(right)) > 4096:
+            import numpy as np
+
+            n = min(len(left), len(right))
+            a, b = np.frombuffer(left, np.uint8, n), np.frombuffer(right, np.uint8, n)
+            diff = np.flatnonzero(a != b)
+            at = int(diff[0]) if diff.size else n
+            return [f"{len(left)} bytes == {len(right)} bytes", f"first difference at byte {at} "
+                    f"({int(diff.size)} of the first {n} bytes differ)"]
+    return None
+
+
 def pytest_report_header(config):
     dev = _opencl_device()
     name = dev.name if not isinstance(dev, Exception) else f"none ({dev})"
