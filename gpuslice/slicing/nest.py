@@ -90,7 +90,8 @@ def _containment_pairs(points, pc, offsets, layer, closed, q):
     # no layer with two closed loops: no pair, and no shapely (the tree below keeps every loop otherwise: the order
     # of its answers decides ties between equal-area parents, so it stays as it was)
     if idx.size < 2 or np.bincount(layer[idx]).max() < 2:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), (None, np.zeros(0, np.int64))
+        empty = np.zeros(0, np.int64)
+        return empty, empty, empty, empty, (None, empty)
     import shapely
 
     # every loop has at least one point, so reduceat over the loop starts gives per-loop extremes
@@ -113,20 +114,28 @@ def _containment_pairs(points, pc, offsets, layer, closed, q):
     up = bi < bj
     bi, bj = bi[up], bj[up]
     holds = lambda a, b: np.all((lo[a] <= lo[b]) & (hi[b] <= hi[a]), axis=1)  # noqa: E731
-    partial = ~holds(bi, bj) & ~holds(bj, bi)
+    inner_ij, inner_ji = holds(bi, bj), holds(bj, bi)  # j's box inside i's, i's inside j's
+    partial = ~inner_ij & ~inner_ji
+    # nested boxes: the inner loop (a) and the outer one (b), checked below when a's query point is not inside b
+    a = np.where(inner_ji, bi, bj)[~partial]
+    b = np.where(inner_ji, bj, bi)[~partial]
     bi, bj = bi[partial], bj[partial]
     # shapely rings of just the loops these tests need, built once
-    involved = np.unique(np.concatenate([pj, bi, bj]))
+    involved = np.unique(np.concatenate([pj, bi, bj, a, b]))
     counts = np.diff(offsets)[involved]
     ring_of, sel = expand_ranges(offsets[:-1][involved], counts)
     rings = shapely.linearrings(points[sel].astype(np.float64), indices=ring_of)
     # containment: the query point of loop i strictly inside loop j (GEOS point-in-polygon, in C)
     polys = shapely.polygons(rings)
     inside = shapely.contains_xy(polys[np.searchsorted(involved, pj)], q.real[pi], q.imag[pi])
-    if bi.size:  # exact test on the partial pairs: do their boundaries meet?
+    n = offsets.size - 1
+    out = ~np.isin(a * n + b, pi[inside] * n + pj[inside])  # box within b's, query point not inside b
+    a, b = a[out], b[out]
+    bi, bj = np.concatenate([bi, a]), np.concatenate([bj, b])
+    if bi.size:  # exact test on the partial pairs and those: do their boundaries meet (a point on the other)?
         meet = shapely.intersects(rings[np.searchsorted(involved, bi)], rings[np.searchsorted(involved, bj)])
-        bi = bi[meet]
-    return pi[inside], pj[inside], np.unique(layer[bi]), (rings, involved)
+        bi, bj = bi[meet], bj[meet]
+    return pi[inside], pj[inside], np.unique(layer[bi]), np.union1d(bi, bj), (rings, involved)
 
 
 def nest_loops(loops: Loops, n_layers: int, fill_rule: str = "nonzero") -> Nested:
@@ -144,7 +153,8 @@ def nest_loops(loops: Loops, n_layers: int, fill_rule: str = "nonzero") -> Neste
     if n and points.size:
         first = offsets[:-1]
         q = (pc[first] + pc[np.where(counts >= 2, first + 1, first)]) / 2
-    ci, cj, crossing_layers, (rings, involved) = _containment_pairs(points, pc, offsets, layer, closed & (s != 0), q)
+    ci, cj, crossing_layers, seeds, (rings, involved) = _containment_pairs(points, pc, offsets, layer,
+                                                                           closed & (s != 0), q)
     w_out = np.bincount(ci, weights=s[cj], minlength=n).astype(np.int64)
     depth = np.bincount(ci, minlength=n)
     if fill_rule == "nonzero":
@@ -216,15 +226,18 @@ def nest_loops(loops: Loops, n_layers: int, fill_rule: str = "nonzero") -> Neste
         u_rings = shapely.linearrings(points[sel].astype(np.float64), indices=ring_of)
         meet = shapely.intersects(u_rings, rings[np.searchsorted(involved, c)])
         suspect = np.union1d(suspect, layer[u[meet]])
+        seeds = np.union1d(seeds, np.concatenate([u[meet], c[meet]]))
     # and layers with a loop that crosses itself (cut through self-intersecting facets): its signed area is not the
     # area it bounds
     # (a loop whose lobes cancel, net area 0, included: it is not degenerate, it bounds both lobes)
     crossing = _self_crossing_loops(points, offsets, closed, loops.simple)
     suspect = np.union1d(suspect, layer[crossing])
+    seeds = np.union1d(seeds, crossing)
     if suspect.size:
         rings = closed & (s != 0)
         rings[crossing] = True
-        nested = _resolve_overlaps(nested, points, offsets, layer, rings, suspect, fill_rule, n_layers)
+        nested = _resolve_overlaps(nested, points, offsets, layer, rings, suspect, fill_rule, n_layers, seeds,
+                                   new_index, area, unfilled)
     return nested
 
 
@@ -247,8 +260,9 @@ def _gather_index(src_start: np.ndarray, counts: np.ndarray, new_offsets: np.nda
 
 def _self_crossing_loops(points: np.ndarray, offsets: np.ndarray, closed: np.ndarray,
                          simple: np.ndarray | None = None) -> np.ndarray:
-    """The closed loops that properly cross themselves (not those that only touch themselves at a point, which
-    bound the same area): GEOS's validity reason "Self-intersection" of every loop of four points or more as a
+    """The closed loops that cross or touch themselves: GEOS's validity reasons "Self-intersection" and "Ring
+    Self-intersection" (a ring through one of its own points: its lobes may wind the same way twice, and then its
+    signed area counts their overlap twice, or opposite ways) of every loop of four points or more as a
     polygon, at once (about 50 ns a point on the 2-core VM, two thirds of it making the polygons), skipping the loops
     ``simple`` marks as proven simple (the device's screen, ``Loops.simple``). Returns their indices."""
     counts = np.diff(offsets)
@@ -265,7 +279,8 @@ def _self_crossing_loops(points: np.ndarray, offsets: np.ndarray, closed: np.nda
     if bad.size == 0:
         return bad
     reason = shapely.is_valid_reason(polys[bad])
-    return ids[bad[np.array([r.startswith("Self-intersection") for r in reason], dtype=bool)]]
+    return ids[bad[np.array([r.startswith(("Self-intersection", "Ring Self-intersection")) for r in reason],
+                            dtype=bool)]]
 
 
 def _polygons(points: np.ndarray, offsets: np.ndarray, ids: np.ndarray) -> np.ndarray:
@@ -295,22 +310,64 @@ def _filled(w: np.ndarray, fill_rule: str) -> np.ndarray:
     return w % 2 != 0
 
 
-def _resolve_overlaps(nested, points, offsets, layer, closed, layers, fill_rule, n_layers):
-    """Exact regions of layers whose loops cross, from the arrangement of all their loop boundaries.
+def _affected(lo: np.ndarray, hi: np.ndarray, seed: np.ndarray) -> np.ndarray:
+    """Which of a layer's loops (boxes ``lo``, ``hi``, (n, 2)) can share a face of the arrangement with the
+    ``seed`` loops (those that cross): the groups of loops joined by overlapping boxes that hold a seed, grown by
+    every loop whose box meets a group's hull box until none does. A loop left out has a box apart from each
+    group's hull, so no face of the group's arrangement (inside that hull) lies inside it or around it: its
+    classification and the group's region do not depend on each other. Very crowded layers: all loops."""
+    n = lo.shape[0]
+    if n > 4000 or not seed.any():
+        return np.ones(n, dtype=bool)
+    meets = lambda a0, a1, b0, b1: np.all((a0 <= b1) & (b0 <= a1), axis=-1)  # noqa: E731  closed boxes
+    ii, jj = np.nonzero(meets(lo[:, None], hi[:, None], lo[None], hi[None]))
+    while True:
+        label = np.arange(n)  # components: the smallest index reached, by propagation along the pairs
+        while True:
+            new = label.copy()
+            np.minimum.at(new, ii, label[jj])
+            new = new[new]
+            if np.array_equal(new, label):
+                break
+            label = new
+        groups = np.unique(label[seed])
+        grown = False
+        for g in groups:
+            member = label == g
+            touch = meets(lo, hi, lo[member].min(axis=0), hi[member].max(axis=0)) & ~member
+            if touch.any():
+                k = int(np.flatnonzero(member)[0])
+                t = np.flatnonzero(touch)
+                ii, jj = np.concatenate([ii, t, np.full(t.size, k)]), np.concatenate([jj, np.full(t.size, k), t])
+                grown = True
+        if not grown:
+            return np.isin(label, groups)
 
-    The boundaries are noded (split at every crossing) and polygonized into faces; a face is filled when the
-    winding number of a point inside it passes the fill rule; the filled faces are unioned. Layers whose loops
-    turn out not to cross keep their fast result.
+
+def _resolve_overlaps(nested, points, offsets, layer, closed, layers, fill_rule, n_layers, seeds, new_index,
+                      loop_area, unfilled_loop):
+    """Exact regions of the loops that cross, from the arrangement of their boundaries.
+
+    In each layer, the loops that may share a face with a crossing one (``seeds``; :func:`_affected`) are noded
+    (split at every crossing) and polygonized into faces; a face is filled when the winding number of a point
+    inside it passes the fill rule; the filled faces are unioned. The layer's other loops (other parts of a plate,
+    apart from the crossing ones) keep their fast result, and so do layers whose loops turn out not to cross.
+    ``new_index``: each loop's place in ``nested`` (-1: dropped); ``loop_area``: signed areas;
+    ``unfilled_loop``: loops that bound nothing.
     """
     import shapely
 
     pc = _as_complex(points)
+    starts = offsets[:-1]
+    lo = np.stack([np.minimum.reduceat(points[:, k], starts) for k in (0, 1)], axis=1)
+    hi = np.stack([np.maximum.reduceat(points[:, k], starts) for k in (0, 1)], axis=1)
     new_loops: list[tuple[int, np.ndarray, bool, int]] = []  # (layer, points, is_hole, parent slot)
-    fixed = []
+    fixed, rebuilt = [], []
     for lay in layers:
         ids = np.flatnonzero((layer == lay) & closed)
         if ids.size == 0:  # one loop is enough when it crosses itself
             continue
+        ids = ids[_affected(lo[ids], hi[ids], np.isin(ids, seeds))]
         rings = [points[offsets[i] : offsets[i + 1]].astype(np.float64) for i in ids]
         closed_rings = [np.vstack([r, r[:1]]) for r in rings]
         which = np.repeat(np.arange(len(rings)), [len(r) for r in closed_rings])
@@ -324,10 +381,13 @@ def _resolve_overlaps(nested, points, offsets, layer, closed, layers, fill_rule,
         q = rx + 1j * ry
         pi = np.repeat(np.arange(faces.size), ids.size)
         pj = np.tile(ids, faces.size)
+        near = (lo[pj, 0] <= rx[pi]) & (rx[pi] <= hi[pj, 0]) & (lo[pj, 1] <= ry[pi]) & (ry[pi] <= hi[pj, 1])
+        pi, pj = pi[near], pj[near]  # a loop winds 0 times around a point outside its box
         w = np.bincount(pi, weights=_winding_numbers(pc, offsets, pi, pj, q), minlength=faces.size)
         kept = faces[_filled(np.rint(w).astype(np.int64), fill_rule)]
         region = shapely.union_all(kept) if kept.size else shapely.Polygon()
         fixed.append(lay)
+        rebuilt.append(ids)
         for poly in shapely.get_parts(shapely.normalize(region)):
             if poly.is_empty or poly.area == 0:
                 continue
@@ -340,8 +400,13 @@ def _resolve_overlaps(nested, points, offsets, layer, closed, layers, fill_rule,
     if not fixed:
         return nested
     fixed = np.array(fixed)
-    # the rebuilt layers' closed loops are replaced; their open chains stay (they come first in a layer, as before)
-    keep = ~np.isin(nested.loop_layer, fixed) | ~nested.loop_closed.astype(bool)
+    # the rebuilt loops are replaced; the rest of their layers (open chains, loops apart) stays, first in the layer
+    rebuilt = np.concatenate(rebuilt)
+    gone = new_index[rebuilt]
+    keep = np.ones(nested.loop_layer.size, dtype=bool)
+    keep[gone[gone >= 0]] = False
+    stay = np.ones(layer.size, dtype=bool)  # the loops (by their index here) that keep their fast result
+    stay[rebuilt] = False
     counts = np.diff(nested.loop_offsets)
     old_index = np.flatnonzero(keep)
     remap = np.full(keep.size, -1, dtype=np.int64)
@@ -370,11 +435,22 @@ def _resolve_overlaps(nested, points, offsets, layer, closed, layers, fill_rule,
     area = nested.area.copy()
     resolved = nested.overlaps_resolved.copy()
     unfilled = nested.unfilled_loops.copy()
+    # what stays of a rebuilt layer: its loops' areas as the fast path had them, and its loops that bound nothing
+    at = np.maximum(new_index, 0)
+    if nested.loop_layer.size:
+        was_closed, was_hole = nested.loop_closed[at].astype(bool), nested.loop_is_hole[at].astype(bool)
+    else:  # the fast path kept no loop at all
+        was_closed = was_hole = np.zeros(layer.size, dtype=bool)
+    still = stay & (new_index >= 0) & was_closed
+    sign = np.where(was_hole[still], -1.0, 1.0)
+    kept_area = np.bincount(layer[still], weights=sign * np.abs(loop_area[still]), minlength=n_layers)
+    kept_unfilled = np.bincount(layer[stay & unfilled_loop], minlength=n_layers)
     for lay in fixed:
         sel = [(p, h) for ly, p, h, _ in new_loops if ly == lay]
         area[lay] = sum(abs(signed_areas(p, np.array([0, len(p)]))[0]) * (-1 if h else 1) for p, h in sel)
+        area[lay] += kept_area[lay]
         resolved[lay] = 1
-        unfilled[lay] = 0
+        unfilled[lay] = kept_unfilled[lay]
     return Nested(
         points=np.ascontiguousarray(all_points[src], dtype=np.float32),
         loop_offsets=new_offsets,

@@ -189,8 +189,9 @@ def test_device_chaining_matches_host_with_planes_through_vertices(device):
 
 def test_self_crossing_prism_is_rebuilt_on_both_backends(device):
     """A prism over a bowtie (its side facets cross): the layers' loops cross themselves, the screen must leave
-    them to GEOS, and both backends rebuild those layers into the same two triangles (the middle layer's loop only
-    touches itself at the centre: bounding nothing, dropped by both)."""
+    them to GEOS, and both backends rebuild those layers into the same two triangles; so is the middle layer, whose
+    loop passes through the centre point itself (GEOS: ring self-intersection; its lobes wind opposite ways, net
+    area 0: it was dropped as bounding nothing before the rebuild took such loops too)."""
     bow = np.array([[0, 0], [10, 10], [10, 0], [0, 10]], float)
     v = np.vstack([np.c_[bow, np.zeros(4)], np.c_[bow, np.full(4, 5.0)]])
     f = [[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7]] + [
@@ -199,8 +200,8 @@ def test_self_crossing_prism_is_rebuilt_on_both_backends(device):
     mesh = mesh_from_arrays(v, f)
     a = slice_mesh(mesh, thickness=1.0, backend="opencl", device=device)
     b = slice_mesh(mesh, thickness=1.0, backend="numpy")
-    np.testing.assert_array_equal(a.repairs["overlaps_resolved"], [1, 1, 0, 1, 1])
-    np.testing.assert_allclose(a.area, [50, 50, 0, 50, 50], rtol=1e-6)  # two triangles of 25 mm^2
+    np.testing.assert_array_equal(a.repairs["overlaps_resolved"], [1, 1, 1, 1, 1])
+    np.testing.assert_allclose(a.area, [50, 50, 50, 50, 50], rtol=1e-6)  # two triangles of 25 mm^2 in every layer
     for name in ("points", "loop_offsets", "layer_offsets", "loop_is_hole", "loop_parent", "area"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
 
