@@ -31,7 +31,7 @@ import numpy as np
 from PIL import Image
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from compare_outputs import ROOT, Side, load_catalog  # noqa: E402
+from compare_outputs import ROOT, Side, load_catalog, png_chunks  # noqa: E402
 
 try:  # ISA-L inflates these mostly-blank layers ~3.5x faster than zlib
     from isal.isal_zlib import decompress as inflate
@@ -44,15 +44,8 @@ DISPLAYS = {"3840x2400": "0.05", "11520x5120": "0.019"}
 def png_pixels(data: bytes) -> tuple[bytes, bytes]:
     """(every chunk but IDAT, the inflated IDAT stream): equal pairs mean equal pixels, whatever the deflater chose
     (both revisions write filter type 0 rows, so equal pixels give equal streams)."""
-    i, head, idat = 8, [data[:8]], []
-    while i + 8 <= len(data):
-        n, kind = int.from_bytes(data[i : i + 4], "big"), data[i + 4 : i + 8]
-        if kind == b"IDAT":
-            idat.append(data[i + 8 : i + 8 + n])
-        else:
-            head.append(kind + data[i + 8 : i + 8 + n])
-        i += 12 + n
-    return b"".join(head), inflate(b"".join(idat))
+    head, idat = png_chunks(data)
+    return head, inflate(idat)
 
 
 def decode(path: Path) -> np.ndarray:

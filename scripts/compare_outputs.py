@@ -112,9 +112,8 @@ def first_diff(a: bytes, b: bytes) -> str:
     return f"{len(a)} vs {len(b)} bytes, first difference at byte {i}{line}"
 
 
-def png_pixels(data: bytes) -> bytes:
-    """Every chunk but IDAT, then the inflated IDAT stream: what a PNG shows, whatever the deflater chose (raw
-    bytes when it cannot be inflated)."""
+def png_chunks(data: bytes) -> tuple[bytes, bytes]:
+    """(the signature and every chunk but IDAT, the IDAT stream still deflated) of a PNG file."""
     i, head, idat = 8, [data[:8]], []
     while i + 8 <= len(data):
         n, kind = int.from_bytes(data[i : i + 4], "big"), data[i + 4 : i + 8]
@@ -123,8 +122,15 @@ def png_pixels(data: bytes) -> bytes:
         else:
             head.append(kind + data[i + 8 : i + 8 + n])
         i += 12 + n
+    return b"".join(head), b"".join(idat)
+
+
+def png_pixels(data: bytes) -> bytes:
+    """Every chunk but IDAT, then the inflated IDAT stream: what a PNG shows, whatever the deflater chose (raw
+    bytes when it cannot be inflated)."""
+    head, idat = png_chunks(data)
     try:
-        return b"".join(head) + zlib.decompress(b"".join(idat))
+        return head + zlib.decompress(idat)
     except zlib.error:
         return data
 

@@ -84,20 +84,26 @@ def _winding_numbers(pc, offsets, pairs_i, pairs_j, q) -> np.ndarray:
     return np.bincount(pair_of, weights=contrib, minlength=pairs_i.size).astype(np.int64)
 
 
-def _containment_pairs(points, pc, offsets, layer, closed, q):
-    """Pairs (i, j), i != j, both closed and in the same layer, where loop j contains loop i's query point."""
-    idx = np.flatnonzero(closed)
-    # no layer with two closed loops: no pair, and no shapely (the tree below keeps every loop otherwise: the order
-    # of its answers decides ties between equal-area parents, so it stays as it was)
-    if idx.size < 2 or np.bincount(layer[idx]).max() < 2:
-        empty = np.zeros(0, np.int64)
-        return empty, empty, empty, empty, (None, empty)
-    import shapely
-
-    # every loop has at least one point, so reduceat over the loop starts gives per-loop extremes
+def _loop_boxes(points: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) (R, 2) float64 corners of each loop's box (every loop has a point: reduceat over the starts)."""
     starts = offsets[:-1]
     lo = np.stack([np.minimum.reduceat(points[:, k], starts) for k in (0, 1)], axis=1).astype(np.float64)
     hi = np.stack([np.maximum.reduceat(points[:, k], starts) for k in (0, 1)], axis=1).astype(np.float64)
+    return lo, hi
+
+
+def _containment_pairs(points, pc, offsets, layer, closed, q):
+    """Pairs (i, j), i != j, both closed and in the same layer, where loop j contains loop i's query point; the
+    layers and loops whose boundaries may cross; the rings made for the tests; the loops' boxes (None when no layer
+    has two closed loops: then nothing is tested, and shapely is not imported)."""
+    idx = np.flatnonzero(closed)
+    # (the tree below keeps every loop: the order of its answers decides ties between equal-area parents)
+    if idx.size < 2 or np.bincount(layer[idx]).max() < 2:
+        empty = np.zeros(0, np.int64)
+        return empty, empty, empty, empty, (None, empty), None
+    import shapely
+
+    lo, hi = _loop_boxes(points, offsets)
     # separate the layers along y so one tree serves all of them
     span = float(np.max(hi[idx, 1]) - np.min(lo[idx, 1])) + 1.0
     shift = layer.astype(np.float64) * span * 2.0
@@ -135,7 +141,7 @@ def _containment_pairs(points, pc, offsets, layer, closed, q):
     if bi.size:  # exact test on the partial pairs and those: do their boundaries meet (a point on the other)?
         meet = shapely.intersects(rings[np.searchsorted(involved, bi)], rings[np.searchsorted(involved, bj)])
         bi, bj = bi[meet], bj[meet]
-    return pi[inside], pj[inside], np.unique(layer[bi]), np.union1d(bi, bj), (rings, involved)
+    return pi[inside], pj[inside], np.unique(layer[bi]), np.union1d(bi, bj), (rings, involved), (lo, hi)
 
 
 def nest_loops(loops: Loops, n_layers: int, fill_rule: str = "nonzero") -> Nested:
@@ -153,8 +159,8 @@ def nest_loops(loops: Loops, n_layers: int, fill_rule: str = "nonzero") -> Neste
     if n and points.size:
         first = offsets[:-1]
         q = (pc[first] + pc[np.where(counts >= 2, first + 1, first)]) / 2
-    ci, cj, crossing_layers, seeds, (rings, involved) = _containment_pairs(points, pc, offsets, layer,
-                                                                           closed & (s != 0), q)
+    ci, cj, crossing_layers, seeds, (rings, involved), boxes = _containment_pairs(points, pc, offsets, layer,
+                                                                                  closed & (s != 0), q)
     w_out = np.bincount(ci, weights=s[cj], minlength=n).astype(np.int64)
     depth = np.bincount(ci, minlength=n)
     if fill_rule == "nonzero":
@@ -236,8 +242,8 @@ def nest_loops(loops: Loops, n_layers: int, fill_rule: str = "nonzero") -> Neste
     if suspect.size:
         rings = closed & (s != 0)
         rings[crossing] = True
-        nested = _resolve_overlaps(nested, points, offsets, layer, rings, suspect, fill_rule, n_layers, seeds,
-                                   new_index, area, unfilled)
+        nested = _resolve_overlaps(nested, points, pc, offsets, layer, rings, suspect, fill_rule, n_layers, seeds,
+                                   new_index, area, unfilled, boxes or _loop_boxes(points, offsets))
     return nested
 
 
@@ -344,23 +350,20 @@ def _affected(lo: np.ndarray, hi: np.ndarray, seed: np.ndarray) -> np.ndarray:
             return np.isin(label, groups)
 
 
-def _resolve_overlaps(nested, points, offsets, layer, closed, layers, fill_rule, n_layers, seeds, new_index,
-                      loop_area, unfilled_loop):
+def _resolve_overlaps(nested, points, pc, offsets, layer, closed, layers, fill_rule, n_layers, seeds, new_index,
+                      loop_area, unfilled_loop, boxes):
     """Exact regions of the loops that cross, from the arrangement of their boundaries.
 
     In each layer, the loops that may share a face with a crossing one (``seeds``; :func:`_affected`) are noded
     (split at every crossing) and polygonized into faces; a face is filled when the winding number of a point
     inside it passes the fill rule; the filled faces are unioned. The layer's other loops (other parts of a plate,
     apart from the crossing ones) keep their fast result, and so do layers whose loops turn out not to cross.
-    ``new_index``: each loop's place in ``nested`` (-1: dropped); ``loop_area``: signed areas;
-    ``unfilled_loop``: loops that bound nothing.
+    ``pc``: the points as complex numbers; ``new_index``: each loop's place in ``nested`` (-1: dropped);
+    ``loop_area``: signed areas; ``unfilled_loop``: loops that bound nothing; ``boxes``: (lo, hi) of the loops.
     """
     import shapely
 
-    pc = _as_complex(points)
-    starts = offsets[:-1]
-    lo = np.stack([np.minimum.reduceat(points[:, k], starts) for k in (0, 1)], axis=1)
-    hi = np.stack([np.maximum.reduceat(points[:, k], starts) for k in (0, 1)], axis=1)
+    lo, hi = boxes
     new_loops: list[tuple[int, np.ndarray, bool, int]] = []  # (layer, points, is_hole, parent slot)
     fixed, rebuilt = [], []
     for lay in layers:

@@ -60,7 +60,7 @@ class ChainKernels(KernelDriver):
         self._gather = prg.gather_starts
         try:  # absent on devices without float64 (kernels/walk.cl builds it under cl_khr_fp64)
             self._simple = prg.simple_loops
-        except Exception:
+        except AttributeError:  # pyopencl's answer for a kernel name the program lacks
             self._simple = None
 
     def _run_walk(self, d_next, d_has_prev, d_perm, d_off, n: int, n_layers: int):
@@ -142,7 +142,6 @@ class ChainKernels(KernelDriver):
         if np.any(flag == 1):
             return None  # open chains: repaired on the host
         return canonical_chain_order(order, flag, layer_off)
-
 
     def gather_starts(self, dseg, order: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The start points of the device segments ``dseg`` in chain ``order``, gathered on the device: (S,)
