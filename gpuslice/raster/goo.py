@@ -51,11 +51,12 @@ import numpy as np
 from ..errors import ParameterError
 from ..io.atomic import atomic_path
 from .coverage import Tile
-from .layers import RunLayer, image_segments, pixel_runs
+from .layers import RunLayer, batch_image_segments, batch_pixel_runs, image_segments, pixel_runs, run_groups
 from .png import encode_all
 from .settings import layer_table, print_time_s, resin_ml
 
-__all__ = ["HEADER_SIZE", "LAYER_DEF", "MAGIC", "ENDING", "PREVIEWS", "MAX_RUN", "encode_runs", "header_bytes",
+__all__ = ["HEADER_SIZE", "LAYER_DEF", "MAGIC", "ENDING", "PREVIEWS", "MAX_RUN", "encode_runs", "encode_batch",
+           "encode_segments", "header_bytes",
            "layer_definitions", "rgb565", "write_goo", "write_target"]
 
 MAGIC = b"\x07\x00\x00\x00\x44\x4c\x50\x00"
@@ -90,10 +91,25 @@ def encode_runs(start: np.ndarray, length: np.ndarray, grey: np.ndarray, n_pixel
     of ``n_pixels`` pixels. The blank gaps between them (and before the first, after the last) become 0x00 chunks;
     touching runs of one grey (across a row end) are merged. Vectorised: a few numpy passes over the runs."""
     n, v = image_segments(start, length, grey, n_pixels)
+    return encode_segments(n, v, np.array([0, n.size], np.int64))[0]
+
+
+def encode_batch(runs, a: int, b: int, cols: int, n_pixels: int) -> list[bytes]:
+    """:func:`encode_runs` of entries ``a`` … ``b`` − 1 of a batch of runs (:class:`~gpuslice.raster.runs.Runs`,
+    ``cols`` columns, images of ``n_pixels``) in one set of numpy passes: the same bytes, layer by layer."""
+    start, length, grey, offsets = batch_pixel_runs(runs, a, b, cols)
+    return encode_segments(*batch_image_segments(start, length, grey, offsets, n_pixels))
+
+
+def encode_segments(n: np.ndarray, v: np.ndarray, seg_offsets: np.ndarray) -> list[bytes]:
+    """GOO image data of images whose segments (:func:`~gpuslice.raster.layers.image_segments`: lengths ``n`` >= 1,
+    greys ``v``) are ``seg_offsets[k]:seg_offsets[k + 1]`` for image k: one ``bytes`` per image."""
+    n_img = seg_offsets.size - 1
+    img = np.repeat(np.arange(n_img, dtype=np.int64), np.diff(seg_offsets))
     if n.size and int(n.max()) > MAX_RUN:  # only blank gaps get this long (a row holds at most 65,535 pixels)
         pieces = -(-n // MAX_RUN)
         last = np.cumsum(pieces) - 1
-        v = np.repeat(v, pieces)
+        v, img = np.repeat(v, pieces), np.repeat(img, pieces)
         split = np.full(int(last[-1]) + 1, MAX_RUN, np.int64)
         split[last] = n - (pieces - 1) * MAX_RUN
         n = split
@@ -101,19 +117,24 @@ def encode_runs(start: np.ndarray, length: np.ndarray, grey: np.ndarray, n_pixel
     size = (n > 0xF).astype(np.int64) + (n > 0xFFF) + (n > 0xFFFFF)  # extra length bytes
     is_grey = kind == 1
     width = 1 + is_grey + size
-    off = np.cumsum(width) - width
-    total = int(off[-1] + width[-1]) if n.size else 0
-    out = np.empty(total + 2, np.uint8)
-    body = out[1:-1]
-    body[off] = (kind << 6) | (size << 4) | (n & 0xF)
-    body[off[is_grey] + 1] = v[is_grey]
+    # image k: its 0x55, its chunks, its checksum
+    img_off = np.zeros(n_img + 1, np.int64)
+    np.cumsum(np.bincount(img, weights=width, minlength=n_img).astype(np.int64) + 2, out=img_off[1:])
+    off = np.cumsum(width) - width + 1 + 2 * img
+    out = np.empty(int(img_off[-1]), np.uint8)
+    out[off] = (kind << 6) | (size << 4) | (n & 0xF)
+    out[off[is_grey] + 1] = v[is_grey]
     at = off + 1 + is_grey
     for k in range(3):  # the length above its low 4 bits, most significant byte first
         sel = size > k
-        body[at[sel] + k] = (n[sel] >> (4 + 8 * (size[sel] - 1 - k))) & 0xFF
-    out[0] = LAYER_MAGIC
-    out[-1] = ~int(body.sum(dtype=np.uint64)) & 0xFF
-    return out.tobytes()
+        out[at[sel] + k] = (n[sel] >> (4 + 8 * (size[sel] - 1 - k))) & 0xFF
+    out[img_off[:-1]] = 0  # (image k's sum runs into image k + 1's first byte: 0 until the sums are taken)
+    out[img_off[1:] - 1] = 0
+    sums = np.add.reduceat(out, img_off[:-1] + 1, dtype=np.uint64) if n_img else np.zeros(0, np.uint64)
+    out[img_off[:-1]] = LAYER_MAGIC
+    out[img_off[1:] - 1] = ~sums.astype(np.uint8)
+    data = out.tobytes()
+    return [data[img_off[k] : img_off[k + 1]] for k in range(n_img)]
 
 
 def rgb565(rgb: np.ndarray) -> bytes:
@@ -242,6 +263,11 @@ def write_goo(layers: Iterable[Tile | RunLayer], target) -> dict[str, Any]:
     def encode(item: Tile | RunLayer) -> bytes:  # on a worker thread
         return encode_runs(*pixel_runs(item, cols), n_pixels)
 
+    def encode_group(group: list[Tile | RunLayer]) -> list[bytes]:  # on a worker thread
+        if isinstance(group[0], RunLayer):
+            return encode_batch(group[0].runs, group[0].j, group[-1].j + 1, cols, n_pixels)
+        return [encode(item) for item in group]
+
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.seek(HEADER_SIZE)  # the header (with the previews) goes in last
 
@@ -253,7 +279,8 @@ def write_goo(layers: Iterable[Tile | RunLayer], target) -> dict[str, Any]:
             f.write(data)
             f.write(DELIMITER)
 
-        stats = encode_all(layers, encode, sink, target.workers, on_tile=thumb.add, progress=target.progress)
+        stats = encode_all(layers, encode, sink, target.workers, on_tile=thumb.add, progress=target.progress,
+                           many=encode_group, chunk=run_groups)
         if stats["layers"] != n:
             raise ParameterError(f"{path}: expected {n} layers, got {stats['layers']}")
         f.write(ENDING)

@@ -6,7 +6,7 @@ so a writer never asks which it got.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,7 +16,8 @@ from .coverage import Tile
 from .png import PngEncoder
 from .runs import Runs
 
-__all__ = ["RunLayer", "HeightMap", "iter_run_layers", "encode_png", "sample", "pixel_runs", "image_segments"]
+__all__ = ["RunLayer", "HeightMap", "iter_run_layers", "encode_png", "sample", "pixel_runs", "image_segments",
+           "batch_pixel_runs", "batch_image_segments", "run_groups"]
 
 
 @dataclass(frozen=True)
@@ -28,14 +29,22 @@ class RunLayer:
     j: int
 
 
+#: batches of runs made ahead of the writer (:func:`gpuslice.prefetch.prefetch`: the kernel works while the
+#: previous batch is encoded)
+PREFETCH = 1
+
+
 def iter_run_layers(result, spec, *, device=None, bounds=None, layers: Sequence[int] | None = None,
                     z_samples: int = 1) -> Iterator[RunLayer]:
-    """Every selected layer's runs, in order, one batch of layers in flight (:func:`gpuslice.raster.runs.iter_runs`
-    on the OpenCL device; ``z_samples``: ``result`` holds that many sub-layers per layer, averaged)."""
+    """Every selected layer's runs, in order (:func:`gpuslice.raster.runs.iter_runs` on the OpenCL device, on a
+    thread of its own :data:`PREFETCH` batches ahead of the caller; ``z_samples``: ``result`` holds that many
+    sub-layers per layer, averaged)."""
+    from ..prefetch import prefetch
     from .runs import iter_runs
 
-    for runs in iter_runs(result, spec, backend="opencl", device=device, bounds=bounds, layers=layers,
-                          z_samples=z_samples):
+    batches = iter_runs(result, spec, backend="opencl", device=device, bounds=bounds, layers=layers,
+                        z_samples=z_samples)
+    for runs in prefetch(batches, PREFETCH):
         for j in range(len(runs.layers)):
             yield RunLayer(int(runs.layers[j]), runs, j)
 
@@ -224,3 +233,76 @@ def image_segments(start: np.ndarray, length: np.ndarray, value: np.ndarray,
     v[1::2] = value
     keep = n > 0
     return n[keep], v[keep]
+
+
+def run_groups(items: Iterable[Tile | RunLayer], size: int = 16) -> Iterator[list[Tile | RunLayer]]:
+    """``items`` in lists of up to ``size`` consecutive :class:`RunLayer` entries of one batch of runs (what
+    :func:`batch_pixel_runs` takes at once); a :class:`~gpuslice.raster.coverage.Tile` is a list of its own."""
+    group: list = []
+    for item in items:
+        if group and (not isinstance(item, RunLayer) or len(group) == size or item.runs is not group[-1].runs
+                      or item.j != group[-1].j + 1):
+            yield group
+            group = []
+        if not isinstance(item, RunLayer):
+            yield [item]
+            continue
+        group.append(item)
+    if group:
+        yield group
+
+
+def batch_pixel_runs(runs: Runs, a: int, b: int, cols: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`pixel_runs` of entries ``a`` … ``b`` − 1 of the batch ``runs`` at once: ``(start, length, grey,
+    offsets)``, the entries' runs one after the other, entry ``a + k`` owning ``offsets[k]:offsets[k + 1]``."""
+    lo, hi = int(runs.layer_offsets[a]), int(runs.layer_offsets[b])
+    start = runs.row[lo:hi].astype(np.int64) * cols + runs.x[lo:hi]
+    return start, runs.length[lo:hi].astype(np.int64), runs.grey[lo:hi], runs.layer_offsets[a : b + 1] - lo
+
+
+def batch_image_segments(start: np.ndarray, length: np.ndarray, value: np.ndarray, offsets: np.ndarray,
+                         n_pixels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`image_segments` of several images at once (one numpy pass over all their runs instead of one per
+    image): image k has the runs ``offsets[k]:offsets[k + 1]`` of ``start``, ``length``, ``value``. Returns ``(n, v,
+    seg_offsets)``: image k's segments are ``seg_offsets[k]:seg_offsets[k + 1]`` of ``n`` and ``v``, exactly what
+    :func:`image_segments` gives for it alone."""
+    start = np.asarray(start, np.int64)
+    length = np.asarray(length, np.int64)
+    value = np.asarray(value, np.uint8)
+    offsets = np.asarray(offsets, np.int64)
+    n_img = offsets.size - 1
+    m = start.size
+    image = np.repeat(np.arange(n_img, dtype=np.int64), np.diff(offsets))
+    first = np.zeros(m, bool)
+    first[offsets[:-1][offsets[:-1] < offsets[1:]]] = True  # each image's first run
+    end = start + length
+    if m:
+        join = ~first[1:] & (start[1:] == end[:-1]) & (value[1:] == value[:-1])
+        if join.any():  # touching runs of one value in one image: one run
+            head = np.flatnonzero(np.concatenate(([True], ~join)))
+            last = np.append(head[1:] - 1, m - 1)
+            start, value, image, first = start[head], value[head], image[head], first[head]
+            end = end[last]
+            length = end - start
+            m = start.size
+    counts = np.bincount(image, minlength=n_img) if m else np.zeros(n_img, np.int64)
+    prev_end = np.empty(m, np.int64)
+    prev_end[1:] = end[:-1]
+    prev_end[first] = 0
+    gaps = start - prev_end
+    tail = np.full(n_img, n_pixels, np.int64)
+    has = counts > 0
+    tail[has] -= end[np.cumsum(counts)[has] - 1]
+    # per image: gap 0, run 0, gap 1, run 1, ..., its tail gap
+    base = np.zeros(n_img + 1, np.int64)
+    np.cumsum(2 * counts + 1, out=base[1:])
+    pos = 2 * np.arange(m, dtype=np.int64) + image  # run k of the whole batch sits after its own gap
+    n = np.empty(int(base[-1]), np.int64)
+    v = np.zeros(n.size, np.uint8)
+    n[pos], n[pos + 1], n[base[1:] - 1] = gaps, length, tail
+    v[pos + 1] = value
+    keep = n > 0
+    seg_image = np.repeat(np.arange(n_img, dtype=np.int64), 2 * counts + 1)[keep]
+    seg_offsets = np.zeros(n_img + 1, np.int64)
+    np.cumsum(np.bincount(seg_image, minlength=n_img), out=seg_offsets[1:])
+    return n[keep], v[keep], seg_offsets

@@ -146,29 +146,40 @@ def encode_all(
     workers: int | None,
     on_tile: Callable[[Tile], None] | None = None,
     progress: Callable[[int], None] | None = None,
+    many: Callable[[list], list] | None = None,
+    chunk: Callable[[Iterable], Iterable[list]] | None = None,
 ) -> dict[str, float]:
     """Encode ``tiles`` on a thread pool (``encoder.encode`` or ``encoder(tile)``: the PNG, or (PNG, more)) and hand
-    ``(k, encoded)`` to ``sink`` in order; returns the layer count and PNG bytes."""
+    ``(k, encoded)`` to ``sink`` in order; returns the layer count and PNG bytes.
+
+    ``many`` and ``chunk``: the tiles grouped by ``chunk`` (lists of consecutive tiles) and each group encoded by one
+    call ``many(group)`` (one result per tile, in order: fewer, larger numpy passes); ``on_tile``, ``sink`` and
+    ``progress`` still see one tile at a time."""
     workers = workers or os.cpu_count() or 1
     encode = getattr(encoder, "encode", encoder)
+    if many is None or chunk is None:
+        many, groups = (lambda group: [encode(group[0])]), ([t] for t in tiles)
+    else:
+        groups = chunk(tiles)
     n_bytes = 0
     count = 0
 
     def drain_one() -> None:
         nonlocal n_bytes, count
-        data = pending.popleft().result()
-        sink(count, data)
-        n_bytes += len(data if isinstance(data, bytes) else data[0])
-        count += 1
-        if progress:
-            progress(count)
+        for data in pending.popleft().result():
+            sink(count, data)
+            n_bytes += len(data if isinstance(data, bytes) else data[0])
+            count += 1
+            if progress:
+                progress(count)
 
     with ThreadPoolExecutor(max_workers=workers) as pool:
         pending: deque = deque()
-        for tile in tiles:
+        for group in groups:
             if on_tile is not None:
-                on_tile(tile)
-            pending.append(pool.submit(encode, tile))
+                for tile in group:
+                    on_tile(tile)
+            pending.append(pool.submit(many, group))
             while len(pending) > 4 * workers or (pending and pending[0].done()):
                 drain_one()
         while pending:

@@ -448,7 +448,7 @@ def iter_runs(
     device=None,
     bounds=None,
     layers: Sequence[int] | None = None,
-    max_batch_pieces: int = 1 << 22,
+    max_batch_pieces: int = 1 << 20,
     edges: LayerEdges | None = None,
     z_samples: int = 1,
 ) -> Iterator[Runs]:

@@ -18,8 +18,8 @@ from gpuslice.cli import main
 from gpuslice.errors import ParameterError
 from gpuslice.mesh import load_mesh, shapes
 from gpuslice.raster import PrintSettings, RasterSpec, ResinOptions, iter_tiles, masks, with_printer
-from gpuslice.raster.goo import HEADER_SIZE, MAX_RUN, encode_runs, write_goo
-from gpuslice.raster.layers import iter_run_layers
+from gpuslice.raster.goo import HEADER_SIZE, MAX_RUN, encode_runs, encode_segments, write_goo
+from gpuslice.raster.layers import batch_image_segments, image_segments, iter_run_layers
 from gpuslice.raster.outputs import ResinTarget
 from gpuslice.raster.settings import layer_table, print_time_s, resin_ml
 
@@ -81,6 +81,38 @@ def test_random_images_round_trip():
         assert np.array_equal(np.repeat(grey, length).reshape(h, w), img)
     blank = encode_runs(*_image_runs(np.zeros((4, 4), np.uint8)), 16)
     assert blank == bytes([0x55, 0x10, 0x01, _checksum(b"\x10\x01")])
+
+
+def test_images_encoded_together_equal_one_by_one():
+    """Several layers encoded in one set of numpy passes (the writer's groups) give each layer's own bytes: blank
+    layers, layers full to both ends (a run ending an image never joins the next image's first run), touching runs
+    of one grey across a row end (joined), and blank gaps longer than one chunk holds."""
+    rng = np.random.default_rng(7)
+    h, w = 9, 23
+    imgs = []
+    for k in range(12):
+        img = rng.choice(np.array([0, 0, 255, 255, 3, 128], np.uint8), size=(h, w))
+        img[rng.random((h, w)) < 0.4 * (k % 3)] = 0
+        imgs.append(img)
+    imgs[2][:] = 0
+    imgs[5][:] = 255
+    imgs[6][:] = 255
+    imgs[7][0, 0] = imgs[7][-1, -1] = 255
+    runs = [_image_runs(img) for img in imgs]
+    offsets = np.concatenate(([0], np.cumsum([r[0].size for r in runs])))
+    start, length, grey = (np.concatenate([r[i] for r in runs]) for i in range(3))
+    n, v, seg = batch_image_segments(start, length, grey, offsets, h * w)
+    for k, r in enumerate(runs):
+        n1, v1 = image_segments(*r, h * w)
+        assert np.array_equal(n[seg[k] : seg[k + 1]], n1) and np.array_equal(v[seg[k] : seg[k + 1]], v1)
+    assert encode_segments(n, v, seg) == [encode_runs(*r, h * w) for r in runs]
+    big = 2 * MAX_RUN + 40  # blank gaps split into chunks, in every image of the group
+    long_runs = [(np.array([5]), np.array([3]), np.array([255], np.uint8)), (np.zeros(0, np.int64),) * 2
+                 + (np.zeros(0, np.uint8),), (np.array([MAX_RUN + 9]), np.array([1]), np.array([17], np.uint8))]
+    offsets = np.concatenate(([0], np.cumsum([r[0].size for r in long_runs])))
+    start, length, grey = (np.concatenate([r[i] for r in long_runs]) for i in range(3))
+    assert encode_segments(*batch_image_segments(start, length, grey, offsets, big)) == [
+        encode_runs(*r, big) for r in long_runs]
 
 
 def test_run_lengths_at_every_width_and_long_gaps():

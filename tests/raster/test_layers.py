@@ -10,7 +10,7 @@ from gpuslice import mesh_from_triangles, slice_mesh
 from gpuslice.mesh import shapes
 from gpuslice.raster import RasterSpec, masks
 from gpuslice.raster.coverage import Tile
-from gpuslice.raster.layers import HeightMap, RunLayer
+from gpuslice.raster.layers import HeightMap, RunLayer, run_groups
 from gpuslice.raster.runs import iter_runs
 
 
@@ -84,3 +84,16 @@ def test_height_map_uses_the_items_index_not_the_batchs_numbering(device, hollow
         cov = m[::4, ::4] >= 128
         ref[cov] = np.maximum(ref[cov], np.uint8(1 + (254 * (i + shift)) // (n_total - 1)))
     assert np.array_equal(hm.img, ref)
+
+
+def test_run_groups_keep_consecutive_entries_of_one_batch():
+    """The writers' groups: consecutive entries of one batch of runs, at most ``size`` of them; a new batch, a
+    skipped entry or a tile starts a new group (a tile is a group of its own); nothing lost or reordered."""
+    a, b = object(), object()
+    tile = Tile(7, 0, 0, np.zeros((1, 1), np.uint8))
+    items = [RunLayer(k, a, k) for k in range(5)] + [RunLayer(5, b, 0), RunLayer(6, b, 1), RunLayer(9, b, 4), tile,
+                                                       RunLayer(10, b, 5)]
+    groups = list(run_groups(items, size=3))
+    assert [x for g in groups for x in g] == items
+    assert [[x.index if isinstance(x, RunLayer) else "t" for x in g] for g in groups] == [
+        [0, 1, 2], [3, 4], [5, 6], [9], ["t"], [10]]
