@@ -68,14 +68,14 @@ import numpy as np
 from ..errors import ParameterError
 from ..io.atomic import atomic_path
 from .coverage import Tile
-from .layers import RunLayer, pixel_runs
+from .layers import RunLayer, batch_image_segments, batch_pixel_runs, pixel_runs, run_groups
 from .png import encode_all
 from .settings import PrintSettings, layer_table, print_time_s, resin_ml
 from .sl1 import _Thumb
 from .spec import RasterSpec
 
 __all__ = ["DEFAULT_VERSION", "MAGIC_CTB", "MAGIC_CTB_V4", "PREVIEW_SIZES", "VERSIONS", "CtbInfo", "ctb_version",
-           "quantise", "rgb15_rle", "rle7", "write_ctb", "write_target"]
+           "quantise", "rgb15_rle", "rle7", "rle7_batch", "write_ctb", "write_target"]
 
 MAGIC_CTB = 0x12FD0086  #: v2 and v3
 MAGIC_CTB_V4 = 0x12FD0106  #: v4
@@ -136,22 +136,32 @@ def rle7(start: np.ndarray, length: np.ndarray, grey: np.ndarray, n_pixels: int)
     (uint8, never 0), sorted, not overlapping (:func:`gpuslice.raster.layers.pixel_runs`); ``n_pixels`` the image's
     pixel count. Blank gaps are coded as runs of 0; neighbours equal after quantisation are merged."""
     start = np.asarray(start, np.int64)
+    return rle7_batch(start, length, grey, np.array([0, start.size], np.int64), n_pixels)[0]
+
+
+def rle7_batch(start: np.ndarray, length: np.ndarray, grey: np.ndarray, offsets: np.ndarray,
+               n_pixels: int) -> list[bytes]:
+    """:func:`rle7` of several layers in one set of numpy passes: layer k has the runs ``offsets[k]:offsets[k + 1]``
+    (:func:`gpuslice.raster.layers.batch_pixel_runs`); one ``bytes`` per layer, the same as :func:`rle7`'s."""
+    start = np.asarray(start, np.int64)
     length = np.asarray(length, np.int64)
-    m = start.size
+    offsets = np.asarray(offsets, np.int64)
+    n_img = offsets.size - 1
     end = start + length
-    values = np.zeros(2 * m + 1, np.uint8)  # gap, run, gap, run, ..., trailing gap
-    values[1::2] = np.asarray(grey, np.uint8) >> 1
-    lengths = np.empty(2 * m + 1, np.int64)
-    lengths[0 : 2 * m : 2] = start - np.concatenate(([0], end[:-1]))
-    lengths[1::2] = length
-    lengths[-1] = n_pixels - (int(end[-1]) if m else 0)
-    if m and (lengths.min() < 0 or lengths[-1] < 0):
+    inner = np.ones(start.size, bool)  # a run that has a predecessor in its own layer
+    inner[offsets[:-1][offsets[:-1] < offsets[1:]]] = False
+    last = offsets[1:][offsets[1:] > offsets[:-1]] - 1
+    if start.size and (np.any(start[1:][inner[1:]] < end[:-1][inner[1:]]) or start.min() < 0
+                       or np.any(end[last] > n_pixels)):
         raise ParameterError("CTB layer runs overlap or leave the display")
-    keep = lengths > 0
-    values, lengths = values[keep], lengths[keep]
-    first = np.flatnonzero(np.concatenate(([True], values[1:] != values[:-1])))
-    values, lengths = values[first], np.add.reduceat(lengths, first)
-    values, lengths = _split_long(values, lengths, MAX_RUN)
+    n, v, seg = batch_image_segments(start, length, np.asarray(grey, np.uint8) >> 1, offsets, n_pixels)
+    img = np.repeat(np.arange(n_img, dtype=np.int64), np.diff(seg))
+    first = np.flatnonzero(np.concatenate(([True], (v[1:] != v[:-1]) | (img[1:] != img[:-1]))))
+    values, lengths, img = v[first], np.add.reduceat(n, first) if n.size else n, img[first]
+    pieces = -(-lengths // MAX_RUN)
+    if pieces.size and int(pieces.max()) > 1:  # runs longer than a record holds: pieces of MAX_RUN and the rest
+        img = np.repeat(img, pieces)
+        values, lengths = _split_long(values, lengths, MAX_RUN)
     size = np.where(lengths == 1, 1, np.where(lengths <= 0x7F, 2, np.where(lengths <= 0x3FFF, 3, np.where(
         lengths <= 0x1FFFFF, 4, 5))))
     at = np.cumsum(size) - size
@@ -166,7 +176,10 @@ def rle7(start: np.ndarray, length: np.ndarray, grey: np.ndarray, n_pixels: int)
         for i in range(k):
             byte = (n >> (8 * (k - 1 - i))) & 0xFF
             out[a + 1 + i] = (byte | lead) if i == 0 else byte
-    return out.tobytes()
+    img_off = np.zeros(n_img + 1, np.int64)
+    np.cumsum(np.bincount(img, weights=size, minlength=n_img).astype(np.int64), out=img_off[1:])
+    data = out.tobytes()
+    return [data[img_off[k] : img_off[k + 1]] for k in range(n_img)]
 
 
 def rgb15_rle(rgb: np.ndarray) -> bytes:
@@ -278,6 +291,11 @@ def write_ctb(
         def encode(item: Tile | RunLayer) -> bytes:  # on a worker thread
             return rle7(*pixel_runs(item, cols), n_pixels)
 
+        def encode_group(group: list[Tile | RunLayer]) -> list[bytes]:  # on a worker thread
+            if isinstance(group[0], RunLayer):
+                return rle7_batch(*batch_pixel_runs(group[0].runs, group[0].j, group[-1].j + 1, cols), n_pixels)
+            return [encode(item) for item in group]
+
         def sink(k: int, data: bytes) -> None:
             nonlocal pos
             if k >= n:
@@ -293,7 +311,8 @@ def write_ctb(
             pos = start + len(data)
             entries[k] = np.frombuffer(LAYER_DEF.pack(*entry), "<u4")
 
-        stats = encode_all(layers, encode, sink, workers, on_tile=thumb.add, progress=progress)
+        stats = encode_all(layers, encode, sink, workers, on_tile=thumb.add, progress=progress, many=encode_group,
+                           chunk=run_groups)
         if stats["layers"] != n:
             raise ParameterError(f"{p}: expected {n} layers, got {stats['layers']}")
         file_size = pos

@@ -64,11 +64,11 @@ import numpy as np
 from ..errors import ParameterError
 from ..io.atomic import atomic_path
 from .coverage import Tile
-from .layers import HeightMap, RunLayer, image_segments, pixel_runs
+from .layers import HeightMap, RunLayer, batch_image_segments, batch_pixel_runs, pixel_runs, run_groups
 from .png import encode_all
 from .settings import layer_table, print_time_s, resin_ml
 
-__all__ = ["MACHINES", "VERSIONS", "Machine", "encode_pw0", "quantise", "write_photon", "write_target"]
+__all__ = ["MACHINES", "VERSIONS", "Machine", "encode_pw0", "encode_pw0_batch", "quantise", "write_photon", "write_target"]
 
 VERSIONS = (1, 515, 516, 517, 518)
 
@@ -140,11 +140,27 @@ def encode_pw0(start: np.ndarray, length: np.ndarray, grey: np.ndarray, n_pixels
     overlapping) over an image of ``n_pixels``: (bytes, lit pixels after quantisation, whether any grey lies strictly
     between 0 and 255 after it). Vectorised: a few numpy passes over the runs and their records."""
     start = np.asarray(start, np.int64)
+    data, lit, mid, _ = encode_pw0_batch(start, length, grey, np.array([0, start.size], np.int64), n_pixels)
+    return data[0], int(lit[0]), bool(mid[0])
+
+
+def encode_pw0_batch(start: np.ndarray, length: np.ndarray, grey: np.ndarray, offsets: np.ndarray, n_pixels: int,
+                     cols: int = 1) -> tuple[list[bytes], np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`encode_pw0` of several layers in one set of numpy passes (layer k: the runs ``offsets[k]:offsets[k +
+    1]``): each layer's bytes, and per layer its lit pixels (int64), whether it has a middle grey (bool), and the
+    box of its lit pixels on an image of ``cols`` columns, (row0, col0, row1, col1) int64 rows (-1 where unlit)."""
+    start = np.asarray(start, np.int64)
     length = np.asarray(length, np.int64)
+    offsets = np.asarray(offsets, np.int64)
+    n_img = offsets.size - 1
     code = np.asarray(grey, np.uint8) >> 4
     keep = code > 0
+    run_img = np.repeat(np.arange(n_img, dtype=np.int64), np.diff(offsets))[keep]
     start, length, code = start[keep], length[keep], code[keep]
-    n, c = image_segments(start, length, code, n_pixels)
+    lit_off = np.zeros(n_img + 1, np.int64)
+    np.cumsum(np.bincount(run_img, minlength=n_img), out=lit_off[1:])
+    n, c, seg_off = batch_image_segments(start, length, code, lit_off, n_pixels)
+    img = np.repeat(np.arange(n_img, dtype=np.int64), np.diff(seg_off))
     two = (c == 0) | (c == 15)
     cap = np.where(two, 0xFFF, 0xF)
     pieces = -(-n // cap)  # records a segment needs
@@ -157,7 +173,20 @@ def encode_pw0(start: np.ndarray, length: np.ndarray, grey: np.ndarray, n_pixels
     out = np.empty(int(width.sum()), np.uint8)
     out[off] = (rc << 4) | np.where(r2, rec >> 8, rec)
     out[off[r2] + 1] = rec[r2] & 0xFF
-    return out.tobytes(), int(length.sum()), bool(np.any(~two[c > 0])) if c.size else False
+    img_off = np.zeros(n_img + 1, np.int64)
+    np.cumsum(np.bincount(img[seg], weights=width, minlength=n_img).astype(np.int64), out=img_off[1:])
+    data = out.tobytes()
+    lit = np.bincount(run_img, weights=length, minlength=n_img).astype(np.int64)
+    mid = np.bincount(img[(c > 0) & ~two], minlength=n_img) > 0
+    box = np.full((n_img, 4), -1, np.int64)
+    has = np.flatnonzero(lit_off[1:] > lit_off[:-1])
+    if has.size:  # runs never cross a row end
+        first, last = lit_off[:-1][has], lit_off[1:][has] - 1
+        end = start + length - 1
+        box[has, 0], box[has, 2] = start[first] // cols, end[last] // cols
+        box[has, 1] = np.minimum.reduceat(start % cols, first)
+        box[has, 3] = np.maximum.reduceat(end % cols, first)
+    return [data[img_off[i] : img_off[i + 1]] for i in range(n_img)], lit, mid, box
 
 
 def _pitch(spec) -> tuple[float, float]:
@@ -361,6 +390,14 @@ def write_photon(layers: Iterable[Tile | RunLayer], target, *, machine: Machine,
         s, e = start[lit_runs], start[lit_runs] + length[lit_runs] - 1  # runs never cross a row end
         return data, lit, mid, (int(s[0] // cols), int((s % cols).min()), int(e[-1] // cols), int((e % cols).max()))
 
+    def encode_group(group: list[Tile | RunLayer]) -> list:  # on a worker thread
+        if not isinstance(group[0], RunLayer):
+            return [encode(item) for item in group]
+        start, length, grey, offsets = batch_pixel_runs(group[0].runs, group[0].j, group[-1].j + 1, cols)
+        data, lit, mid, box = encode_pw0_batch(start, length, grey, offsets, n_pixels, cols)
+        return [(d, int(n), bool(m), None if b[0] < 0 else tuple(int(v) for v in b))
+                for d, n, m, b in zip(data, lit, mid, box, strict=True)]
+
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.seek(images)
 
@@ -377,7 +414,8 @@ def write_photon(layers: Iterable[Tile | RunLayer], target, *, machine: Machine,
                 box[:2] = min(box[0], b[0]), min(box[1], b[1])
                 box[2:] = max(box[2], b[2]), max(box[3], b[3])
 
-        stats = encode_all(layers, encode, sink, target.workers, on_tile=view.add, progress=target.progress)
+        stats = encode_all(layers, encode, sink, target.workers, on_tile=view.add, progress=target.progress,
+                           many=encode_group, chunk=run_groups)
         if stats["layers"] != n:
             raise ParameterError(f"{path}: expected {n} layers, got {stats['layers']}")
         size = f.tell()

@@ -19,7 +19,7 @@ from gpuslice.cli import main
 from gpuslice.errors import ParameterError
 from gpuslice.mesh import load_mesh, shapes
 from gpuslice.raster import PrintSettings, RasterSpec, ResinOptions, iter_tiles, masks, with_printer
-from gpuslice.raster.ctb import MAX_RUN, rgb15_rle, rle7, write_target
+from gpuslice.raster.ctb import MAX_RUN, rgb15_rle, rle7, rle7_batch, write_target
 from gpuslice.raster.layers import iter_run_layers
 from gpuslice.raster.outputs import ResinTarget
 from gpuslice.raster.settings import layer_table, print_time_s, resin_ml
@@ -73,6 +73,32 @@ def test_rle7_every_length_class_and_merging():
         assert np.array_equal(a, b)
     big = 2 * MAX_RUN + 7  # an empty layer of a display larger than one run holds
     assert decode_rle7(rle7([], [], [], big), big)[1].tolist() == [MAX_RUN, MAX_RUN, 7]
+
+
+def test_rle7_of_layers_together_equals_one_by_one():
+    """The writer's groups of layers (one set of numpy passes) give each layer's own bytes: blank layers, full ones
+    (a last run never merges with the next layer's first), grey 1 (blank once quantised) at both ends, a blank longer
+    than one record; overlapping runs are refused as one by one."""
+    rng = np.random.default_rng(3)
+    n_pixels = 120
+    layers = []
+    for k in range(10):
+        cut = np.sort(rng.choice(np.arange(1, n_pixels), size=2 * (k + 1), replace=False))
+        start, end = cut[0::2], cut[1::2]
+        layers.append((start, end - start, rng.choice(np.array([1, 2, 3, 200, 254, 255], np.uint8), start.size)))
+    layers[3] = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.uint8))
+    layers[4] = layers[5] = (np.array([0]), np.array([n_pixels]), np.array([255], np.uint8))
+    layers[6] = (np.array([0, n_pixels - 1]), np.array([1, 1]), np.array([1, 1], np.uint8))
+    offsets = np.concatenate(([0], np.cumsum([x[0].size for x in layers])))
+    start, length, grey = (np.concatenate([x[i] for x in layers]) for i in range(3))
+    assert rle7_batch(start, length, grey, offsets, n_pixels) == [rle7(*x, n_pixels) for x in layers]
+    big = 2 * MAX_RUN + 7
+    assert rle7_batch(np.array([5]), np.array([2]), np.array([9], np.uint8), np.array([0, 0, 1]), big) == [
+        rle7([], [], [], big), rle7([5], [2], [9], big)]
+    with pytest.raises(ParameterError, match="overlap"):
+        rle7_batch(np.array([0, 3, 4]), np.array([2, 5, 1]), np.full(3, 255, np.uint8), np.array([0, 1, 3]), 20)
+    with pytest.raises(ParameterError, match="overlap"):
+        rle7([0, 3], [5, 1], [255, 255], 20)
 
 
 def test_rgb15_examples_from_the_format_description():

@@ -19,7 +19,7 @@ from gpuslice.mesh import shapes
 from gpuslice.raster import PrintSettings, RasterSpec, ResinOptions, Tile, iter_tiles, masks
 from gpuslice.raster.layers import iter_run_layers, pixel_runs
 from gpuslice.raster.outputs import RESIN_FORMATS, ResinTarget, resin_format_for
-from gpuslice.raster.photon import MACHINES, encode_pw0, write_target
+from gpuslice.raster.photon import MACHINES, encode_pw0, encode_pw0_batch, write_target
 from gpuslice.raster.settings import layer_table, print_time_s, resin_ml
 
 SPEC = RasterSpec(resolution=(1200, 900), pixel=0.05)  # 60 x 45 mm: the torus (40 mm) fits
@@ -80,6 +80,33 @@ def test_pw0_records_and_limits():
     assert data == bytes([0x00, 10])
     with pytest.raises(ValueError, match="covers"):
         decode_pw0(np.frombuffer(bytes([0x00, 9]), np.uint8), 10)
+
+
+def test_pw0_layers_together_equal_one_by_one():
+    """The writer's groups (one set of numpy passes) give each layer's bytes, lit count and middle-grey flag, and the
+    box of its lit pixels: blank layers, greys blank once quantised, full layers touching the next one."""
+    rng = np.random.default_rng(11)
+    cols, rows = 37, 5
+    n_pixels = cols * rows
+    layers = []
+    for k in range(9):  # runs as the rasteriser gives them: never across a row end
+        img = rng.choice(np.array([0, 3, 16, 128, 240, 255], np.uint8), size=(rows, cols))
+        img[rng.random((rows, cols)) < 0.1 * k] = 0
+        layers.append(pixel_runs(Tile(k, 0, 0, img), cols))
+    layers[2] = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.uint8))
+    layers[3] = (np.array([4, 9]), np.array([2, 3]), np.array([7, 15], np.uint8))  # lit by nothing once quantised
+    layers[4] = layers[5] = (np.array([0]), np.array([n_pixels]), np.array([255], np.uint8))
+    offsets = np.concatenate(([0], np.cumsum([x[0].size for x in layers])))
+    start, length, grey = (np.concatenate([x[i] for x in layers]) for i in range(3))
+    data, lit, mid, box = encode_pw0_batch(start, length, grey, offsets, n_pixels, cols)
+    for k, x in enumerate(layers):
+        assert (data[k], int(lit[k]), bool(mid[k])) == encode_pw0(*x, n_pixels)
+        img = np.zeros(n_pixels, np.uint8)
+        for s0, n0, g0 in zip(*x, strict=True):
+            img[s0 : s0 + n0] = g0 >> 4
+        r, c = np.nonzero(img.reshape(rows, cols))
+        want = (r.min(), c.min(), r.max(), c.max()) if r.size else (-1, -1, -1, -1)
+        assert tuple(box[k]) == want
 
 
 # ---- the tables ----------------------------------------------------------------------------------------------------
