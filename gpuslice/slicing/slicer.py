@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from ..mesh.mesh import Mesh
+from ..prefetch import prefetch
 from ..schedule.adaptive import AdaptiveSchedule
 from ..schedule.uniform import Schedule, from_z, uniform
 from .chain import REPAIR_KINDS, chain_segments
@@ -137,23 +138,32 @@ def slice_mesh(
     parts = []
     n_segments = 0
     batches = _batches(mesh, zs, params.max_segments_per_batch) if n_layers else []
-    for a, b in batches:
-        t = time.perf_counter()
-        if device is not None:
-            seg = compute_crossings(mesh, zs[a:b], device, read_back=False)
-            device.queue.finish()  # so the kernels' time counts here, not in the next stage
-        else:
-            seg = compute_crossings(mesh, zs[a:b])
-        timings["crossings"] += time.perf_counter() - t
-        n_segments += len(seg)
-        t = time.perf_counter()
-        loops = chain_segments(seg, mesh, zs[a:b], b - a, max_gap=params.max_gap, device=device)
-        del seg
-        timings["chaining"] += time.perf_counter() - t
+
+    def chained():  # crossings and chaining of each batch (on the prefetch thread when there are several)
+        for a, b in batches:
+            t = time.perf_counter()
+            if device is not None:
+                seg = compute_crossings(mesh, zs[a:b], device, read_back=False)
+                device.queue.finish()  # so the kernels' time counts here, not in the next stage
+            else:
+                seg = compute_crossings(mesh, zs[a:b])
+            timings["crossings"] += time.perf_counter() - t
+            count = len(seg)
+            t = time.perf_counter()
+            loops = chain_segments(seg, mesh, zs[a:b], b - a, max_gap=params.max_gap, device=device)
+            del seg
+            timings["chaining"] += time.perf_counter() - t
+            yield a, b, loops, count
+
+    # several batches: batch k + 1 is cut and chained (device kernels, GEOS and numpy, which release the GIL) while
+    # batch k is nested; the stages' times then overlap and add up to more than the wall time
+    for a, b, loops, count in prefetch(chained(), 1 if len(batches) > 1 else 0):
+        n_segments += count
         t = time.perf_counter()
         nested = nest_loops(loops, b - a, params.fill_rule)
         timings["nesting"] += time.perf_counter() - t
         parts.append((a, nested, loops.repairs))
+        del loops
     result = _assemble(parts, sched, n_layers)
     if getattr(sched, "info", None):
         result.meta["adaptive"] = sched.info
