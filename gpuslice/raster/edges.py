@@ -64,9 +64,11 @@ def check_fits(result: SliceResult, spec: RasterSpec, bounds=None, name: str = "
         check_points_fit(result.points, spec, bounds if bounds is not None else result_bounds(result), name)
 
 
-def layer_edges(result: SliceResult, spec: RasterSpec, bounds=None, layers: Sequence[int] | None = None) -> LayerEdges:
+def layer_edges(result: SliceResult, spec: RasterSpec, bounds=None, layers: Sequence[int] | None = None,
+                dtype=np.float64) -> LayerEdges:
     """The edges of the closed loops of ``layers`` (default all) in tile-local pixel coordinates; see
-    :class:`LayerEdges`. ``bounds`` (xmin, ymin, xmax, ymax) mm is what gets centred (default: the result's)."""
+    :class:`LayerEdges`. ``bounds`` (xmin, ymin, xmax, ymax) mm is what gets centred (default: the result's).
+    ``dtype``: of the edges (computed in float64, rounded once: float32 is what the rasterisers take)."""
     if bounds is None:
         bounds = result_bounds(result)
     n_layers = result.n_layers
@@ -89,10 +91,10 @@ def layer_edges(result: SliceResult, spec: RasterSpec, bounds=None, layers: Sequ
     total = int(n.sum())
     start = np.concatenate(([0], np.cumsum(n)[:-1])).astype(np.int64)
     idx = np.repeat(first - start, n) + np.arange(total, dtype=np.int64)
-    uv = spec.to_pixels(result.points[idx], bounds) if total else np.zeros((0, 2))
+    pc = np.ascontiguousarray(result.points, dtype=np.float32).view(np.complex64).reshape(-1)[idx]  # 1-D: fast
+    u, v = spec.to_pixels_xy(pc.real, pc.imag, bounds)
     nxt = np.arange(total, dtype=np.int64) + 1  # each point's successor in its loop (the last one: the first)
     nxt[start + n - 1] = start
-    uv_next = uv[nxt]
     edge_layer = np.repeat(loop_sel_layer, n)
     counts = np.bincount(edge_layer, minlength=sel.size) if total else np.zeros(sel.size, np.int64)
     offsets = np.zeros(sel.size + 1, np.int64)
@@ -101,10 +103,10 @@ def layer_edges(result: SliceResult, spec: RasterSpec, bounds=None, layers: Sequ
     nonempty = counts > 0
     if total:
         nz = offsets[:-1][nonempty]
-        umin = np.minimum.reduceat(uv[:, 0], nz)
-        umax = np.maximum.reduceat(uv[:, 0], nz)
-        vmin = np.minimum.reduceat(uv[:, 1], nz)
-        vmax = np.maximum.reduceat(uv[:, 1], nz)
+        umin = np.minimum.reduceat(u, nz)
+        umax = np.maximum.reduceat(u, nz)
+        vmin = np.minimum.reduceat(v, nz)
+        vmax = np.maximum.reduceat(v, nz)
         cols, rows = spec.png_size
         c0 = np.clip(np.floor(umin), 0, cols).astype(np.int64)
         c1 = np.clip(np.floor(umax) + 1, 0, cols).astype(np.int64)
@@ -112,8 +114,11 @@ def layer_edges(result: SliceResult, spec: RasterSpec, bounds=None, layers: Sequ
         r1 = np.clip(np.floor(vmax) + 1, 0, rows).astype(np.int64)
         empty = (c1 <= c0) | (r1 <= r0)
         tiles[nonempty] = np.stack([r0, c0, np.where(empty, 0, r1 - r0), np.where(empty, 0, c1 - c0)], axis=1)
-    corner = np.repeat(tiles[:, [1, 0]].astype(np.float64), counts, axis=0)
-    edges = np.concatenate([uv - corner, uv_next - corner], axis=1) if total else np.zeros((0, 4))
+    cu = np.repeat(tiles[:, 1].astype(np.float64), counts)
+    cv = np.repeat(tiles[:, 0].astype(np.float64), counts)
+    edges = np.empty((total, 4), dtype)  # (float64 differences, rounded once to dtype)
+    edges[:, 0], edges[:, 1] = u - cu, v - cv
+    edges[:, 2], edges[:, 3] = u[nxt] - cu, v[nxt] - cv
     return LayerEdges(edges, offsets, tiles)
 
 
@@ -123,11 +128,12 @@ EDGE_CHUNK = 256
 
 
 def iter_layer_edges(result: SliceResult, spec: RasterSpec, bounds=None, layers: Sequence[int] | None = None,
-                     edges: LayerEdges | None = None, k: int = 1) -> Iterator[tuple[int, LayerEdges]]:
+                     edges: LayerEdges | None = None, k: int = 1, dtype=np.float64) -> Iterator[tuple[int, LayerEdges]]:
     """The :func:`layer_edges` of ``layers`` (default all) chunk by chunk of :data:`EDGE_CHUNK` layers, each with the
     position of its first entry among the selected layers (memory: one chunk's edges, not the model's). ``k`` > 1:
     the result holds ``k`` sub-layers per layer, merged per layer (:func:`merge_layer_groups`). ``edges`` given:
-    one chunk, as given. ``bounds`` default: the whole result's, so every chunk is centred alike."""
+    one chunk, as given. ``bounds`` default: the whole result's, so every chunk is centred alike. ``dtype``: of the
+    edges made (:func:`layer_edges`)."""
     if edges is not None:
         yield 0, merge_layer_groups(edges, k) if k > 1 else edges
         return
@@ -136,8 +142,12 @@ def iter_layer_edges(result: SliceResult, spec: RasterSpec, bounds=None, layers:
     sel = np.arange(result.n_layers) if layers is None else np.asarray(layers, dtype=np.int64)
     step = EDGE_CHUNK * max(k, 1)
     for a in range(0, max(sel.size, 1), step):
-        le = layer_edges(result, spec, bounds, sel[a : a + step])
-        yield a // max(k, 1), merge_layer_groups(le, k) if k > 1 else le
+        if k > 1:  # sub-layers moved to their layer's tile in float64, then rounded once
+            le = merge_layer_groups(layer_edges(result, spec, bounds, sel[a : a + step]), k)
+            le = LayerEdges(le.edges.astype(dtype, copy=False), le.edge_offsets, le.tiles)
+        else:
+            le = layer_edges(result, spec, bounds, sel[a : a + step], dtype)
+        yield a // max(k, 1), le
 
 
 def z_sample_planes(result: SliceResult, k: int) -> tuple[np.ndarray, np.ndarray]:

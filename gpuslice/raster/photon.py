@@ -68,7 +68,8 @@ from .layers import HeightMap, RunLayer, batch_image_segments, batch_pixel_runs,
 from .png import encode_all
 from .settings import layer_table, print_time_s, resin_ml
 
-__all__ = ["MACHINES", "VERSIONS", "Machine", "encode_pw0", "encode_pw0_batch", "quantise", "write_photon", "write_target"]
+__all__ = ["MACHINES", "VERSIONS", "Machine", "encode_pw0", "encode_pw0_batch", "quantise", "write_photon",
+           "write_target"]
 
 VERSIONS = (1, 515, 516, 517, 518)
 

@@ -475,7 +475,7 @@ def iter_runs(
     if lut[0] != 0:  # pragma: no cover - gamma_lut maps no coverage to black for every gamma
         raise ParameterError("the gamma table must map coverage 0 to grey 0")
     kern = RunsKernel.of(device if device is not None else get_device()) if backend == "opencl" else None
-    for pos, le in iter_layer_edges(result, spec, bounds, layers, edges, k):
+    for pos, le in iter_layer_edges(result, spec, bounds, layers, edges, k, dtype=np.float32):
         if le.edges.dtype != np.float32:  # every backend computes on float32: convert once, not per batch
             le = LayerEdges(le.edges.astype(np.float32), le.edge_offsets, le.tiles)
         for batch in _batches(le, max_batch_pieces):

@@ -123,13 +123,18 @@ class RasterSpec:
 
     def to_pixels(self, xy: np.ndarray, bounds: Sequence[float] | None = None) -> np.ndarray:
         """(n, 2) float64 continuous pixel coordinates (u = column, v = row) of model points ``xy`` (mm)."""
-        a = self.affine(bounds)
-        x = np.asarray(xy[:, 0], dtype=np.float64)
-        y = np.asarray(xy[:, 1], dtype=np.float64)
-        out = np.empty((x.size, 2), np.float64)
-        out[:, 0] = a[0, 0] * x + a[0, 1] * y + a[0, 2]  # one of a[0, :2] is 0: exact as a matrix product
-        out[:, 1] = a[1, 0] * x + a[1, 1] * y + a[1, 2]
+        out = np.empty((xy.shape[0], 2), np.float64)
+        out[:, 0], out[:, 1] = self.to_pixels_xy(xy[:, 0], xy[:, 1], bounds)
         return out
+
+    def to_pixels_xy(self, x: np.ndarray, y: np.ndarray,
+                     bounds: Sequence[float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`to_pixels` of coordinate arrays ``x``, ``y`` (mm): (u, v) float64 arrays, the same values."""
+        a = self.affine(bounds)
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        # one of a[0, :2] is 0: exact as a matrix product
+        return a[0, 0] * x + a[0, 1] * y + a[0, 2], a[1, 0] * x + a[1, 1] * y + a[1, 2]
 
     def pixel_centres(self, bounds: Sequence[float] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Model (x, y) in mm of every pixel centre, two (ny, nx) arrays (inverse of :meth:`affine`)."""
