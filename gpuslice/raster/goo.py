@@ -118,16 +118,22 @@ def encode_segments(n: np.ndarray, v: np.ndarray, seg_offsets: np.ndarray) -> li
     is_grey = kind == 1
     width = 1 + is_grey + size
     # image k: its 0x55, its chunks, its checksum
-    img_off = np.zeros(n_img + 1, np.int64)
-    np.cumsum(np.bincount(img, weights=width, minlength=n_img).astype(np.int64) + 2, out=img_off[1:])
-    off = np.cumsum(width) - width + 1 + 2 * img
-    out = np.empty(int(img_off[-1]), np.uint8)
+    cw = np.zeros(width.size + 1, np.int64)
+    np.cumsum(width, out=cw[1:])
+    img_off = cw[np.searchsorted(img, np.arange(n_img + 1))] + 2 * np.arange(n_img + 1)  # (img is sorted)
+    off = cw[:-1] + 1 + 2 * img
+    total = int(img_off[-1])
+    out = np.empty(total + 1, np.uint8)  # (the last byte: where the chunks without a length byte write theirs)
     out[off] = (kind << 6) | (size << 4) | (n & 0xF)
     out[off[is_grey] + 1] = v[is_grey]
+    # the length above its low 4 bits in the chunk's size extra bytes, most significant first: the first extra byte
+    # of every chunk in whole-array passes (nearly all chunks have one), the rare second and third apart
     at = off + 1 + is_grey
-    for k in range(3):  # the length above its low 4 bits, most significant byte first
-        sel = size > k
+    out[np.where(size > 0, at, total)] = (n >> (4 + 8 * np.maximum(size - 1, 0))) & 0xFF
+    for k in (1, 2):
+        sel = np.flatnonzero(size > k)
         out[at[sel] + k] = (n[sel] >> (4 + 8 * (size[sel] - 1 - k))) & 0xFF
+    out = out[:total]
     out[img_off[:-1]] = 0  # (image k's sum runs into image k + 1's first byte: 0 until the sums are taken)
     out[img_off[1:] - 1] = 0
     sums = np.add.reduceat(out, img_off[:-1] + 1, dtype=np.uint64) if n_img else np.zeros(0, np.uint64)
