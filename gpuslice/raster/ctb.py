@@ -164,21 +164,20 @@ def rle7_batch(start: np.ndarray, length: np.ndarray, grey: np.ndarray, offsets:
         values, lengths = _split_long(values, lengths, MAX_RUN)
     size = np.where(lengths == 1, 1, np.where(lengths <= 0x7F, 2, np.where(lengths <= 0x3FFF, 3, np.where(
         lengths <= 0x1FFFFF, 4, 5))))
-    at = np.cumsum(size) - size
-    out = np.empty(int(size.sum()), np.uint8)
+    cs = np.zeros(size.size + 1, np.int64)
+    np.cumsum(size, out=cs[1:])
+    at, total = cs[:-1], int(cs[-1])
+    out = np.empty(total + 1, np.uint8)  # (the last byte: where the one-byte runs write their length byte)
     out[at] = values | np.where(lengths > 1, 0x80, 0).astype(np.uint8)
-    for nbytes, lead in ((2, 0x00), (3, 0x80), (4, 0xC0), (5, 0xE0)):
-        sel = size == nbytes
-        if not sel.any():
-            continue
-        n, a = lengths[sel], at[sel]
-        k = nbytes - 1  # length bytes, big-endian, the first one carrying the lead bits
-        for i in range(k):
-            byte = (n >> (8 * (k - 1 - i))) & 0xFF
-            out[a + 1 + i] = (byte | lead) if i == 0 else byte
-    img_off = np.zeros(n_img + 1, np.int64)
-    np.cumsum(np.bincount(img, weights=size, minlength=n_img).astype(np.int64), out=img_off[1:])
-    data = out.tobytes()
+    # size - 1 length bytes, big-endian, the first one carrying the lead bits 0, 10, 110 or 1110 (sizes 2 to 5):
+    # the first in whole-array passes (every run longer than one pixel has it), the others apart
+    lead = np.array([0, 0, 0x00, 0x80, 0xC0, 0xE0], np.int64)[size]
+    out[np.where(size >= 2, at + 1, total)] = ((lengths >> (8 * np.maximum(size - 2, 0))) & 0xFF) | lead
+    for i in (1, 2, 3):
+        sel = np.flatnonzero(size > i + 1)
+        out[at[sel] + 1 + i] = (lengths[sel] >> (8 * (size[sel] - 2 - i))) & 0xFF
+    img_off = cs[np.searchsorted(img, np.arange(n_img + 1))]  # (img is sorted)
+    data = out[:total].tobytes()
     return [data[img_off[k] : img_off[k + 1]] for k in range(n_img)]
 
 
