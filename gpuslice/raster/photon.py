@@ -164,19 +164,21 @@ def encode_pw0_batch(start: np.ndarray, length: np.ndarray, grey: np.ndarray, of
     img = np.repeat(np.arange(n_img, dtype=np.int64), np.diff(seg_off))
     two = (c == 0) | (c == 15)
     cap = np.where(two, 0xFFF, 0xF)
-    pieces = -(-n // cap)  # records a segment needs
+    pieces = -(-n // cap)  # records a segment needs: full ones, then the rest
+    cp = np.zeros(n.size + 1, np.int64)
+    np.cumsum(pieces, out=cp[1:])
     seg = np.repeat(np.arange(n.size), pieces)
-    k = np.arange(seg.size) - np.repeat(np.cumsum(pieces) - pieces, pieces)
-    rec = np.where(k < pieces[seg] - 1, cap[seg], n[seg] - (pieces[seg] - 1) * cap[seg])
+    rec = cap[seg]
+    rec[cp[1:] - 1] = n - (pieces - 1) * cap
     rc, r2 = c[seg].astype(np.int64), two[seg]
-    width = 1 + r2.astype(np.int64)
-    off = np.cumsum(width) - width
-    out = np.empty(int(width.sum()), np.uint8)
+    cw = np.zeros(seg.size + 1, np.int64)
+    np.cumsum(1 + r2, out=cw[1:])
+    off, total = cw[:-1], int(cw[-1])
+    out = np.empty(total + 1, np.uint8)  # (the last byte: where the one-byte records write their second)
     out[off] = (rc << 4) | np.where(r2, rec >> 8, rec)
-    out[off[r2] + 1] = rec[r2] & 0xFF
-    img_off = np.zeros(n_img + 1, np.int64)
-    np.cumsum(np.bincount(img[seg], weights=width, minlength=n_img).astype(np.int64), out=img_off[1:])
-    data = out.tobytes()
+    out[np.where(r2, off + 1, total)] = rec & 0xFF
+    img_off = cw[cp[seg_off]]
+    data = out[:total].tobytes()
     lit = np.bincount(run_img, weights=length, minlength=n_img).astype(np.int64)
     mid = np.bincount(img[(c > 0) & ~two], minlength=n_img) > 0
     box = np.full((n_img, 4), -1, np.int64)
