@@ -1,4 +1,4 @@
-"""Nesting's exact rebuild of loops that cross (``nest._resolve_overlaps``): only the group of loops around a
+"""Nesting's exact rebuild of loops that cross (``overlaps.resolve_overlaps``): only the group of loops around a
 crossing one is rebuilt, the rest of the layer keeps its fast result, and every layer's area is the nonzero area of
 the arrangement of all its loops (built here with shapely, apart from the code under test)."""
 
@@ -8,7 +8,8 @@ import numpy as np
 import shapely
 
 from gpuslice.slicing.chain import Loops
-from gpuslice.slicing.nest import _winding_numbers, nest_loops
+from gpuslice.slicing.nest import nest_loops
+from gpuslice.slicing.rings import _winding_numbers
 
 
 def make_loops(layers: list[list[np.ndarray]]) -> Loops:

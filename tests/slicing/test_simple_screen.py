@@ -16,7 +16,8 @@ from gpuslice import mesh_from_arrays, mesh_from_triangles, slice_mesh
 from gpuslice.mesh import shapes as S
 from gpuslice.slicing.chain import chain_segments
 from gpuslice.slicing.crossings import compute_crossings, crossings_numpy
-from gpuslice.slicing.nest import _polygons, _self_crossing_loops
+from gpuslice.slicing.nest import _self_crossing_loops
+from gpuslice.slicing.rings import _polygons
 
 shapely = pytest.importorskip("shapely")
 
