@@ -191,6 +191,8 @@ def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | Non
         mesh, dev = None, None
     else:
         dev = prepare_device(job.params, device, timings)
+        if job.resin is not None:
+            _prestart_encoders(job.resin)
         mesh = load_job_mesh(job, dev, timings)
         if job.resin is not None:
             _check_printer_fits(job, mesh)  # before slicing: a model larger than the printer is refused now
@@ -219,6 +221,18 @@ def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | Non
     if job.view is not None:
         _write_view(job, out)
     return out
+
+
+def _prestart_encoders(r: ResinOutput) -> None:
+    """PNG-layer outputs: start the PNG encoder processes now, so their imports overlap the slicing."""
+    from .raster.outputs import RESIN_FORMATS
+
+    if RESIN_FORMATS[r.format].png and r.options.png_level == 1:  # the runs' own PNG path (layers.RUNS_LEVEL)
+        import os
+
+        from .raster.png_procs import prestart
+
+        prestart(r.options.workers or os.cpu_count())
 
 
 def _slice(job: Job, mesh: Mesh, dev, timings: dict[str, float]) -> SliceResult:

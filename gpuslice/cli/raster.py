@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import sys
 import time
+from contextlib import nullcontext
 from pathlib import Path
 
 import click
@@ -96,9 +97,12 @@ def raster(model: str, output: str, progress: bool | None, report: str | None, c
     job = Job(source=model, placement=placement, params=params, mesh_check=False,
               resin=ResinOutput(output, fmt.name, spec, options, settings),
               checks=CheckOutput(spec, settings, on_report=None if quiet else _print_checks(model)) if check else None)
+    from ..raster.png_procs import enabled
+
     bar = _Bar(f"raster {Path(output).name}", progress)
-    try:
-        done = run_job(job, progress=bar)
+    try:  # PNG layers on every core: this command's entry points are safe to import in a worker process
+        with enabled() if fmt.png else nullcontext():
+            done = run_job(job, progress=bar)
     finally:
         bar.stop()
     timings = {**done.timings, "total": time.perf_counter() - t_start}

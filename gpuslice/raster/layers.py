@@ -235,19 +235,23 @@ def image_segments(start: np.ndarray, length: np.ndarray, value: np.ndarray,
     return n[keep], v[keep]
 
 
-def run_groups(items: Iterable[Tile | RunLayer], size: int = 16) -> Iterator[list[Tile | RunLayer]]:
+def run_groups(items: Iterable, size: int = 16, key=None) -> Iterator[list]:
     """``items`` in lists of up to ``size`` consecutive :class:`RunLayer` entries of one batch of runs (what
-    :func:`batch_pixel_runs` takes at once); a :class:`~gpuslice.raster.coverage.Tile` is a list of its own."""
+    :func:`batch_pixel_runs` takes at once); a :class:`~gpuslice.raster.coverage.Tile` is a list of its own.
+    ``key``: the layer of an item when the items are not layers themselves (e.g. ``(k, layer)`` pairs)."""
     group: list = []
-    for item in items:
-        if group and (not isinstance(item, RunLayer) or len(group) == size or item.runs is not group[-1].runs
-                      or item.j != group[-1].j + 1):
+    last = None
+    for entry in items:
+        item = entry if key is None else key(entry)
+        if group and (not isinstance(item, RunLayer) or len(group) == size or item.runs is not last.runs
+                      or item.j != last.j + 1):
             yield group
             group = []
         if not isinstance(item, RunLayer):
-            yield [item]
+            yield [entry]
             continue
-        group.append(item)
+        group.append(entry)
+        last = item
     if group:
         yield group
 

@@ -52,8 +52,10 @@ from ..errors import ParameterError
 from ..formats.numbers import point_bounds
 from ..io.atomic import atomic_path
 from .coverage import Tile
-from .layers import RunLayer, encode_png, pixel_runs
+from .layers import RUNS_LEVEL, RunLayer, encode_png, pixel_runs, run_groups
 from .png import PngEncoder, encode_all
+from .png_procs import encode_group as encode_procs
+from .png_procs import process_pool, threads_for
 from .settings import PrintSettings, print_time_s, resin_ml
 from .sl1 import _Thumb, _write_deflated, _zip_time, check_one_layer_height
 from .spec import RasterSpec
@@ -193,11 +195,21 @@ def write_nanodlp(
             c = enc.z.compressobj(1, enc.z.DEFLATED, -15)
             return png, c.compress(png) + c.flush(), _lit_box(item, cols)
 
+        pool = process_pool(workers or os.cpu_count()) if level == RUNS_LEVEL else None
+
+        def encode_group(group: list[Tile | RunLayer]) -> list[tuple[bytes, bytes, tuple[int, int, int, int]]]:
+            if pool is None or not isinstance(group[0], RunLayer):  # (on a worker thread)
+                return [encode(item) for item in group]
+            done = encode_procs(pool, group, enc.nx, enc.ny, deflater)  # PNGs and members made in the processes
+            return [(png, member, _lit_box(item, cols)) for (png, member), item in zip(done, group, strict=True)]
+
         def sink(k: int, item: tuple[bytes, bytes, tuple[int, int, int, int]]) -> None:
             _write_deflated(z, entry(f"{k + 1}.png"), item[0], item[1])
             boxes.append(item[2])
 
-        stats = encode_all(tiles, encode, sink, workers, on_tile=thumb.add, progress=progress)
+        stats = encode_all(tiles, encode, sink, threads_for(pool, workers), on_tile=thumb.add, progress=progress,
+                           many=encode_group,
+                           chunk=run_groups)
         if stats["layers"] != n:
             raise ParameterError(f"{p}: expected {n} layers, got {stats['layers']}")
         info = []

@@ -65,7 +65,8 @@ class ResinTarget:
 class ResinFormat:
     """One resin output: ``name`` (``--raster`` value), ``suffixes`` (lower case; empty for a folder output),
     ``writer`` as ``"module:function"`` inside :mod:`gpuslice.raster`, ``help``, ``title`` (its name in messages),
-    and ``folder`` (the output is a directory, named ``DIR/`` on the command line)."""
+    ``folder`` (the output is a directory, named ``DIR/`` on the command line) and ``png`` (its layers are PNGs:
+    the pipeline starts the PNG encoder processes of :mod:`gpuslice.raster.png_procs` before slicing)."""
 
     name: str
     suffixes: tuple[str, ...]
@@ -73,6 +74,7 @@ class ResinFormat:
     help: str
     title: str
     folder: bool = False
+    png: bool = False
 
     @property
     def suffix(self) -> str:
@@ -96,13 +98,13 @@ RESIN_FORMATS: dict[str, ResinFormat] = {
     f.name: f
     for f in (
         ResinFormat("sl1", (".sl1",), "sl1:write_target", "Prusa SL1 archive (PNG layers, config.ini, thumbnails)",
-                    "SL1 archive"),
+                    "SL1 archive", png=True),
         ResinFormat("sl1s", (".sl1s",), "sl1s:write_target", "Prusa SL1S Speed archive (the SL1 archive for the "
-                    "SL1S: 1620x2560 PNGs of 0.05 mm, printerModel SL1S)", "SL1S archive"),
+                    "SL1S: 1620x2560 PNGs of 0.05 mm, printerModel SL1S)", "SL1S archive", png=True),
         ResinFormat("sl1svg", (".sl1_svg",), "sl1svg:write_target", "PrusaSlicer's vector SL1 archive (one SVG of "
                     "the contours per layer, config.ini, thumbnails)", "SL1 SVG archive"),
         ResinFormat("nanodlp", (".nanodlp",), "nanodlp:write_target", "NanoDLP plate (1.png upward, "
-                    "meta/plate/profile/options/info json, 3d.png)", "NanoDLP plate"),
+                    "meta/plate/profile/options/info json, 3d.png)", "NanoDLP plate", png=True),
         ResinFormat("goo", (".goo",), "goo:write_target", "Elegoo GOO file (8-bit RLE layers, print settings, "
                     "RGB565 previews)", "GOO file"),
         ResinFormat("prz", (".prz",), "goo:write_target", "Phrozen PRZ file (the GOO layout, no grey-difference "
@@ -112,7 +114,7 @@ RESIN_FORMATS: dict[str, ResinFormat] = {
         *(ResinFormat(s, (f".{s}",), "photon:write_target", f"Anycubic {t} file (Photon Workshop: 4-bit PW0 "
                       "layers, settings, preview)", f"Photon Workshop file ({t})") for s, t in _PHOTON),
         ResinFormat("png", (), "pngstack:write_target", "a folder of 8-bit PNGs, one per layer", "PNG stack",
-                    folder=True),
+                    folder=True, png=True),
     )
 }
 

@@ -154,7 +154,7 @@ def encode_all(
 
     ``many`` and ``chunk``: the tiles grouped by ``chunk`` (lists of consecutive tiles) and each group encoded by one
     call ``many(group)`` (one result per tile, in order: fewer, larger numpy passes); ``on_tile``, ``sink`` and
-    ``progress`` still see one tile at a time."""
+    ``progress`` still see one tile at a time. An encoded tile may also be its size (an int: the encoder wrote it)."""
     workers = workers or os.cpu_count() or 1
     encode = getattr(encoder, "encode", encoder)
     if many is None or chunk is None:
@@ -168,7 +168,7 @@ def encode_all(
         nonlocal n_bytes, count
         for data in pending.popleft().result():
             sink(count, data)
-            n_bytes += len(data if isinstance(data, bytes) else data[0])
+            n_bytes += data if isinstance(data, int) else len(data if isinstance(data, bytes) else data[0])
             count += 1
             if progress:
                 progress(count)

@@ -10,8 +10,10 @@ from pathlib import Path
 from ..errors import ParameterError
 from ..io.atomic import atomic_path
 from .coverage import Tile
-from .layers import encode_png
+from .layers import RUNS_LEVEL, RunLayer, encode_png, run_groups
 from .png import PngEncoder, encode_all
+from .png_procs import process_pool, threads_for
+from .png_procs import write_group as write_procs
 from .spec import RasterSpec
 
 __all__ = ["write_png_stack", "write_target"]
@@ -45,13 +47,23 @@ def write_png_stack(
     with atomic_path(out) as tmp:
         tmp.mkdir()
 
+        pool = process_pool(workers or os.cpu_count()) if level == RUNS_LEVEL else None
+
         def encode_and_write(pair: tuple[int, Tile]) -> bytes:  # in the pool: file creation overlaps the encoding
             k, item = pair
             data = encode_png(item, enc)
             (tmp / f"{prefix}{k:0{digits}d}.png").write_bytes(data)
             return data
 
-        stats = encode_all(enumerate(tiles), encode_and_write, lambda k, data: None, workers, progress=progress)
+        def group_and_write(pairs: list[tuple[int, Tile | RunLayer]]) -> list[bytes] | list[int]:  # on a worker thread
+            if pool is None or not isinstance(pairs[0][1], RunLayer):
+                return [encode_and_write(pair) for pair in pairs]
+            paths = [tmp / f"{prefix}{k:0{digits}d}.png" for k, _ in pairs]  # written by the processes
+            return write_procs(pool, [item for _, item in pairs], enc.nx, enc.ny, paths)
+
+        stats = encode_all(enumerate(tiles), encode_and_write, lambda k, data: None, threads_for(pool, workers),
+                           progress=progress,
+                           many=group_and_write, chunk=lambda pairs: run_groups(pairs, key=lambda pair: pair[1]))
     return stats
 
 

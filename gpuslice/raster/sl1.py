@@ -23,8 +23,10 @@ import numpy as np
 from ..errors import ParameterError
 from ..io.atomic import atomic_path
 from .coverage import Tile
-from .layers import HeightMap, RunLayer, encode_png
+from .layers import RUNS_LEVEL, HeightMap, RunLayer, encode_png, run_groups
 from .png import PngEncoder, encode_all
+from .png_procs import encode_group as encode_procs
+from .png_procs import process_pool, threads_for
 from .spec import RasterSpec
 
 __all__ = ["SL1Info", "config_ini", "prusaslicer_ini", "read_sl1_config", "write_sl1", "info_from",
@@ -263,10 +265,19 @@ def write_sl1(
             c = enc.z.compressobj(1, enc.z.DEFLATED, -15)
             return png, c.compress(png) + c.flush()
 
+        pool = process_pool(workers or os.cpu_count()) if level == RUNS_LEVEL else None
+
+        def encode_group(group: list[Tile | RunLayer]) -> list[tuple[bytes, bytes]]:  # on a worker thread
+            if pool is not None and isinstance(group[0], RunLayer):  # PNGs and members made in the processes
+                return encode_procs(pool, group, enc.nx, enc.ny, deflater)
+            return [encode(item) for item in group]
+
         def sink(k: int, item: tuple[bytes, bytes]) -> None:
             _write_deflated(z, entry(f"{info.job_dir}{k:05d}.png"), *item)
 
-        stats = encode_all(tiles, encode, sink, workers, on_tile=thumb.add, progress=progress)
+        stats = encode_all(tiles, encode, sink, threads_for(pool, workers), on_tile=thumb.add, progress=progress,
+                           many=encode_group,
+                           chunk=run_groups)
         if stats["layers"] != n_layers:
             raise ParameterError(f"{p}: expected {n_layers} layers, got {stats['layers']}")
         for w, h in THUMBNAILS:
