@@ -9,23 +9,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import shapely
+from test_overlap_groups import make_loops  # (tests/slicing: on sys.path under pytest's default import mode)
 
 from gpuslice.slicing import overlaps
-from gpuslice.slicing.chain import Loops
 from gpuslice.slicing.nest import nest_loops, signed_areas
 from gpuslice.slicing.rings import _affected_all, _winding_numbers
 
 RULES = ("nonzero", "evenodd", "positive")
-
-
-def make_loops(layers: list[list[np.ndarray]]) -> Loops:
-    pts, off, lay = [], [0], []
-    for k, rings in enumerate(layers):
-        for r in rings:
-            pts.append(np.asarray(r, np.float32))
-            off.append(off[-1] + len(r))
-            lay.append(k)
-    return Loops(np.concatenate(pts), np.array(off, np.int64), np.array(lay, np.int32), np.ones(len(lay), bool))
 
 
 def square(x0, y0, s, ccw=True):
