@@ -190,9 +190,9 @@ def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | Non
         timings["load"] = time.perf_counter() - t
         mesh, dev = None, None
     else:
-        dev = prepare_device(job.params, device, timings)
-        if job.resin is not None:
+        if job.resin is not None:  # (first: the encoder processes start while pyopencl is imported)
             _prestart_encoders(job.resin)
+        dev = prepare_device(job.params, device, timings)
         mesh = load_job_mesh(job, dev, timings)
         if job.resin is not None:
             _check_printer_fits(job, mesh)  # before slicing: a model larger than the printer is refused now
@@ -225,9 +225,11 @@ def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | Non
 
 def _prestart_encoders(r: ResinOutput) -> None:
     """PNG-layer outputs: start the PNG encoder processes now, so their imports overlap the slicing."""
+    from .raster.coverage import choose_backend
     from .raster.outputs import RESIN_FORMATS
 
-    if RESIN_FORMATS[r.format].png and r.options.png_level == 1:  # the runs' own PNG path (layers.RUNS_LEVEL)
+    runs = choose_backend(r.options.raster_backend) == "opencl"  # layers as runs, PNGs straight from them
+    if RESIN_FORMATS[r.format].png and r.options.png_level == 1 and runs:
         import os
 
         from .raster.png_procs import prestart
@@ -319,7 +321,12 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
     settings = r.settings if r.settings is not None else r.options.settings()
     target = ResinTarget(Path(r.path.rstrip("/\\") or "."), r.spec, r.options, out.result, name, now,
                          r.options.workers, tick, settings, bounds=bounds)
-    out.stats.update(RESIN_FORMATS[r.format].load()(layers, target))
+    try:
+        out.stats.update(RESIN_FORMATS[r.format].load()(layers, target))
+    finally:  # a writer that failed: its layers' producer threads stop now
+        close = getattr(layers, "close", None)
+        if close is not None:
+            close()
     out.stats["raster_backend"] = backend
     t_sub = out.timings.get("z_samples", 0.0)
     out.timings["raster"] = time.perf_counter() - t - t_sub  # the z sub-slices have their own line
@@ -342,8 +349,12 @@ def _z_sampled_layers(job: Job, out: JobResult, spec, dev, bounds, k: int):
         t = time.perf_counter()
         sub = slice_mesh(out.mesh, job.params, z=z[a * k : b * k], layer_thickness=th[a * k : b * k])
         out.timings["z_samples"] = out.timings.get("z_samples", 0.0) + time.perf_counter() - t
-        for item in iter_run_layers(sub, spec, device=dev, bounds=bounds, z_samples=k):
-            yield RunLayer(a + item.index, item.runs, item.j)
+        chunk = iter_run_layers(sub, spec, device=dev, bounds=bounds, z_samples=k)
+        try:
+            for item in chunk:
+                yield RunLayer(a + item.index, item.runs, item.j)
+        finally:
+            chunk.close()
 
 
 def _run_checks(job: Job, out: JobResult) -> None:

@@ -2,8 +2,9 @@
 
 The resin path's runs kernel (OpenCL: it releases the GIL while the device works) and the archive encoders
 (numpy on worker threads) then overlap instead of taking turns. Items are handed over in order; an exception in
-the producer is raised in the consumer at the item where it happened; when the consumer stops early (``close``,
-an exception, garbage collection) the producer stops at its next item and its thread ends.
+the producer is raised in the consumer at the item where it happened; when the consumer closes the iterator early
+(``close``, or garbage collection of an abandoned one) the producer stops at its next item and its thread ends:
+callers that may stop early close it in a ``finally`` (an exception held somewhere keeps the generator alive).
 """
 
 from __future__ import annotations
@@ -65,8 +66,12 @@ def prefetch(items: Iterable[T], depth: int = 1) -> Iterator[T]:
             if got is _DONE:
                 return
             if isinstance(got, _Failed):
-                raise got.exc
+                exc = got.exc
+                del got  # (no cycle: exception -> traceback -> this frame -> got -> exception)
+                raise exc
             yield got
+            del got
     finally:
         stop.set()
-        worker.join()
+        if worker is not threading.current_thread():  # (closed by the collector on the producer's own thread)
+            worker.join()

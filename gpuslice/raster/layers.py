@@ -42,11 +42,14 @@ def iter_run_layers(result, spec, *, device=None, bounds=None, layers: Sequence[
     from ..prefetch import prefetch
     from .runs import iter_runs
 
-    batches = iter_runs(result, spec, backend="opencl", device=device, bounds=bounds, layers=layers,
-                        z_samples=z_samples)
-    for runs in prefetch(batches, PREFETCH):
-        for j in range(len(runs.layers)):
-            yield RunLayer(int(runs.layers[j]), runs, j)
+    batches = prefetch(iter_runs(result, spec, backend="opencl", device=device, bounds=bounds, layers=layers,
+                                 z_samples=z_samples), PREFETCH)
+    try:
+        for runs in batches:
+            for j in range(len(runs.layers)):
+                yield RunLayer(int(runs.layers[j]), runs, j)
+    finally:  # closed early (a writer failed): the producer thread stops now, not when the generator is collected
+        batches.close()
 
 
 #: the deflate level runs are written at straight (no bitmap); another level goes through a tile and that deflater

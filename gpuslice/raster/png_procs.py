@@ -22,13 +22,14 @@ is None and the threads encode.
 
 from __future__ import annotations
 
+import ast
 import multiprocessing
 import os
-import re
 import sys
 import threading
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -40,29 +41,40 @@ __all__ = ["enabled", "main_is_import_safe", "shutdown", "process_pool", "presta
 _LOCK = threading.Lock()
 _POOLS: dict[int, ProcessPoolExecutor] = {}
 _ENABLED_IN: int | None = None  # the process inside enabled() (a fork of it does not inherit the choice)
+_OPEN = 0  # enabled() blocks open in that process
 
 
 @contextmanager
 def enabled() -> Iterator[None]:
     """Within the block, this process may encode PNG layers in worker processes (module docstring: its main module
-    must be safe to import, as the command line's is); at its end the pools are shut down."""
-    global _ENABLED_IN
+    must be safe to import, as the command line's is); when the last open block of the process ends, the pools are
+    shut down. Blocks may overlap (jobs on several threads)."""
+    global _ENABLED_IN, _OPEN
     with _LOCK:
-        before = _ENABLED_IN
+        if _ENABLED_IN != os.getpid():  # (a fork of an enabling process starts its own count)
+            _OPEN = 0
+        _OPEN += 1
         if main_is_import_safe():
             _ENABLED_IN = os.getpid()
     try:
         yield
     finally:
-        with _LOCK:  # (no pool is made after this: process_pool checks under the same lock)
-            _ENABLED_IN = before
-        shutdown()
+        with _LOCK:  # (no pool is made after the last block: process_pool checks under the same lock)
+            _OPEN -= 1
+            last = _OPEN == 0
+            if last:
+                _ENABLED_IN = None
+        if last:
+            shutdown()
 
 
 def main_is_import_safe() -> bool:
-    """Whether a worker process may import this process's main module without running its work again: a package's
-    ``__main__`` (``python -m``: multiprocessing does not import those), no main file (an interactive session), or
-    a main file that guards its work with ``if __name__ == "__main__":`` (console scripts do)."""
+    """Whether a worker process may import this process's main module without running work again: a package's
+    ``__main__`` (``python -m``: multiprocessing does not import those), no main file (an interactive session), or a
+    main file whose top level only imports, defines, assigns without calls and guards the rest with ``if __name__ ==
+    "__main__":`` (console scripts do). Not for a frozen application."""
+    if getattr(sys, "frozen", False):
+        return False
     main = sys.modules.get("__main__")
     name = getattr(getattr(main, "__spec__", None), "name", None)
     if name:
@@ -71,10 +83,27 @@ def main_is_import_safe() -> bool:
     if path is None:
         return True
     try:
-        text = Path(path).read_text(errors="replace")
-    except OSError:
+        tree = ast.parse(Path(path).read_text(encoding="utf-8", errors="replace"))
+    except (OSError, SyntaxError, ValueError):
         return False
-    return re.search(r"""if\s+__name__\s*==\s*['"]__main__['"]\s*:""", text) is not None
+    return all(_quiet(node) for node in tree.body)
+
+
+def _quiet(node: ast.stmt) -> bool:
+    """A top-level statement that does no work when the module is imported under another name."""
+    if isinstance(node, (ast.Import, ast.ImportFrom, ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef, ast.Pass)):
+        return True
+    if isinstance(node, ast.Expr):
+        return isinstance(node.value, ast.Constant)  # a docstring
+    if isinstance(node, (ast.Assign, ast.AnnAssign)):
+        return node.value is None or not any(isinstance(n, ast.Call) for n in ast.walk(node.value))
+    if isinstance(node, ast.If):  # the guard
+        t = node.test
+        return (isinstance(t, ast.Compare) and isinstance(t.left, ast.Name) and t.left.id == "__name__"
+                and len(t.ops) == 1 and isinstance(t.ops[0], ast.Eq) and len(t.comparators) == 1
+                and isinstance(t.comparators[0], ast.Constant) and t.comparators[0].value == "__main__"
+                and not node.orelse)
+    return False
 
 
 def process_pool(workers: int | None) -> ProcessPoolExecutor | None:
@@ -163,15 +192,31 @@ def _encode(runs: Runs, width: int, height: int, member: str | None,
     return out
 
 
+def _run(pool: ProcessPoolExecutor, *args):
+    """``_encode(*args)`` in ``pool``; in this thread if a worker died (the pool is broken: it is let go, and the
+    next job makes a new one) or the pool was shut down meanwhile."""
+    try:
+        return pool.submit(_encode, *args).result()
+    except BrokenProcessPool:
+        with _LOCK:
+            for key, p in list(_POOLS.items()):
+                if p is pool:
+                    del _POOLS[key]
+        pool.shutdown(wait=False)
+    except RuntimeError:  # "cannot schedule new futures after shutdown"
+        pass
+    return _encode(*args)
+
+
 def encode_group(pool: ProcessPoolExecutor, group: list, width: int, height: int,
                  member: str | None = None) -> list[tuple[bytes, bytes | None]]:
     """The PNGs (``width`` × ``height``) of a group of consecutive run layers of one batch, made in ``pool``, each
     with its zip member deflated by the deflater named ``member`` (None: no member). Blocks the calling thread
     (not the GIL) until they are done."""
-    return pool.submit(_encode, group_runs(group), int(width), int(height), member).result()
+    return _run(pool, group_runs(group), int(width), int(height), member)
 
 
 def write_group(pool: ProcessPoolExecutor, group: list, width: int, height: int, paths: list) -> list[int]:
     """Like :func:`encode_group`, but each PNG is written to its path in ``paths`` by the worker (nothing comes back
     but the sizes, bytes)."""
-    return pool.submit(_encode, group_runs(group), int(width), int(height), None, [str(p) for p in paths]).result()
+    return _run(pool, group_runs(group), int(width), int(height), None, [str(p) for p in paths])

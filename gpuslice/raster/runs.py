@@ -27,6 +27,7 @@ Backends: ``"numpy"`` (:func:`runs_numpy`, the vectorised reference) and ``"open
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
@@ -291,6 +292,7 @@ class RunsKernel(KernelDriver):
         #: set to a dict to get seconds per stage added up in it (the queue is then drained after each stage)
         self.timings: dict[str, float] | None = None
         self._t = 0.0
+        self._lock = threading.Lock()
 
     def _mark(self, name: str | None) -> None:
         if self.timings is None:
@@ -305,7 +307,14 @@ class RunsKernel(KernelDriver):
 
     def run(self, le: LayerEdges, batch: range, lut: np.ndarray, shape: tuple[int, int],
             layers: np.ndarray | None = None) -> Runs:
-        """Runs of the layers ``batch`` (positions in ``le``); ``layers`` their SliceResult indices."""
+        """Runs of the layers ``batch`` (positions in ``le``); ``layers`` their SliceResult indices. One call at a
+        time per driver (a lock: the runs of a writer are made on a prefetch thread while its caller may ask for
+        other runs on the same device)."""
+        with self._lock:
+            return self._run(le, batch, lut, shape, layers)
+
+    def _run(self, le: LayerEdges, batch: range, lut: np.ndarray, shape: tuple[int, int],
+             layers: np.ndarray | None = None) -> Runs:
         import pyopencl as cl
 
         q = self.device.queue

@@ -349,7 +349,15 @@ def _geos_region(noded, ids, pc, offsets, lo, hi, fill_rule):
     pi, pj = pi[near], pj[near]  # a loop winds 0 times around a point outside its box
     w = np.bincount(pi, weights=_winding_numbers(pc, offsets, pi, pj, q), minlength=faces.size)
     kept = faces[_filled(np.rint(w).astype(np.int64), fill_rule)]
-    return shapely.coverage_union_all(kept) if kept.size else shapely.Polygon()
+    if not kept.size:
+        return shapely.Polygon()
+    try:  # the faces of a polygonized arrangement are a coverage: their union is their outline (faster)
+        region = shapely.coverage_union_all(kept)
+        if shapely.is_valid(region):
+            return region
+    except shapely.errors.GEOSException:  # not noded as a coverage after all: the general union below
+        pass
+    return shapely.union_all(kept)
 
 
 def _regions(points, pc, offsets, groups, lo, hi, fill_rule):

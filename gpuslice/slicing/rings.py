@@ -99,6 +99,32 @@ def _groups(layer, closed, layers, seeds, lo, hi):
     return [(lay, ids) for lay, ids, n in zip(layers.tolist(), parts, size.tolist(), strict=True) if n]
 
 
+#: pairs of loops whose boxes are compared at once (memory: ~80 bytes a pair in flight)
+PAIR_BLOCK = 1 << 20
+
+
+def _meeting_pairs(g, first, size, lo, hi) -> tuple[np.ndarray, np.ndarray]:
+    """Every pair (i, j) of loops of one layer (``g``: layer place of each loop, sorted; ``first``/``size``: each
+    layer's first loop and count, 0 to skip it) whose closed boxes meet, i's rows in order; made a block of about
+    :data:`PAIR_BLOCK` pairs at a time, so a layer of thousands of loops never holds all its pairs at once."""
+    n = g.size
+    per_row = size[g]
+    cum = np.cumsum(per_row)
+    ii, jj = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    start = 0
+    while start < n:
+        done = int(cum[start - 1]) if start else 0
+        stop = max(int(np.searchsorted(cum, done + PAIR_BLOCK, side="right")), start + 1)
+        rows = np.arange(start, min(stop, n))
+        _, pj = expand_ranges(first[g[rows]], per_row[rows])
+        pi = np.repeat(rows, per_row[rows])
+        meet = np.all((lo[pi] <= hi[pj]) & (lo[pj] <= hi[pi]), axis=1)
+        ii.append(pi[meet])
+        jj.append(pj[meet])
+        start = int(rows[-1]) + 1
+    return np.concatenate(ii), np.concatenate(jj)
+
+
 def _affected_all(g, lo, hi, seed, size):
     """Which loops (``g``: layer place of each, sorted; ``size``: loops per layer; boxes ``lo``, ``hi``) can share
     a face of their layer's arrangement with the ``seed`` loops (those that cross): per layer, the groups of loops
@@ -111,10 +137,7 @@ def _affected_all(g, lo, hi, seed, size):
     whole = (size > 4000) | (np.bincount(g, weights=seed, minlength=size.size) == 0)  # all loops, untested
     all_in = whole[g]
     size = np.where(whole, 0, size)
-    _, pj = expand_ranges(first[g], size[g])  # every pair of loops of a layer
-    pi = np.repeat(np.arange(n), size[g])
-    meet = np.all((lo[pi] <= hi[pj]) & (lo[pj] <= hi[pi]), axis=1)
-    ii, jj = pi[meet], pj[meet]
+    ii, jj = _meeting_pairs(g, first, size, lo, hi)
     while True:
         label = _min_labels(n, ii, jj)
         groups = np.unique(label[seed])

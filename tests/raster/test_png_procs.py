@@ -89,7 +89,37 @@ def test_main_module_must_be_safe_to_import(tmp_path):
     unguarded.write_text(probe + "print(main_is_import_safe())\n")
     guarded = tmp_path / "guarded.py"
     guarded.write_text(probe + "if __name__ == '__main__':\n    print(main_is_import_safe())\n")
+    busy = tmp_path / "busy.py"  # a guard, but work at the top level too
+    busy.write_text(probe + "X = sum(range(3))\nif __name__ == '__main__':\n    print(main_is_import_safe())\n")
     run = lambda *a: subprocess.run([sys.executable, *a], capture_output=True, text=True, check=True).stdout  # noqa: E731
     assert run(str(unguarded)).strip() == "False"
     assert run(str(guarded)).strip() == "True"
+    assert run(str(busy)).strip() == "False"
     assert run("-c", probe + "print(main_is_import_safe())").strip() == "True"
+
+
+def test_overlapping_blocks_and_a_broken_pool(device):
+    """Blocks may overlap (jobs on several threads): the pool lives until the last one ends. A worker that dies
+    breaks its pool: the group is made in the calling thread instead (the same PNGs) and the pool is let go."""
+    import os
+
+    from gpuslice import mesh_from_triangles, slice_mesh
+    from gpuslice.raster import RasterSpec
+    from gpuslice.raster.deflate_runs import encode_png_from_runs
+    from gpuslice.raster.layers import iter_run_layers
+
+    res = slice_mesh(mesh_from_triangles(shapes.torus(15.0, 5.0, 48, 24)), thickness=1.0, device=device)
+    spec = RasterSpec(resolution=(900, 700), pixel=0.05)
+    items = list(iter_run_layers(res, spec, device=device))[:5]
+    group = [it for it in items if it.runs is items[0].runs]
+    want = [encode_png_from_runs(it.runs, it.j, *spec.png_size) for it in group]
+    with png_procs.enabled():
+        with png_procs.enabled():
+            pool = png_procs.process_pool(2)
+            assert [png for png, _ in png_procs.encode_group(pool, group, *spec.png_size)] == want
+        assert png_procs.process_pool(2) is pool  # the outer block still holds it
+        with pytest.raises(Exception):  # noqa: B017 - the pool is broken by the worker's exit
+            pool.submit(os._exit, 3).result()
+        assert [png for png, _ in png_procs.encode_group(pool, group, *spec.png_size)] == want
+        assert png_procs.process_pool(2) is not pool  # a new one for the next group
+    assert png_procs._POOLS == {} and png_procs.process_pool(2) is None
