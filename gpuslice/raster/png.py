@@ -165,7 +165,8 @@ def encode_all(
     count = 0
 
     def drain_one() -> None:
-        nonlocal n_bytes, count
+        nonlocal n_bytes, count, in_flight
+        in_flight -= sizes.popleft()
         for data in pending.popleft().result():
             sink(count, data)
             n_bytes += data if isinstance(data, int) else len(data if isinstance(data, bytes) else data[0])
@@ -173,14 +174,20 @@ def encode_all(
             if progress:
                 progress(count)
 
+    # in flight: at most 4 tasks a thread, and at most max(128, 16 per thread) layers (their runs' batches stay alive)
+    max_layers = max(128, 16 * workers)
+    in_flight = 0
     with ThreadPoolExecutor(max_workers=workers) as pool:
         pending: deque = deque()
+        sizes: deque = deque()
         for group in groups:
             if on_tile is not None:
                 for tile in group:
                     on_tile(tile)
             pending.append(pool.submit(many, group))
-            while len(pending) > 4 * workers or (pending and pending[0].done()):
+            sizes.append(len(group))
+            in_flight += len(group)
+            while len(pending) > 4 * workers or in_flight > max_layers or (pending and pending[0].done()):
                 drain_one()
         while pending:
             drain_one()
