@@ -120,8 +120,16 @@ def process_pool(workers: int | None) -> ProcessPoolExecutor | None:
         if pool is None:
             ctx = multiprocessing.get_context("forkserver")
             ctx.set_forkserver_preload(["gpuslice.raster.deflate_runs"])
-            pool = _POOLS[workers] = ProcessPoolExecutor(workers, mp_context=ctx)
+            pool = _POOLS[workers] = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_start)
         return pool
+
+
+def _worker_start() -> None:
+    """In each worker: Ctrl-C (sent to the whole process group) is the parent's to handle; the worker finishes its
+    group and is stopped by the parent's shutdown, without a traceback of its own."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def shutdown() -> None:
