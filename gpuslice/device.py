@@ -21,7 +21,7 @@ import numpy as np
 
 from .errors import DeviceError
 
-__all__ = ["Device", "KernelDriver", "get_device", "list_devices", "release_scratch", "ENV_VAR"]
+__all__ = ["Device", "KernelDriver", "aligned_empty", "get_device", "list_devices", "release_scratch", "ENV_VAR"]
 
 ENV_VAR = "GPUSLICE_DEVICE"
 
@@ -116,6 +116,14 @@ class KernelDriver:
         """(global size, local size) covering ``n`` work-items with the device's explicit local size."""
         ls = self.device.local_size
         return (max(ls, ((n + ls - 1) // ls) * ls),), (ls,)
+
+
+def aligned_empty(n: int, dtype) -> np.ndarray:
+    """An uninitialised (n,) array whose data start on a 4 KiB boundary (usable in place by a CPU device)."""
+    dtype = np.dtype(dtype)
+    raw = np.empty(n * dtype.itemsize + 4096, np.uint8)
+    k = -raw.ctypes.data % 4096
+    return raw[k : k + n * dtype.itemsize].view(dtype)
 
 
 def release_scratch(device: Device | None = None) -> None:

@@ -97,11 +97,14 @@ def raster(model: str, output: str, progress: bool | None, report: str | None, c
     job = Job(source=model, placement=placement, params=params, mesh_check=False,
               resin=ResinOutput(output, fmt.name, spec, options, settings),
               checks=CheckOutput(spec, settings, on_report=None if quiet else _print_checks(model)) if check else None)
-    from ..raster.png_procs import enabled
+    procs = nullcontext()
+    if fmt.png:  # PNG layers on every core: this command's entry points are safe to import in a worker process
+        from ..raster.png_procs import enabled
 
+        procs = enabled()
     bar = _Bar(f"raster {Path(output).name}", progress)
-    try:  # PNG layers on every core: this command's entry points are safe to import in a worker process
-        with enabled() if fmt.png else nullcontext():
+    try:
+        with procs:
             done = run_job(job, progress=bar)
     finally:
         bar.stop()

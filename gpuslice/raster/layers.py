@@ -183,10 +183,7 @@ def pixel_runs(item: Tile | RunLayer, cols: int) -> tuple[np.ndarray, np.ndarray
     columns (:attr:`RasterSpec.shape` [1]). Runs come straight from the rasteriser's runs; a tile is run-length
     coded row by row (time proportional to the tile, never the display)."""
     if isinstance(item, RunLayer):
-        runs, j = item.runs, item.j
-        a, b = int(runs.layer_offsets[j]), int(runs.layer_offsets[j + 1])
-        start = runs.row[a:b].astype(np.int64) * cols + runs.x[a:b]
-        return start, runs.length[a:b].astype(np.int64), runs.grey[a:b]
+        return batch_pixel_runs(item.runs, item.j, item.j + 1, cols)[:3]
     data = item.data
     h, w = data.shape
     if not h or not w:

@@ -54,8 +54,6 @@ from ..io.atomic import atomic_path
 from .coverage import Tile
 from .layers import RUNS_LEVEL, RunLayer, encode_png, pixel_runs, run_groups
 from .png import PngEncoder, encode_all
-from .png_procs import encode_group as encode_procs
-from .png_procs import process_pool, threads_for
 from .settings import PrintSettings, print_time_s, resin_ml
 from .sl1 import _Thumb, _write_deflated, _zip_time, check_one_layer_height
 from .spec import RasterSpec
@@ -194,6 +192,9 @@ def write_nanodlp(
             png = encode_png(item, enc)
             c = enc.z.compressobj(1, enc.z.DEFLATED, -15)
             return png, c.compress(png) + c.flush(), _lit_box(item, cols)
+
+        from .png_procs import encode_group as encode_procs
+        from .png_procs import process_pool, threads_for
 
         pool = process_pool(workers or os.cpu_count()) if level == RUNS_LEVEL else None
 

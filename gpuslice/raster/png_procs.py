@@ -169,10 +169,7 @@ def prestart(workers: int | None) -> None:
 def group_runs(group: list) -> Runs:
     """The runs of a group of consecutive :class:`~gpuslice.raster.layers.RunLayer` entries of one batch, as a
     :class:`Runs` of their own (the only data a worker gets)."""
-    runs, a, b = group[0].runs, group[0].j, group[-1].j + 1
-    lo, hi = int(runs.layer_offsets[a]), int(runs.layer_offsets[b])
-    return Runs(runs.layers[a:b], runs.layer_offsets[a : b + 1] - lo, runs.row[lo:hi], runs.x[lo:hi],
-                runs.length[lo:hi], runs.grey[lo:hi], runs.shape)
+    return group[0].runs.entries(group[0].j, group[-1].j + 1)
 
 
 def _encode(runs: Runs, width: int, height: int, member: str | None,

@@ -12,8 +12,6 @@ from ..io.atomic import atomic_path
 from .coverage import Tile
 from .layers import RUNS_LEVEL, RunLayer, encode_png, run_groups
 from .png import PngEncoder, encode_all
-from .png_procs import process_pool, threads_for
-from .png_procs import write_group as write_procs
 from .spec import RasterSpec
 
 __all__ = ["write_png_stack", "write_target"]
@@ -46,6 +44,9 @@ def write_png_stack(
     enc = PngEncoder(*spec.png_size, level, deflater)
     with atomic_path(out) as tmp:
         tmp.mkdir()
+
+        from .png_procs import process_pool, threads_for
+        from .png_procs import write_group as write_procs
 
         pool = process_pool(workers or os.cpu_count()) if level == RUNS_LEVEL else None
 

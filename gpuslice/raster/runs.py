@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..device import KernelDriver, get_device
+from ..device import KernelDriver, aligned_empty, get_device
 from ..errors import ParameterError
 from ..ragged import expand_ranges, group_ranks
 from .edges import LayerEdges, iter_layer_edges
@@ -64,9 +64,13 @@ class Runs:
 
     def layer(self, k: int) -> Runs:
         """Entry ``k`` (a position in :attr:`layers`, not a layer index) as a one-layer :class:`Runs` of views."""
-        a, b = int(self.layer_offsets[k]), int(self.layer_offsets[k + 1])
-        return Runs(self.layers[k : k + 1], np.array([0, b - a], np.int64), self.row[a:b], self.x[a:b],
-                    self.length[a:b], self.grey[a:b], self.shape)
+        return self.entries(k, k + 1)
+
+    def entries(self, a: int, b: int) -> Runs:
+        """Entries ``a`` … ``b`` − 1 as a :class:`Runs` of their own (views)."""
+        lo, hi = int(self.layer_offsets[a]), int(self.layer_offsets[b])
+        return Runs(self.layers[a:b], self.layer_offsets[a : b + 1] - lo, self.row[lo:hi], self.x[lo:hi],
+                    self.length[lo:hi], self.grey[lo:hi], self.shape)
 
     def to_mask(self, k: int) -> np.ndarray:
         """The full (rows, cols) uint8 mask of entry ``k``."""
@@ -278,10 +282,7 @@ class RunsKernel(KernelDriver):
     rows. Should a row's pieces ever exceed its capacity (the bound is proven, this is a safety net), the batch is
     redone by :func:`runs_numpy` (:attr:`fallbacks`)."""
 
-    #: records a row may have and still be finished on the device (1024 rather than 256: with --z-samples 4 a row
-    #: sums four sub-layers' records, and 1,899 of a 128-layer chunk's rows went to the host: 0.095 -> 0.064 s; the
-    #: work of a work-item stays bounded, an insertion sort of at most this many pieces)
-    CH = 1024
+    CH = 1024  # the most cell records a row finished on the device has (bounded work; --z-samples rows are long)
     ROWS_PER_UNIT = 32  # rows of an edge per work-item (32 rather than 16: ~8% less CPU on the armadillo job)
     CAP_EXTRA = 0  # added to every edge's per-row record bound (tests: negative, to force the fallback)
 
@@ -311,8 +312,7 @@ class RunsKernel(KernelDriver):
     def run(self, le: LayerEdges, batch: range, lut: np.ndarray, shape: tuple[int, int],
             layers: np.ndarray | None = None) -> Runs:
         """Runs of the layers ``batch`` (positions in ``le``); ``layers`` their SliceResult indices. One call at a
-        time per driver (a lock: the runs of a writer are made on a prefetch thread while its caller may ask for
-        other runs on the same device)."""
+        time per driver (a writer's runs are made on a prefetch thread while its caller may ask for others)."""
         with self._lock:
             return self._run(le, batch, lut, shape, layers)
 
@@ -391,7 +391,7 @@ class RunsKernel(KernelDriver):
         b_ro = self._put("run_off", run_off[:-1].astype(np.int32))
         # the outputs: new host arrays that the device writes into (USE_HOST_PTR: no copy on a CPU device; a GPU
         # driver copies when they are mapped); the reused scratch buffers never leave this call
-        arrs = [_aligned_empty(n_runs, d) for d in (np.int32, np.int32, np.int32, np.uint8)]
+        arrs = [aligned_empty(n_runs, d) for d in (np.int32, np.int32, np.int32, np.uint8)]
         if n_runs:
             flags = cl.mem_flags.WRITE_ONLY | cl.mem_flags.USE_HOST_PTR
             outs = [cl.Buffer(self.device.context, flags, hostbuf=a) for a in arrs]
@@ -427,14 +427,6 @@ class RunsKernel(KernelDriver):
         g, c, v = _piece_records(g, rows.width[g], f[:, 1].copy(), f[:, 2].copy(), f[:, 3].copy())
         g, c, s = _sum_cells(g, c, v, int(t[:, 3].max()))
         return _cells_to_runs(g, c, s, rows, lut)
-
-
-def _aligned_empty(n: int, dtype) -> np.ndarray:
-    """An uninitialised (n,) array whose data start on a 4 KiB boundary (usable in place by a CPU device)."""
-    dtype = np.dtype(dtype)
-    raw = np.empty(n * dtype.itemsize + 4096, np.uint8)
-    k = -raw.ctypes.data % 4096
-    return raw[k : k + n * dtype.itemsize].view(dtype)
 
 
 # ---- public entry points ------------------------------------------------------------------------------------------

@@ -25,8 +25,6 @@ from ..io.atomic import atomic_path
 from .coverage import Tile
 from .layers import RUNS_LEVEL, HeightMap, RunLayer, encode_png, run_groups
 from .png import PngEncoder, encode_all
-from .png_procs import encode_group as encode_procs
-from .png_procs import process_pool, threads_for
 from .spec import RasterSpec
 
 __all__ = ["SL1Info", "config_ini", "prusaslicer_ini", "read_sl1_config", "write_sl1", "info_from",
@@ -264,6 +262,9 @@ def write_sl1(
             png = encode_png(item, enc)
             c = enc.z.compressobj(1, enc.z.DEFLATED, -15)
             return png, c.compress(png) + c.flush()
+
+        from .png_procs import encode_group as encode_procs
+        from .png_procs import process_pool, threads_for
 
         pool = process_pool(workers or os.cpu_count()) if level == RUNS_LEVEL else None
 

@@ -13,19 +13,34 @@ constructors straight from the flat arrays (no Python work per point, none per l
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
 from ..ragged import expand_ranges
 
-if TYPE_CHECKING:
-    from .result import SliceResult
-
-__all__ = ["polygon_rings", "polygons_shapely", "open_chains_shapely"]
+__all__ = ["Contours", "polygon_rings", "polygons_shapely", "open_chains_shapely"]
 
 
-def _coords(result: SliceResult, loops: np.ndarray, counts: np.ndarray, p0: int, p1: int, contiguous: bool):
+class Contours(Protocol):
+    """The columnar contours these functions read (and :mod:`.plotting`'s): a
+    :class:`~gpuslice.slicing.result.SliceResult` has them (layout in its module docstring). Declared here rather
+    than imported, so the result's methods may call these functions without an import circle."""
+
+    points: np.ndarray
+    loop_offsets: np.ndarray
+    layer_offsets: np.ndarray
+    loop_layer: np.ndarray
+    loop_is_hole: np.ndarray
+    loop_parent: np.ndarray
+    loop_closed: np.ndarray
+    z: np.ndarray
+
+    @property
+    def n_layers(self) -> int: ...
+
+
+def _coords(result: Contours, loops: np.ndarray, counts: np.ndarray, p0: int, p1: int, contiguous: bool):
     """float64 (N, 2) points of ``loops`` in order, and the ring number of each point."""
     ring_of_point = np.repeat(np.arange(loops.size, dtype=np.int64), counts)
     if contiguous:  # every point of the range, in order: no gather
@@ -34,7 +49,7 @@ def _coords(result: SliceResult, loops: np.ndarray, counts: np.ndarray, p0: int,
     return np.asarray(result.points, dtype=np.float64)[idx], ring_of_point
 
 
-def polygon_rings(result: SliceResult, start: int = 0, stop: int | None = None):
+def polygon_rings(result: Contours, start: int = 0, stop: int | None = None):
     """The rings of the polygons of layers ``start .. stop - 1``, polygon by polygon, each shell before its holes.
 
     Returns ``(rings, ring_poly, poly_layer)``: ``rings`` (K,) int64 loop indices into ``result``; ``ring_poly``
@@ -73,7 +88,7 @@ def polygon_rings(result: SliceResult, start: int = 0, stop: int | None = None):
     return kept + r0, poly[kept], poly_layer
 
 
-def polygons_shapely(result: SliceResult, start: int = 0, stop: int | None = None) -> np.ndarray:
+def polygons_shapely(result: Contours, start: int = 0, stop: int | None = None) -> np.ndarray:
     """Layers ``start .. stop - 1`` of ``result`` as an (n,) object array of shapely ``MultiPolygon`` (mm).
 
     Outer loops are shells, their holes interiors, in the result's orientation (shells CCW, holes CW). Built with
@@ -127,7 +142,7 @@ def _as_multipolygon(geom):
     return shapely.MultiPolygon(parts)
 
 
-def open_chains_shapely(result: SliceResult, start: int = 0, stop: int | None = None) -> np.ndarray:
+def open_chains_shapely(result: Contours, start: int = 0, stop: int | None = None) -> np.ndarray:
     """Open chains of layers ``start .. stop - 1`` as an (n,) object array of shapely ``MultiLineString`` (mm),
     empty where a layer has none; chains run in the result's direction (material on their left)."""
     import shapely

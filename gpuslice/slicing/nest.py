@@ -25,7 +25,7 @@ import numpy as np
 from ..errors import ParameterError
 from ..ragged import expand_ranges
 from .chain import Loops
-from .rings import Nested, _as_complex, _polygons, signed_areas
+from .rings import Nested, _as_complex, _polygons, filled, signed_areas
 
 __all__ = ["FILL_RULES", "Nested", "signed_areas", "nest_loops"]
 
@@ -113,12 +113,9 @@ def nest_loops(loops: Loops, n_layers: int, fill_rule: str = "nonzero") -> Neste
                                                                                   closed & (s != 0), q)
     w_out = np.bincount(ci, weights=s[cj], minlength=n).astype(np.int64)
     depth = np.bincount(ci, minlength=n)
-    if fill_rule == "nonzero":
-        out_f, in_f = w_out != 0, (w_out + s) != 0
-    elif fill_rule == "positive":
-        out_f, in_f = w_out > 0, (w_out + s) > 0
-    else:
-        out_f, in_f = depth % 2 == 1, depth % 2 == 0
+    # the fill just outside each loop and just inside it (even-odd: one more loop around the point)
+    count, step = (depth, 1) if fill_rule == "evenodd" else (w_out, s)
+    out_f, in_f = filled(count, fill_rule), filled(count + step, fill_rule)
     boundary = closed & (s != 0) & (out_f != in_f)
     is_hole = boundary & out_f
     is_outer = boundary & in_f

@@ -26,30 +26,12 @@ from __future__ import annotations
 import numpy as np
 
 from ..ragged import expand_ranges
-from .rings import Nested, _groups, _min_labels, _ring_points, _winding_numbers, signed_areas
+from .rings import Nested, _groups, _min_labels, _ring_points, _winding_numbers, cycle_labels, filled, signed_areas
 
 __all__ = ["resolve_overlaps"]
 
 _GAP = 1e-9  # rad: the smallest angle between two edges leaving a node that the arrangement path orders itself
 _REL = 1e-12  # relative size of a shoelace sum below which its sign is left to GEOS
-
-
-def _filled(w: np.ndarray, fill_rule: str) -> np.ndarray:
-    if fill_rule == "nonzero":
-        return w != 0
-    if fill_rule == "positive":
-        return w > 0
-    return w % 2 != 0
-
-
-def _cycle_labels(nxt: np.ndarray) -> np.ndarray:
-    """The smallest member of each element's cycle of the permutation ``nxt`` (pointer jumping)."""
-    lab = np.arange(nxt.size)
-    p = nxt.copy()
-    for _ in range(max(1, int(nxt.size).bit_length())):
-        lab = np.minimum(lab, lab[p])
-        p = p[p]
-    return lab
 
 
 class _Noded:
@@ -166,7 +148,7 @@ def _arrangement(ne, rz, roff, loop_g, lid, n_groups, pc, offsets, lo, hi, fill_
     nxt = np.empty(o.size, dtype=np.int64)
     nxt[o ^ 1] = o[first + (rank - 1) % size]  # arriving along o's twin: leave by the first edge clockwise
     # faces: the cycles of nxt, their signed areas (x2), and the components (loops joined at their crossings)
-    cyc, h_cyc = np.unique(_cycle_labels(nxt), return_inverse=True)
+    cyc, h_cyc = np.unique(cycle_labels(nxt), return_inverse=True)
     cr = np.zeros(z.size)
     cr[:-1] = (z[:-1].conj() * z[1:]).imag
     cr[ee] = 0.0
@@ -216,10 +198,10 @@ def _arrangement(ne, rz, roff, loop_g, lid, n_groups, pc, offsets, lo, hi, fill_
     bad[piece_g[~known[left] | ~known[right] | (w[left] - w[right] != 1)]] = True
     # the region's boundary: pieces whose sides differ, kept with the filled side on the left, linked at the nodes
     # to the first boundary edge clockwise
-    filled = _filled(w, fill_rule)
-    boundary = np.flatnonzero(filled[left] != filled[right])
+    fill = filled(w, fill_rule)
+    boundary = np.flatnonzero(fill[left] != fill[right])
     reg = np.zeros(o.size, dtype=bool)
-    reg[2 * boundary + np.where(filled[left[boundary]], 0, 1)] = True
+    reg[2 * boundary + np.where(fill[left[boundary]], 0, 1)] = True
     arrive = reg[o ^ 1]
     found = np.full(o.size, -1, dtype=np.int64)
     for step in range(1, int(size.max()) if size.size else 1):
@@ -348,7 +330,7 @@ def _geos_region(noded, ids, pc, offsets, lo, hi, fill_rule):
     near = (lo[pj, 0] <= rx[pi]) & (rx[pi] <= hi[pj, 0]) & (lo[pj, 1] <= ry[pi]) & (ry[pi] <= hi[pj, 1])
     pi, pj = pi[near], pj[near]  # a loop winds 0 times around a point outside its box
     w = np.bincount(pi, weights=_winding_numbers(pc, offsets, pi, pj, q), minlength=faces.size)
-    kept = faces[_filled(np.rint(w).astype(np.int64), fill_rule)]
+    kept = faces[filled(np.rint(w).astype(np.int64), fill_rule)]
     if not kept.size:
         return shapely.Polygon()
     try:  # the faces of a polygonized arrangement are a coverage: their union is their outline (faster)

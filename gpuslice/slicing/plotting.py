@@ -9,20 +9,18 @@ Open chains (broken meshes only) are drawn as red lines, never filled. Axes are 
 from __future__ import annotations
 
 from collections.abc import Iterable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from ..errors import ParameterError
 from ..ragged import expand_ranges
-
-if TYPE_CHECKING:
-    from .result import SliceResult
+from .geometry import Contours
 
 __all__ = ["plot_layers"]
 
 
-def _closed_path(result: SliceResult, loops: np.ndarray):
+def _closed_path(result: Contours, loops: np.ndarray):
     """A matplotlib ``Path`` of the closed ``loops`` (each with ≥ 2 points), or ``None`` if there are none."""
     from matplotlib.path import Path
 
@@ -48,7 +46,7 @@ def _closed_path(result: SliceResult, loops: np.ndarray):
 
 
 def plot_layers(
-    result: SliceResult,
+    result: Contours,
     layers: int | Iterable[int] | None = None,
     ax: Any = None,
     *,

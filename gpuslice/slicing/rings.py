@@ -10,7 +10,7 @@ import numpy as np
 
 from ..ragged import expand_ranges
 
-__all__ = ["Nested", "signed_areas"]
+__all__ = ["Nested", "signed_areas", "filled", "cycle_labels"]
 
 
 @dataclass
@@ -205,3 +205,23 @@ def _polygons(points: np.ndarray, offsets: np.ndarray, ids: np.ndarray, pc: np.n
     ring, ring_off = _ring_points(points, offsets, ids, pc)
     coords = ring.view(np.float64).reshape(-1, 2)
     return shapely.from_ragged_array(shapely.GeometryType.POLYGON, coords, (ring_off, np.arange(ids.size + 1)))
+
+
+def filled(w: np.ndarray, fill_rule: str) -> np.ndarray:
+    """Where the fill rule fills, given ``w``: the winding number (``nonzero``, ``positive``) or any count of the
+    same parity as the loops around the point (``evenodd``)."""
+    if fill_rule == "nonzero":
+        return w != 0
+    if fill_rule == "positive":
+        return w > 0
+    return w % 2 != 0
+
+
+def cycle_labels(nxt: np.ndarray) -> np.ndarray:
+    """The smallest member of each element's cycle of the permutation ``nxt`` (pointer jumping)."""
+    lab = np.arange(nxt.size)
+    p = nxt.copy()
+    for _ in range(max(1, int(nxt.size).bit_length())):
+        lab = np.minimum(lab, lab[p])
+        p = p[p]
+    return lab
