@@ -93,3 +93,50 @@ def test_console_script_prints_no_traceback(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "gpuslice.cli", "slice", str(bad)], capture_output=True, text=True)
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr and proc.stderr.count("\n") == 1 and str(bad) in proc.stderr
+
+
+@pytest.mark.parametrize("slow_exit", ["", "1"])
+def test_console_script_exit_keeps_output_and_status(torus, tmp_path, slow_exit):
+    """The command ends without the interpreter's teardown (``exit_now``) unless GPUSLICE_SLOW_EXIT is set: either
+    way everything printed reaches the pipe, the file is complete and the status is the command's."""
+    out = tmp_path / "t.npz"
+    env = {**__import__("os").environ, "GPUSLICE_SLOW_EXIT": slow_exit}
+    proc = subprocess.run([sys.executable, "-m", "gpuslice.cli", "slice", str(torus), "-t", "0.5", "--fit", "20", "-o",
+                           str(out), "--report", str(tmp_path / "r.json")], capture_output=True, text=True, env=env)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.rstrip().endswith(f"wrote {out}") and "times (ms)" in proc.stdout
+    ref = tmp_path / "ref.npz"
+    assert main(["slice", str(torus), "-t", "0.5", "--fit", "20", "-o", str(ref), "-q"]) == 0
+    got, want = SliceResult.load(out), SliceResult.load(ref)
+    assert got.n_layers == want.n_layers > 5
+    np.testing.assert_array_equal(got.points, want.points)
+    assert json.loads((tmp_path / "r.json").read_text())["timings_s"]
+    proc = subprocess.run([sys.executable, "-m", "gpuslice.cli", "slice", str(tmp_path / "none.stl")],
+                          capture_output=True, text=True, env=env)
+    assert proc.returncode == 2 and "none.stl" in proc.stderr
+
+
+def test_exit_now_waits_for_threads_and_hooks(monkeypatch):
+    import threading
+
+    cli_main = sys.modules["gpuslice.cli.main"]  # the module (the package's ``main`` is the function)
+    monkeypatch.delenv("GPUSLICE_SLOW_EXIT", raising=False)
+    monkeypatch.setattr(sys, "modules", {k: v for k, v in sys.modules.items() if k not in ("coverage", "distributed",
+                                                                                          "dask.distributed")})
+    monkeypatch.setattr(sys, "gettrace", lambda: None)
+    monkeypatch.setattr(sys, "getprofile", lambda: None)
+    assert cli_main._nothing_pending()
+    stop = threading.Event()
+    worker = threading.Thread(target=stop.wait)  # not a daemon: the interpreter would wait for it
+    worker.start()
+    try:
+        assert not cli_main._nothing_pending()
+    finally:
+        stop.set()
+        worker.join()
+    assert cli_main._nothing_pending()
+    monkeypatch.setenv("GPUSLICE_SLOW_EXIT", "1")
+    assert not cli_main._nothing_pending()
+    monkeypatch.delenv("GPUSLICE_SLOW_EXIT")
+    monkeypatch.setitem(sys.modules, "distributed", object())
+    assert not cli_main._nothing_pending()

@@ -43,3 +43,30 @@ def test_slice_mesh_of_a_path_welds_on_the_slicing_device(device, tmp_path, monk
     seen.clear()
     slice_mesh(stl, thickness=0.5, backend="numpy")
     assert seen == [None]  # the numpy backend has no device
+
+
+def test_kernels_load_from_the_binary_cache_as_built_from_source(device, tmp_path, monkeypatch):
+    """The program comes from PyOpenCL's binary cache (once built anywhere, later builds are cache hits); a source
+    build (``PYOPENCL_NO_CACHE=1``) holds the same kernels. (Every kernel-twin test runs the cached binary.)"""
+    import pyopencl.cache as pcache
+
+    from gpuslice import device as devmod
+
+    hits = []
+    real = pcache.create_built_program_from_source_cached
+
+    def spy(*args, **kwargs):
+        prg, cached = real(*args, **kwargs)
+        hits.append(cached)
+        return prg, cached
+
+    monkeypatch.setattr(pcache, "create_built_program_from_source_cached", spy)
+    build = devmod._build.__wrapped__
+    build(device, device.local_size)  # a miss only on a machine that never built these kernels
+    cached = build(device, device.local_size)
+    assert len(hits) == 2 and hits[1] is True
+    monkeypatch.setenv("PYOPENCL_NO_CACHE", "1")
+    source = build(device, device.local_size)
+    assert len(hits) == 2  # not asked this time
+    names = sorted(k.function_name for k in cached.all_kernels())
+    assert names == sorted(k.function_name for k in source.all_kernels()) and "emit_segments" in names
