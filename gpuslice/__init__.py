@@ -3,6 +3,8 @@
 Importing the package is cheap: pyopencl, trimesh and moderngl are imported only when a function needs them.
 """
 
+from typing import TYPE_CHECKING
+
 from .errors import (
     DeviceError,
     EmptyMeshError,
@@ -11,13 +13,18 @@ from .errors import (
     MeshFileError,
     ParameterError,
 )
-from .mesh.defects import MESH_REPAIR_KINDS, mesh_repairs
-from .mesh.mesh import Mesh, Placement, load_mesh, mesh_from_arrays, mesh_from_triangles
-from .schedule.adaptive import AdaptiveSchedule, adaptive_schedule, cusp_schedule
-from .schedule.uniform import Schedule, from_z, uniform
-from .slicing.params import SliceParams
-from .slicing.result import LayerView, SliceResult
-from .slicing.slicer import roi_schedule, slice_mesh
+
+if TYPE_CHECKING:  # imported on first use (below): `import gpuslice` does not import numpy
+    from .batch.options import BatchOptions
+    from .batch.runner import run_batch
+    from .bench.quality import cusp_summary, schedule_quality, volume_deviation
+    from .mesh.defects import MESH_REPAIR_KINDS, mesh_repairs
+    from .mesh.mesh import Mesh, Placement, load_mesh, mesh_from_arrays, mesh_from_triangles
+    from .schedule.adaptive import AdaptiveSchedule, adaptive_schedule, cusp_schedule
+    from .schedule.uniform import Schedule, from_z, uniform
+    from .slicing.params import SliceParams
+    from .slicing.result import LayerView, SliceResult
+    from .slicing.slicer import roi_schedule, slice_mesh
 
 __version__ = "0.1.0"
 
@@ -54,9 +61,28 @@ __all__ = [
     "volume_deviation",
 ]
 
-# heavier modules, imported on first use (the bench ones pull in bench/runner.py, statistics, csv: not needed by
-# `gpuslice slice`)
+# every public name but the errors lives in a module imported on first use: the package itself imports no numpy,
+# so the command line can configure the process before numpy loads (gpuslice.cli.main.entry); the bench ones pull
+# in bench/runner.py, statistics, csv: not needed by `gpuslice slice`
 _LAZY = {
+    "MESH_REPAIR_KINDS": "mesh.defects",
+    "mesh_repairs": "mesh.defects",
+    "Mesh": "mesh.mesh",
+    "Placement": "mesh.mesh",
+    "load_mesh": "mesh.mesh",
+    "mesh_from_arrays": "mesh.mesh",
+    "mesh_from_triangles": "mesh.mesh",
+    "AdaptiveSchedule": "schedule.adaptive",
+    "adaptive_schedule": "schedule.adaptive",
+    "cusp_schedule": "schedule.adaptive",
+    "Schedule": "schedule.uniform",
+    "from_z": "schedule.uniform",
+    "uniform": "schedule.uniform",
+    "SliceParams": "slicing.params",
+    "LayerView": "slicing.result",
+    "SliceResult": "slicing.result",
+    "roi_schedule": "slicing.slicer",
+    "slice_mesh": "slicing.slicer",
     "BatchOptions": "batch.options",
     "run_batch": "batch.runner",
     "cusp_summary": "bench.quality",
@@ -77,5 +103,11 @@ def __getattr__(name: str):
     if name in _LAZY:
         import importlib
 
-        return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+        value = getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+        globals()[name] = value  # later lookups skip this function
+        return value
     raise AttributeError(f"module 'gpuslice' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__) | set(_SUBPACKAGES))
