@@ -91,8 +91,9 @@ _LAZY = {
 }
 
 
-#: sub-packages reachable as attributes (``gpuslice.formats.export(...)``), imported on first use
-_SUBPACKAGES = ("batch", "bench", "formats", "io", "pipeline", "raster", "view")
+#: sub-packages and modules reachable as attributes (``gpuslice.formats.export(...)``), imported on first use
+_SUBPACKAGES = ("batch", "bench", "checks", "device", "formats", "io", "mesh", "options", "pipeline", "prefetch", "ragged",
+                "raster", "schedule", "slicing", "view")
 
 
 def __getattr__(name: str):

@@ -6,19 +6,23 @@ syntax: ``"P"`` or ``"P:D"`` (platform and device indices as ``gpuslice devices`
 piece of the device or platform name (``"pocl"``, ``"nvidia"``). Nothing here prompts.
 
 Programs are built from ``kernels/*.cl`` (shipped inside the package as ``gpuslice.kernels``) with
-``-D LOCAL_SIZE=…`` and memoised per (context, file, options). Later processes load the program's binary from
-PyOpenCL's on-disk cache (``pyopencl.cache``, keyed by source, options, device and driver) instead of handing the
-source to the driver again: PyOpenCL leaves that to drivers with a source cache of their own, such as PoCL, but
-PoCL's still preprocesses and hashes the whole source each time (≈ 35–45 ms against ≈ 5 ms for the binary).
-``PYOPENCL_NO_CACHE=1`` builds from source every time.
+``-D LOCAL_SIZE=…`` and memoised per (context, file, options). Later processes load the program's binary instead
+of handing the source to the driver again: PyOpenCL leaves caching to drivers with a source cache of their own, such
+as PoCL and NVIDIA's, but PoCL's still preprocesses and hashes the whole source each time (≈ 35–45 ms against ≈ 5 ms
+for the binary). The binaries live in :func:`_cache_dir`, one file per (source, options, device and driver:
+``pyopencl.cache.get_device_cache_id``), written whole or not at all (temporary file + rename) and checked by a
+SHA-256 before use, so a killed process leaves neither a partial binary nor a lock; an unreadable, unwritable or
+refused cache falls back to the source build. ``PYOPENCL_NO_CACHE=1`` builds from source every time.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
 from dataclasses import dataclass
 from functools import cache
 from importlib import resources
+from pathlib import Path
 
 import numpy as np
 
@@ -149,28 +153,85 @@ def release_scratch(device: Device | None = None) -> None:
         pass
 
 
+def _cache_dir() -> Path:
+    """Where built kernel binaries are kept: ``GPUSLICE_CACHE_DIR``, else ``$XDG_CACHE_HOME/gpuslice/kernels``, else
+    ``~/.cache/gpuslice/kernels``."""
+    if os.environ.get("GPUSLICE_CACHE_DIR"):
+        return Path(os.environ["GPUSLICE_CACHE_DIR"])
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "gpuslice" / "kernels"
+
+
+def _cache_off() -> bool:
+    """``PYOPENCL_NO_CACHE`` read as PyOpenCL reads it (a true value: 1, yes, true, on)."""
+    return os.environ.get("PYOPENCL_NO_CACHE", "").strip().lower() in ("1", "yes", "y", "true", "t", "on")
+
+
+def _cache_path(dev: Device, source: str, options: list[str]) -> Path:
+    from pyopencl.cache import get_device_cache_id
+
+    key = repr((get_device_cache_id(dev.device), options, source)).encode()
+    return _cache_dir() / f"{hashlib.sha256(key).hexdigest()}.bin"
+
+
+def _cached_binary(path: Path) -> bytes | None:
+    """The binary stored at ``path`` if it is there whole (its first 32 bytes are the SHA-256 of the rest)."""
+    try:
+        data = path.read_bytes()
+    except OSError:
+        return None
+    return data[32:] if len(data) > 32 and hashlib.sha256(data[32:]).digest() == data[:32] else None
+
+
+def _store_binary(path: Path, prg) -> None:
+    """Keep ``prg``'s binary at ``path`` (written whole or not at all; the oldest entries beyond
+    :data:`CACHE_ENTRIES` removed). Best effort: a cache that cannot be written only costs the next process a build."""
+    import pyopencl as cl
+
+    from .io.atomic import atomic_write_bytes
+
+    try:
+        (binary,) = prg.get_info(cl.program_info.BINARIES)
+        if not binary:
+            return
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(path, hashlib.sha256(binary).digest() + bytes(binary))
+        old = sorted(path.parent.glob("*.bin"), key=lambda f: f.stat().st_mtime)[:-CACHE_ENTRIES]
+        for f in old:
+            f.unlink(missing_ok=True)
+    except Exception:  # noqa: BLE001 - an unwritable or full cache directory, a driver without binaries
+        pass
+
+
+#: built kernel binaries kept in the cache directory (one per kernel-source version, device and local size)
+CACHE_ENTRIES = 16
+
+
 @cache
 def _build(dev: Device, local_size: int):
+    """Every ``kernels/*.cl`` built as one program for ``dev``: from the binary a previous process kept (see the
+    module docstring), else from source (then the binary is kept)."""
     import pyopencl as cl
 
     files = sorted(p for p in resources.files("gpuslice.kernels").iterdir() if p.name.endswith(".cl"))
     source = "\n".join(f"// ---- {p.name}\n{p.read_text()}" for p in files)
     options = [f"-DLOCAL_SIZE={local_size}", "-cl-std=CL1.2", "-cl-fp32-correctly-rounded-divide-sqrt"]
+    path = None if _cache_off() else _cache_path(dev, source, options)
+    binary = _cached_binary(path) if path is not None else None
+    if binary is not None:
+        try:
+            return cl.Program(dev.context, [dev.device], [binary]).build(options=options)
+        except Exception:  # noqa: BLE001 - a binary the driver refuses: built from source below, and kept again
+            pass
     try:
-        if not os.environ.get("PYOPENCL_NO_CACHE"):
-            from pyopencl.cache import create_built_program_from_source_cached
-
-            try:
-                prg, _ = create_built_program_from_source_cached(dev.context, source, " ".join(options).encode(),
-                                                                 [dev.device])
-                return cl.Program(prg)
-            except (OSError, cl.LogicError):  # an unwritable or damaged cache: the driver builds it as before
-                pass
-        return cl.Program(dev.context, source).build(options=options)
+        prg = cl.Program(dev.context, source).build(options=options)
     except cl.RuntimeError as exc:  # pragma: no cover - a broken kernel or driver
         first = str(exc).splitlines()[0]
         names = ", ".join(p.name for p in files)
         raise DeviceError(f"kernels ({names}): OpenCL build failed on {dev.name}: {first}") from None
+    if path is not None:
+        _store_binary(path, prg)
+    return prg
 
 
 def _platforms():

@@ -63,3 +63,12 @@ def test_lazy_public_names_resolve():
             "print(missing, set(gpuslice.__all__) <= set(dir(gpuslice)))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
     assert out.stdout.strip() == "[] True"
+
+
+def test_modules_reachable_as_attributes():
+    """``gpuslice.device.get_device()`` and ``gpuslice.checks.run_checks`` (the README's spellings) work right after
+    ``import gpuslice``."""
+    code = ("import gpuslice\nprint(callable(gpuslice.device.get_device), callable(gpuslice.checks.run_checks), "
+            "gpuslice.slicing.slicer.__name__)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.split() == ["True", "True", "gpuslice.slicing.slicer"]

@@ -46,27 +46,35 @@ def test_slice_mesh_of_a_path_welds_on_the_slicing_device(device, tmp_path, monk
 
 
 def test_kernels_load_from_the_binary_cache_as_built_from_source(device, tmp_path, monkeypatch):
-    """The program comes from PyOpenCL's binary cache (once built anywhere, later builds are cache hits); a source
-    build (``PYOPENCL_NO_CACHE=1``) holds the same kernels. (Every kernel-twin test runs the cached binary.)"""
-    import pyopencl.cache as pcache
-
+    """A build keeps the program's binary (whole, checksummed) and the next build loads it; a truncated or refused
+    binary and an unwritable cache fall back to the source build; PYOPENCL_NO_CACHE=1 neither reads nor writes.
+    (Every kernel-twin test runs the cached binary.)"""
     from gpuslice import device as devmod
 
-    hits = []
-    real = pcache.create_built_program_from_source_cached
-
-    def spy(*args, **kwargs):
-        prg, cached = real(*args, **kwargs)
-        hits.append(cached)
-        return prg, cached
-
-    monkeypatch.setattr(pcache, "create_built_program_from_source_cached", spy)
     build = devmod._build.__wrapped__
-    build(device, device.local_size)  # a miss only on a machine that never built these kernels
-    cached = build(device, device.local_size)
-    assert len(hits) == 2 and hits[1] is True
+    monkeypatch.setenv("GPUSLICE_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.delenv("PYOPENCL_NO_CACHE", raising=False)
+    loaded = []
+    real = devmod._cached_binary
+    monkeypatch.setattr(devmod, "_cached_binary", lambda path: loaded.append(real(path)) or loaded[-1])
+    first = build(device, device.local_size)
+    (entry,) = (tmp_path / "cache").glob("*.bin")
+    assert loaded == [None] and entry.stat().st_size > 1000
+    second = build(device, device.local_size)
+    assert loaded[-1] is not None and len(loaded[-1]) == entry.stat().st_size - 32
+    names = sorted(k.function_name for k in first.all_kernels())
+    assert names == sorted(k.function_name for k in second.all_kernels()) and "emit_segments" in names
+    entry.write_bytes(entry.read_bytes()[:1000])  # a process killed mid-write (cannot happen: temp + rename)
+    third = build(device, device.local_size)
+    assert loaded[-1] is None and sorted(k.function_name for k in third.all_kernels()) == names
+    assert real(entry) is not None  # written whole again
     monkeypatch.setenv("PYOPENCL_NO_CACHE", "1")
-    source = build(device, device.local_size)
-    assert len(hits) == 2  # not asked this time
-    names = sorted(k.function_name for k in cached.all_kernels())
-    assert names == sorted(k.function_name for k in source.all_kernels()) and "emit_segments" in names
+    n = len(loaded)
+    build(device, device.local_size)
+    assert len(loaded) == n
+    monkeypatch.setenv("PYOPENCL_NO_CACHE", "0")  # as PyOpenCL reads it: the cache is on
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    monkeypatch.setenv("GPUSLICE_CACHE_DIR", str(blocker / "sub"))  # cannot be made
+    assert sorted(k.function_name for k in build(device, device.local_size).all_kernels()) == names
+    assert len(loaded) == n + 1 and loaded[-1] is None
