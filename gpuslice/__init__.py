@@ -92,8 +92,8 @@ _LAZY = {
 
 
 #: sub-packages and modules reachable as attributes (``gpuslice.formats.export(...)``), imported on first use
-_SUBPACKAGES = ("batch", "bench", "checks", "device", "formats", "io", "mesh", "options", "pipeline", "prefetch", "ragged",
-                "raster", "schedule", "slicing", "view")
+_SUBPACKAGES = ("batch", "bench", "checks", "device", "formats", "io", "mesh", "options", "pipeline", "prefetch",
+                "ragged", "raster", "schedule", "slicing", "view")
 
 
 def __getattr__(name: str):
