@@ -54,8 +54,9 @@ def _save(fig, stem: Path) -> list[Path]:
                 buf.seek(0)
                 with Image.open(buf) as im:
                     im.convert("RGB").quantize(256).save(tmp, format="PNG", optimize=True)
-            else:
-                fig.savefig(tmp, format=fmt, dpi=dpi, metadata={"Date": None})
+            else:  # fixed element ids (matplotlib's are random unless salted): the same plot, the same bytes
+                with _mpl().rc_context({"svg.hashsalt": "gpuslice"}):
+                    fig.savefig(tmp, format=fmt, dpi=dpi, metadata={"Date": None})
         out.append(path)
     _mpl().close(fig)
     return out

@@ -147,6 +147,7 @@ def batch(inputs, out_dir, pattern, raster_opt, workers, threads, scheduler, tra
         if runner is not None:
             s = runner.report()["summary"]
             click.echo(f"gpuslice: interrupted: {s['done']} done, {s['not_run']} not run", err=True)
+            raise SystemExit(130) from None  # said once, with the counts
         raise
     finally:
         if client is not None:

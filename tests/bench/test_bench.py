@@ -200,3 +200,12 @@ def test_plot_command(sphere_stl, tmp_path, capsys):
     assert (tmp_path / "new" / "sphere_points.png").is_file()
     assert main(["plot", str(sphere_stl), "-t", "0.5", "-o", str(tmp_path / "missing" / "deeper")]) == 2
     assert main(["plot", str(sphere_stl), "-t", "0.5", "-o", str(tmp_path / "sphere_points.png")]) == 2
+
+
+def test_plot_svg_is_reproducible(sphere_stl, tmp_path):
+    """The same plot twice gives the same SVG bytes (matplotlib's element ids are salted, not random)."""
+    pytest.importorskip("matplotlib")
+    for d in ("a", "b"):
+        assert main(["plot", str(sphere_stl), "-t", "0.5", "-o", str(tmp_path / d), "--layers", "3"]) == 0
+    svg = sorted(p.name for p in (tmp_path / "a").glob("*.svg"))
+    assert svg and all((tmp_path / "a" / n).read_bytes() == (tmp_path / "b" / n).read_bytes() for n in svg)
