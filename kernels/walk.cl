@@ -22,12 +22,13 @@ void edge_ranges(__global const int *vub, __global const int *edge_vertices, con
 }
 
 // Per segment: its start and end slot; record the segment starting at each slot and count the segments ending
-// there (a second start or end at one slot sets `conflict`: the driver then pairs on the host); count per layer.
+// there (a second start or end at one slot sets `conflict`: the driver then pairs on the host); with
+// `count_layers`, count the segments per layer (else the driver knows the counts: one atomic less per segment).
 __kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
 void place_segments(__global const int *seg_layer, __global const int2 *seg_edges, const int n_segments,
                     __global const int *k0, __global const int *edge_off,
                     __global int *starter, __global int *n_enders, __global int *end_slot,
-                    __global int *layer_count, __global int *conflict) {
+                    __global int *layer_count, __global int *conflict, const int count_layers) {
     const int s = get_global_id(0);
     if (s >= n_segments) return;
     const int k = seg_layer[s];
@@ -37,72 +38,110 @@ void place_segments(__global const int *seg_layer, __global const int2 *seg_edge
     end_slot[s] = b;
     if (atomic_xchg(&starter[a], s) != -1) atomic_or(conflict, 1);
     if (atomic_inc(&n_enders[b]) != 0) atomic_or(conflict, 1);
-    atomic_inc(&layer_count[k]);
+    if (count_layers) atomic_inc(&layer_count[k]);
 }
 
-// Per segment: its successor, the predecessor flag of that successor, and its place in its layer's list.
+// Per segment: its successor and its place in its layer's list. A segment without successor (an open chain: the
+// driver repairs those on the host) or a layer with more segments than its range holds (the driver's counts were
+// wrong) sets `conflict`; without either, every chain is a closed loop (no slot has two starts or two ends).
 __kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
 void link_segments(__global const int *seg_layer, __global const int *end_slot, const int n_segments,
                    __global const int *starter, __global const long *layer_off, __global int *layer_fill,
-                   __global int *next, __global uchar *has_prev, __global int *perm) {
+                   __global int *next, __global int *perm, __global int *conflict) {
     const int s = get_global_id(0);
     if (s >= n_segments) return;
     const int t = starter[end_slot[s]];
     next[s] = t;
-    if (t >= 0) has_prev[t] = 1;
+    if (t < 0) atomic_or(conflict, 4);
     const int k = seg_layer[s];
-    perm[layer_off[k] + atomic_inc(&layer_fill[k])] = s;
+    const long at = layer_off[k] + atomic_inc(&layer_fill[k]);
+    if (at < layer_off[k + 1]) perm[at] = s;
+    else atomic_or(conflict, 2);
 }
 
 // One work-item per layer: walk the chains of the segments listed in perm[layer_off[k] .. layer_off[k + 1]),
 // writing them to the same range of `order`; start_flag marks each chain's first position (1: open chain,
-// 2: closed loop; zeroed by the driver). Open chains are walked from their heads first; each closed loop is
-// walked twice, once to find its smallest segment and once from there.
-__kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
-void walk_layers(__global const int *next, __global const uchar *has_prev, __global const int *perm,
-                 __global const long *layer_off, const int n_layers,
-                 __global uchar *visited, __global int *order, __global uchar *start_flag) {
-    const int k = get_global_id(0);
-    if (k >= n_layers) return;
-    const long a = layer_off[k], b = layer_off[k + 1];
-    long out = a;
-    for (long i = a; i < b; ++i) {            // open chains, from their heads
-        int s = perm[i];
-        if (has_prev[s]) continue;
-        start_flag[out] = 1;
-        while (s >= 0 && !visited[s]) {
-            visited[s] = 1;
-            order[out++] = s;
-            s = next[s];
-        }
-    }
-    for (long i = a; i < b; ++i) {            // closed loops, from their smallest segment
-        const int s0 = perm[i];
-        if (visited[s0]) continue;
-        int m = s0;
-        for (int s = next[s0]; s != s0; s = next[s]) m = min(m, s);
-        start_flag[out] = 2;
-        int s = m;
-        do {
-            visited[s] = 1;
-            order[out++] = s;
-            s = next[s];
-        } while (s != m);
+// 2: closed loop; zeroed by the driver). Open chains are walked from their heads first; each closed loop is walked
+// once from the first of its segments met in the list, then rotated in place to start at its smallest segment.
+// Nothing is walked when `conflict` is set (the successors or the lists may be inconsistent: the driver then
+// chains on the host). With `gather` (segments left on the device by the crossings kernel and linked by
+// link_segments, so every chain is closed and has_prev is not read; seg_points: x0, y0, x1, y1 each) the walk
+// also writes every position's segment start point to `out` (x, y) and whether that segment has zero length (starts
+// where it ends: the host drops its point, as the numpy path does) to `zero_length`.
+inline void walk_put(__global int *order, __global const float *seg_points, __global float *out,
+                     __global uchar *zero_length, const int gather, const long at, const int s) {
+    order[at] = s;
+    if (gather) {
+        __global const float *q = seg_points + 4 * (long)s;
+        const float x = q[0], y = q[1];
+        out[2 * at] = x;
+        out[2 * at + 1] = y;
+        zero_length[at] = x == q[2] && y == q[3];
     }
 }
 
-// Per position i of the chain order: the start point of segment order[i], and whether that segment has zero
-// length (starts where it ends: the host drops its point, as the numpy path does).
-__kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
-void gather_starts(__global const int *order, __global const float *seg_points, const int n,
-                   __global float *out, __global uchar *zero_length) {
-    const int i = get_global_id(0);
-    if (i >= n) return;
-    __global const float *s = seg_points + 4 * (long)order[i];  // x0, y0, x1, y1
-    const float x = s[0], y = s[1];
-    out[2 * (long)i] = x;
-    out[2 * (long)i + 1] = y;
-    zero_length[i] = x == s[2] && y == s[3];
+// reverse positions [i, j) of what walk_put wrote
+inline void walk_reverse(__global int *order, __global float *out, __global uchar *zero_length, const int gather,
+                         long i, long j) {
+    for (--j; i < j; ++i, --j) {
+        const int t = order[i];
+        order[i] = order[j];
+        order[j] = t;
+        if (gather) {
+            const float x = out[2 * i], y = out[2 * i + 1];
+            out[2 * i] = out[2 * j];
+            out[2 * i + 1] = out[2 * j + 1];
+            out[2 * j] = x;
+            out[2 * j + 1] = y;
+            const uchar z = zero_length[i];
+            zero_length[i] = zero_length[j];
+            zero_length[j] = z;
+        }
+    }
+}
+
+__kernel
+void walk_layers(__global const int *next, __global const uchar *has_prev, __global const int *perm,
+                 __global const long *layer_off, const int n_layers,
+                 __global uchar *visited, __global int *order, __global uchar *start_flag,
+                 const int gather, __global const float *seg_points, __global float *out,
+                 __global uchar *zero_length, __global const int *conflict) {
+    const int k = get_global_id(0);
+    if (k >= n_layers || conflict[0]) return;
+    const long a = layer_off[k], b = layer_off[k + 1];
+    long at = a;
+    for (long i = a; i < b && !gather; ++i) {  // open chains, from their heads
+        int s = perm[i];
+        if (has_prev[s]) continue;
+        start_flag[at] = 1;
+        while (s >= 0 && !visited[s]) {
+            visited[s] = 1;
+            walk_put(order, seg_points, out, zero_length, gather, at++, s);
+            s = next[s];
+        }
+    }
+    for (long i = a; i < b && at < b; ++i) {  // closed loops, from their smallest segment (until all are placed)
+        const int s0 = perm[i];
+        if (visited[s0]) continue;
+        const long first = at;
+        long smallest = at;
+        int m = s0, s = s0;
+        do {
+            visited[s] = 1;
+            if (s < m) {
+                m = s;
+                smallest = at;
+            }
+            walk_put(order, seg_points, out, zero_length, gather, at++, s);
+            s = next[s];
+        } while (s != s0);
+        start_flag[first] = 2;
+        if (smallest != first) {  // rotate [first, at) left to start at the smallest: three reversals
+            walk_reverse(order, out, zero_length, gather, first, smallest);
+            walk_reverse(order, out, zero_length, gather, smallest, at);
+            walk_reverse(order, out, zero_length, gather, first, at);
+        }
+    }
 }
 
 // ---- A screen for simple loops (nesting's self-crossing test runs GEOS only on the loops this cannot clear) ----
@@ -116,7 +155,7 @@ void gather_starts(__global const int *order, __global const float *seg_points, 
 // same side of it (their x difference is linear between consecutive vertices). Orientations are float64 with an
 // error bound (1e-12 relative, far above the rounding of the products), so a cleared loop is simple in exact
 // arithmetic. Needs cl_khr_fp64; without it the kernel is absent and nesting tests every loop with GEOS.
-// Points are read as scalars, here and in gather_starts: vector swizzles crash Oclgrind 21.10's
+// Points are read as scalars, here and in walk_layers: vector swizzles crash Oclgrind 21.10's
 // uninitialised-value plugin (tests/kernels/test_oclgrind.py).
 #if defined(cl_khr_fp64)
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
@@ -156,41 +195,70 @@ inline int chain_lower_bound(__global const float *p, long n, int swap, long s, 
     return lo;
 }
 
-// every vertex of chain A strictly inside B's range, or on its ends but not shared with B, against B's edges:
-// accumulates the side (+1 / -1 times `flip`; 0: none yet) and returns it, or SIDE_FAIL when a vertex is on B or
-// the sides disagree
+// the next vertex index along a chain (up: increasing loop index), wrapping around the loop
+inline long chain_step(long i, int up, long n) {
+    i += up ? 1 : -1;
+    return i == n ? 0 : (i < 0 ? n - 1 : i);
+}
+
+// chains A and B (ranges overlapping) apart: one merge of their vertices in sweep order over the common range,
+// each vertex tested against the other chain's edge across it. Every tested vertex of A must lie strictly on one
+// side of B (+1 left, -1 right) and every tested one of B strictly on the other side of A; a vertex both chains
+// share (their common extreme) is skipped. Returns that side, 0 when no vertex was tested, SIDE_FAIL when a
+// vertex lies on the other chain (or too close to call), when two vertices coincide, or the sides disagree.
 #define SIDE_FAIL 2
-inline int chain_side(__global const float *p, long n, int swap, long sa, int la, int ua, long sb, int lb, int ub,
-                      int flip, int side) {
-    const long b_lo = chain_vertex(sb, lb, ub, 0, n), b_hi = chain_vertex(sb, lb, ub, lb, n);
-    const float2 lo = sweep_point(p, b_lo, swap), hi = sweep_point(p, b_hi, swap);
-    const int k0 = chain_lower_bound(p, n, swap, sa, la, ua, lo);  // A's first vertex in B's range
-    if (k0 > la) return side;
-    // B's edge j runs from its vertex j to j + 1 (increasing): start at the last edge starting at or below A's k0
-    int j = chain_lower_bound(p, n, swap, sb, lb, ub, sweep_point(p, chain_vertex(sa, la, ua, k0, n), swap));
-    j = j > 0 ? j - 1 : 0;
-    j = j < lb - 1 ? j : lb - 1;
-    float2 b0 = sweep_point(p, chain_vertex(sb, lb, ub, j, n), swap);
-    float2 b1 = sweep_point(p, chain_vertex(sb, lb, ub, j + 1, n), swap);
-    for (int k = k0; k <= la; ++k) {
-        const long iv = chain_vertex(sa, la, ua, k, n);
-        if (iv == b_lo || iv == b_hi) continue;  // the vertex adjacent chains share
-        const float2 v = sweep_point(p, iv, swap);
-        if (lex_less(v, lo)) continue;
-        if (lex_less(hi, v)) break;
-        while (lex_less(b1, v) && j < lb - 1) {
-            ++j;
-            b0 = b1;
-            b1 = sweep_point(p, chain_vertex(sb, lb, ub, j + 1, n), swap);
+inline int chain_pair(__global const float *p, long n, int swap, long sa, int la, int ua, long sb, int lb, int ub) {
+    const float2 a_lo = sweep_point(p, chain_vertex(sa, la, ua, 0, n), swap);
+    const float2 a_hi = sweep_point(p, chain_vertex(sa, la, ua, la, n), swap);
+    const float2 b_lo = sweep_point(p, chain_vertex(sb, lb, ub, 0, n), swap);
+    const float2 b_hi = sweep_point(p, chain_vertex(sb, lb, ub, lb, n), swap);
+    const float2 hi = lex_less(a_hi, b_hi) ? a_hi : b_hi;
+    // the first vertex of each in the common range: the chain starting later starts it
+    const int b_later = lex_less(a_lo, b_lo);
+    int ka = b_later ? chain_lower_bound(p, n, swap, sa, la, ua, b_lo) : 0;
+    int kb = b_later ? 0 : chain_lower_bound(p, n, swap, sb, lb, ub, a_lo);
+    long ia = chain_vertex(sa, la, ua, ka <= la ? ka : la, n), ib = chain_vertex(sb, lb, ub, kb <= lb ? kb : lb, n);
+    float2 va = sweep_point(p, ia, swap), vb = sweep_point(p, ib, swap);
+    // the vertex before each: the start of its edge across the other's next vertex (not used before it is set)
+    float2 pa = ka > 0 ? sweep_point(p, chain_vertex(sa, la, ua, ka - 1, n), swap) : va;
+    float2 pb = kb > 0 ? sweep_point(p, chain_vertex(sb, lb, ub, kb - 1, n), swap) : vb;
+    int side = 0;
+    for (;;) {
+        const int a_in = ka <= la && !lex_less(hi, va), b_in = kb <= lb && !lex_less(hi, vb);
+        int take_a = a_in, take_b = b_in;
+        if (a_in && b_in) {
+            if (va.x == vb.x && va.y == vb.y) {
+                if (ia != ib) return SIDE_FAIL;  // two vertices in one place
+            } else {
+                take_a = lex_less(va, vb);
+                take_b = !take_a;
+            }
         }
-        const int o = orient_sign(b0, b1, v) * flip;
-        if (o == 0 || (side != 0 && o != side)) return SIDE_FAIL;
-        side = o;
+        if (!take_a && !take_b) break;
+        if (take_a && !take_b) {  // A's vertex against B's edge pb -> vb
+            const int o = orient_sign(pb, vb, va);
+            if (o == 0 || (side != 0 && o != side)) return SIDE_FAIL;
+            side = o;
+        } else if (take_b && !take_a) {  // B's vertex against A's edge pa -> va, on the other side
+            const int o = -orient_sign(pa, va, vb);
+            if (o == 0 || (side != 0 && o != side)) return SIDE_FAIL;
+            side = o;
+        }
+        if (take_a && ++ka <= la) {
+            pa = va;
+            ia = chain_step(ia, ua, n);
+            va = sweep_point(p, ia, swap);
+        }
+        if (take_b && ++kb <= lb) {
+            pb = vb;
+            ib = chain_step(ib, ub, n);
+            vb = sweep_point(p, ib, swap);
+        }
     }
     return side;
 }
 
-__kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
+__kernel
 void simple_loops(__global const float *points, __global const long *offsets, const int n_loops,
                   __global uchar *simple) {
     const int r = get_global_id(0);
@@ -199,16 +267,27 @@ void simple_loops(__global const float *points, __global const long *offsets, co
     __global const float *p = points + 2 * base;  // x, y interleaved
     simple[r] = 0;
     if (n < 3) return;
-    // count the extremes for both sweep orders; a repeated consecutive point, or one not finite, gives up
+    // count the extremes for both sweep orders (in one pass); a repeated consecutive point, or one not finite,
+    // gives up
     int turns0 = 0, turns1 = 0;
-    for (int swap = 0; swap < 2; ++swap) {
-        int prev = lex_less(sweep_point(p, n - 1, swap), sweep_point(p, 0, swap));
+    {
+        float ax = p[2 * (n - 1)], ay = p[2 * (n - 1) + 1];
+        float bx = p[0], by = p[1];
+        int prev0 = ay < by || (ay == by && ax < bx);
+        int prev1 = ax < bx || (ax == bx && ay < by);
         for (long i = 0; i < n; ++i) {
-            const float2 a = sweep_point(p, i, swap), b = sweep_point(p, i + 1 == n ? 0 : i + 1, swap);
-            if ((a.x == b.x && a.y == b.y) || !isfinite(a.x) || !isfinite(a.y)) return;
-            const int up = lex_less(a, b);
-            if (swap) turns1 += up != prev; else turns0 += up != prev;
-            prev = up;
+            ax = bx;
+            ay = by;
+            const long j = i + 1 == n ? 0 : i + 1;
+            bx = p[2 * j];
+            by = p[2 * j + 1];
+            if ((ax == bx && ay == by) || !isfinite(ax) || !isfinite(ay)) return;
+            const int up0 = ay < by || (ay == by && ax < bx);
+            const int up1 = ax < bx || (ax == bx && ay < by);
+            turns0 += up0 != prev0;
+            turns1 += up1 != prev1;
+            prev0 = up0;
+            prev1 = up1;
         }
     }
     const int swap = turns1 < turns0;
@@ -217,28 +296,41 @@ void simple_loops(__global const float *points, __global const long *offsets, co
     long start[SIMPLE_MAX_CHAINS];
     int len[SIMPLE_MAX_CHAINS], dir[SIMPLE_MAX_CHAINS];
     int c = 0;
-    int prev = lex_less(sweep_point(p, n - 1, swap), sweep_point(p, 0, swap));
-    for (long i = 0; i < n; ++i) {  // chain c starts at an extreme vertex i (the first found at i >= 0)
-        const int up = lex_less(sweep_point(p, i, swap), sweep_point(p, i + 1 == n ? 0 : i + 1, swap));
-        if (up != prev) {
-            start[c] = i;
-            dir[c] = up;
-            ++c;
-        }
-        prev = up;
-    }
     float xmin[SIMPLE_MAX_CHAINS], xmax[SIMPLE_MAX_CHAINS];  // each chain's range across the sweep
+    {
+        // chain c starts at an extreme vertex i (the first found at i >= 0); each chain's range is gathered on
+        // the way (the vertices before the first extreme belong to the last chain)
+        float2 a = sweep_point(p, 0, swap);
+        int prev = lex_less(sweep_point(p, n - 1, swap), a);
+        float x0 = a.x, x1 = a.x, pre0 = a.x, pre1 = a.x;
+        for (long i = 0; i < n; ++i) {
+            const float2 b = sweep_point(p, i + 1 == n ? 0 : i + 1, swap);
+            x0 = fmin(x0, a.x);
+            x1 = fmax(x1, a.x);
+            const int up = lex_less(a, b);
+            if (up != prev) {
+                if (c == 0) {
+                    pre0 = x0;
+                    pre1 = x1;
+                } else {
+                    xmin[c - 1] = x0;
+                    xmax[c - 1] = x1;
+                }
+                start[c] = i;
+                dir[c] = up;
+                ++c;
+                x0 = a.x;
+                x1 = a.x;
+            }
+            prev = up;
+            a = b;
+        }
+        xmin[c - 1] = fmin(x0, pre0);
+        xmax[c - 1] = fmax(x1, pre1);
+    }
     for (int k = 0; k < n_chains; ++k) {
         const long e = start[k + 1 == n_chains ? 0 : k + 1];
         len[k] = (int)(e > start[k] ? e - start[k] : e + n - start[k]);
-        float x0 = INFINITY, x1 = -INFINITY;
-        for (int i = 0; i <= len[k]; ++i) {
-            const float x = sweep_point(p, chain_vertex(start[k], len[k], 1, i, n), swap).x;
-            x0 = fmin(x0, x);
-            x1 = fmax(x1, x);
-        }
-        xmin[k] = x0;
-        xmax[k] = x1;
     }
     for (int a = 0; a < n_chains; ++a) {
         const float2 a_lo = sweep_point(p, chain_vertex(start[a], len[a], dir[a], 0, n), swap);
@@ -248,10 +340,7 @@ void simple_loops(__global const float *points, __global const long *offsets, co
             const float2 b_hi = sweep_point(p, chain_vertex(start[b], len[b], dir[b], len[b], n), swap);
             if (lex_less(a_hi, b_lo) || lex_less(b_hi, a_lo)) continue;  // ranges apart along the sweep
             if (xmax[a] < xmin[b] || xmax[b] < xmin[a]) continue;        // or across it
-            int side = chain_side(p, n, swap, start[a], len[a], dir[a], start[b], len[b], dir[b], 1, 0);
-            if (side == SIDE_FAIL) return;
-            side = chain_side(p, n, swap, start[b], len[b], dir[b], start[a], len[a], dir[a], -1, side);
-            if (side == SIDE_FAIL) return;
+            if (chain_pair(p, n, swap, start[a], len[a], dir[a], start[b], len[b], dir[b]) == SIDE_FAIL) return;
         }
     }
     simple[r] = 1;

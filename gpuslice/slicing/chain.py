@@ -24,6 +24,7 @@ included, as the free ends are all candidates alike). Chains still open are kept
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,16 +40,24 @@ REPAIR_KINDS = ("joined_by_id", "reversed", "gap_closed", "open_chains", "degene
 @dataclass
 class Loops:
     """Chained loops before nesting: ``points`` (P, 2) float32, ``offsets`` (R + 1,) int64, ``layer`` (R,)
-    int32, ``closed`` (R,) bool, per-layer repair counts, and ``simple`` (R,) bool or None: True for the loops
-    the device's screen (``simple_loops`` in ``kernels/walk.cl``) proved simple, so nesting need not test them
-    for self-crossings (None: no screen ran; every loop is tested)."""
+    int32, ``closed`` (R,) bool, per-layer repair counts, and :attr:`simple`. ``screen`` holds the screen's answer,
+    or a callable that waits for it: the device computes it while the host goes on (nesting needs it last)."""
 
     points: np.ndarray
     offsets: np.ndarray
     layer: np.ndarray
     closed: np.ndarray
     repairs: dict[str, np.ndarray] = field(default_factory=dict)
-    simple: np.ndarray | None = None
+    screen: np.ndarray | Callable[[], np.ndarray | None] | None = None
+
+    @property
+    def simple(self) -> np.ndarray | None:
+        """(R,) bool or None: True for the loops the device's screen (``simple_loops`` in ``kernels/walk.cl``)
+        proved simple, so nesting need not test them for self-crossings (None: no screen ran; every loop is
+        tested). Waits for the device the first time, where the screen still runs there."""
+        if callable(self.screen):
+            self.screen = self.screen()
+        return self.screen
 
 
 def edge_slots(mesh: Mesh, zs: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
@@ -137,22 +146,23 @@ def order_chains(nxt: np.ndarray, layer: np.ndarray) -> tuple[np.ndarray, np.nda
     return order, offsets, closed
 
 
-def chain_segments(seg, mesh: Mesh, zs: np.ndarray, n_layers: int, *, max_gap: float = 2.0, device=None) -> Loops:
+def chain_segments(seg, mesh: Mesh, zs: np.ndarray, n_layers: int, *, max_gap: float = 2.0, device=None,
+                   layer_counts: np.ndarray | None = None) -> Loops:
     """Chain the segment buffer into loops (see the module docstring).
 
     ``seg``: :class:`~gpuslice.crossings.Segments` on the host, or ``DeviceSegments`` left on ``device`` by the
     crossings kernel, which are then chained on the device when the mesh allows (no slot shared by several
-    segment ends, no open chain), and fetched and chained on the host otherwise.
+    segment ends, no open chain), and fetched and chained on the host otherwise. ``layer_counts``: optional (L,)
+    number of facets crossing each layer (= its segments), which spares the device counting them.
     """
     chain_layer = None
     gathered = None  # the segments' start points in chain order and their zero-length flags, from the device
     if not isinstance(seg, Segments):
         from .walk import chain_kernels
 
-        done = chain_kernels(device).chain_on_device(seg, mesh, zs, n_layers)
+        done = chain_kernels(device).chain_on_device(seg, mesh, zs, n_layers, layer_counts)
         if done is not None:
-            order, coff, cclosed, chain_layer = done
-            gathered = chain_kernels(device).gather_starts(seg, order)
+            order, coff, cclosed, chain_layer, *gathered = done
         else:
             seg = seg.fetch()
     if chain_layer is None:
@@ -168,11 +178,11 @@ def chain_segments(seg, mesh: Mesh, zs: np.ndarray, n_layers: int, *, max_gap: f
     lengths = np.diff(coff)
     n_chains = lengths.size
     if gathered is not None:  # every chain closed: the points are the segments' starts but for zero-length ones
-        starts, zero_at = gathered
-        offsets, resident = coff, True
+        starts, zero_at, resident = gathered
+        offsets = coff
         if zero_at.any():
             keep = ~zero_at
-            kept = np.bincount(np.repeat(np.arange(n_chains), lengths)[keep], minlength=n_chains)
+            kept = lengths - np.add.reduceat(zero_at.view(np.uint8), coff[:-1], dtype=np.int64)  # chains: >= 1 each
             offsets = np.zeros(n_chains + 1, dtype=np.int64)
             np.cumsum(kept, out=offsets[1:])
             starts, resident = starts[keep], False
@@ -230,17 +240,17 @@ def _finish(points, offsets, chain_layer, cclosed, open_ends, max_gap, n_layers,
         np.add.at(repairs["degenerate_loops"], chain_layer[degenerate], 1)
         keep = ~degenerate
         pt_keep = np.repeat(keep, counts)
-        points = points[pt_keep]
+        points = np.ascontiguousarray(points).view(np.complex64).reshape(-1)[pt_keep].view(np.float32).reshape(-1, 2)
         offsets = np.zeros(int(keep.sum()) + 1, dtype=np.int64)
         np.cumsum(counts[keep], out=offsets[1:])
         chain_layer, cclosed = chain_layer[keep], cclosed[keep]
         resident = False
     np.add.at(repairs["open_chains"], chain_layer[~cclosed], 1)
     simple = None
-    if device is not None:  # the self-crossing screen, while the device is at hand (see Loops)
+    if device is not None:  # the self-crossing screen, left running on the device (see Loops)
         from .walk import chain_kernels
 
-        simple = chain_kernels(device).simple_loops(points, offsets, resident=resident)
+        simple = chain_kernels(device).simple_loops(points, offsets, resident=resident, wait=False)
     return Loops(points, offsets, chain_layer.astype(np.int32), cclosed, repairs, simple)
 
 

@@ -81,9 +81,10 @@ def vertex_layers(mesh: Mesh, zs: np.ndarray) -> np.ndarray:
     return np.searchsorted(zs, mesh.vertices[:, 2], side="right").astype(np.int32)
 
 
-def facet_layer_ranges(mesh: Mesh, zs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(first layer, count) of the layers each facet crosses: layers k with zmin < zs[k] <= zmax."""
-    vl = vertex_layers(mesh, zs)
+def facet_layer_ranges(mesh: Mesh, zs: np.ndarray, vl: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(first layer, count) of the layers each facet crosses: layers k with zmin < zs[k] <= zmax (``vl``: the
+    :func:`vertex_layers`, when at hand)."""
+    vl = vertex_layers(mesh, zs) if vl is None else vl
     a, b, c = (vl[mesh.faces[:, i]] for i in range(3))  # three columns: min(axis=1) on (F, 3) is ~6x slower
     lo = np.minimum(np.minimum(a, b), c)
     return lo, np.maximum(np.maximum(a, b), c) - lo
@@ -138,7 +139,11 @@ class CrossingsKernel(KernelDriver):
         self._count = prg.count_crossings
         self._emit = prg.emit_segments
 
-    def __call__(self, mesh: Mesh, z: np.ndarray, *, read_back: bool = True) -> Segments | DeviceSegments:
+    def __call__(self, mesh: Mesh, z: np.ndarray, *, read_back: bool = True,
+                 layers: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> Segments | DeviceSegments:
+        """The segments of ``mesh`` cut at ``z``; ``layers``: optional (vertex_layers, first layer, count) of the
+        vertices and facets for these planes (:func:`vertex_layers`, :func:`facet_layer_ranges`, int32), when the
+        host has them: uploaded instead of computed here."""
         import pyopencl as cl
 
         q = self.device.queue
@@ -149,13 +154,19 @@ class CrossingsKernel(KernelDriver):
         d_edges = self._put("face_edges", mesh.face_edges)
         d_zs = self._put("zs", zs)
         n_v = int(mesh.vertices.shape[0])
-        d_vub = self._buffer("vub", 4 * n_v)
-        self._vertex(q, *self._grid(n_v), d_verts, np.int32(n_v), d_zs, np.int32(n_l), d_vub)
-        d_first = self._buffer("first", 4 * n_f)
-        d_count = self._buffer("count", 4 * n_f)
-        self._count(q, *self._grid(n_f), d_vub, d_faces, np.int32(n_f), d_first, d_count)
-        count = np.empty(n_f, dtype=np.int32)
-        cl.enqueue_copy(q, count, d_count)
+        if layers is not None:
+            vub, first, count = (np.ascontiguousarray(a, dtype=np.int32) for a in layers)
+            d_vub = self._put("vub", vub)
+            d_first = self._put("first", first)
+            d_count = self._put("count", count)
+        else:
+            d_vub = self._buffer("vub", 4 * n_v)
+            self._vertex(q, *self._grid(n_v), d_verts, np.int32(n_v), d_zs, np.int32(n_l), d_vub)
+            d_first = self._buffer("first", 4 * n_f)
+            d_count = self._buffer("count", 4 * n_f)
+            self._count(q, *self._grid(n_f), d_vub, d_faces, np.int32(n_f), d_first, d_count)
+            count = np.empty(n_f, dtype=np.int32)
+            cl.enqueue_copy(q, count, d_count)
         offsets = np.cumsum(count, dtype=np.int64)
         total = int(offsets[-1]) if n_f else 0
         offsets -= count
@@ -174,11 +185,12 @@ class CrossingsKernel(KernelDriver):
         return dseg.fetch() if read_back else dseg
 
 
-def compute_crossings(mesh: Mesh, z: np.ndarray, device=None, *, read_back: bool = True):
+def compute_crossings(mesh: Mesh, z: np.ndarray, device=None, *, read_back: bool = True, layers=None):
     """All segments of ``mesh`` cut at the planes ``z`` (mm, increasing): on ``device``, or numpy when None.
 
-    With ``read_back=False`` (device only) the segments stay on the device as :class:`DeviceSegments`.
+    With ``read_back=False`` (device only) the segments stay on the device as :class:`DeviceSegments`. ``layers``:
+    see :meth:`CrossingsKernel.__call__` (device only).
     """
     if device is None:
         return crossings_numpy(mesh, z)
-    return CrossingsKernel.of(device)(mesh, z, read_back=read_back)
+    return CrossingsKernel.of(device)(mesh, z, read_back=read_back, layers=layers)

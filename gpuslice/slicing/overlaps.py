@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..ragged import expand_ranges
+from . import rings as _rings
 from .rings import Nested, _groups, _min_labels, _ring_points, _winding_numbers, cycle_labels, filled, signed_areas
 
 __all__ = ["resolve_overlaps"]
@@ -353,7 +354,7 @@ def _regions(points, pc, offsets, groups, lo, hi, fill_rule):
     rz, roff = _ring_points(points, offsets, lid, pc, always_close=True)  # as np.vstack([ring, ring[:1]])
     lines = shapely.from_ragged_array(shapely.GeometryType.MULTILINESTRING, rz.view(np.float64).reshape(-1, 2),
                                       (roff, g_off))
-    noded = shapely.node(lines)
+    noded = _rings.node_lines(lines)  # (GEOS, half of the groups on a second thread when large)
     loop_g = np.repeat(np.arange(per.size), per)
     ok, geoms = _arrangement(_Noded(noded), rz, roff, loop_g, lid, per.size,
                              pc, offsets, lo, hi, fill_rule)
@@ -370,7 +371,8 @@ def _region_rings(regions):
     each ring, is-hole, the ring index of each ring's exterior)."""
     import shapely
 
-    parts, p_reg = shapely.get_parts(shapely.normalize(regions), return_index=True)
+    normal = _rings.in_halves(shapely.normalize, shapely.get_num_coordinates(regions), regions)
+    parts, p_reg = shapely.get_parts(normal, return_index=True)
     real = ~(shapely.is_empty(parts) | (shapely.area(parts) == 0))
     parts, p_reg = shapely.orient_polygons(parts[real], exterior_cw=False), p_reg[real]
     rings, r_poly = shapely.get_rings(parts, return_index=True)
@@ -378,12 +380,13 @@ def _region_rings(regions):
     coords = shapely.get_coordinates(rings)
     off = np.zeros(counts.size + 1, dtype=np.int64)
     np.cumsum(counts, out=off[1:])
-    drop = np.ones(coords.shape[0], dtype=bool)
+    drop = np.ones(coords.shape[0], dtype=bool)  # (applied below to one complex per point: a 1-D mask is ~10x faster)
     drop[off[1:] - 1] = False
     is_hole = np.ones(rings.size, dtype=bool)
     is_hole[np.searchsorted(r_poly, np.arange(parts.size))] = False
     exterior = np.maximum.accumulate(np.where(is_hole, 0, np.arange(rings.size))) if rings.size else r_poly
-    return coords[drop], counts - 1, p_reg[r_poly], is_hole, exterior
+    kept = np.ascontiguousarray(coords).view(np.complex128).reshape(-1)[drop].view(np.float64).reshape(-1, 2)
+    return kept, counts - 1, p_reg[r_poly], is_hole, exterior
 
 
 def _copy_runs(old_pts, old_start, new_pts, new_start, order, counts, offsets) -> np.ndarray:

@@ -4,13 +4,63 @@ takes together, and the loops as rings or shapely polygons. Columnar: points (P,
 
 from __future__ import annotations
 
+from concurrent.futures import Future
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..ragged import expand_ranges
 
-__all__ = ["Nested", "signed_areas", "filled", "cycle_labels"]
+__all__ = ["Nested", "signed_areas", "filled", "cycle_labels", "beside", "in_halves", "node_lines", "move_chains"]
+
+#: points above which nesting runs independent GEOS steps on a second thread (GEOS and numpy release the GIL)
+BESIDE_MIN_POINTS = 100_000
+#: points (coordinates) above which :func:`in_halves` splits a GEOS call over two threads
+HALVES_MIN_POINTS = 20_000
+_WORKER = "gpuslice-nest"
+
+
+def beside(fn, *args) -> Future:
+    """``fn(*args)`` started on a thread of its own; its :class:`Future`. Used for steps independent of what the
+    caller does meanwhile, so that a second core works on them. (A daemon thread per call, ~0.1 ms, rather than a
+    pool: nothing outlives the call's result, a forked child has nothing to rebuild, and an idle pool's threads would
+    keep the command line from ending without the interpreter's teardown: ``gpuslice.cli.main.exit_now``.)"""
+    import threading
+
+    fut: Future = Future()
+
+    def run() -> None:
+        if fut.set_running_or_notify_cancel():
+            try:
+                fut.set_result(fn(*args))
+            except BaseException as exc:  # noqa: BLE001 - handed to whoever waits on the future
+                fut.set_exception(exc)
+
+    threading.Thread(target=run, name=_WORKER, daemon=True).start()
+    return fut
+
+
+def in_halves(fn, work: np.ndarray, *arrays: np.ndarray) -> np.ndarray:
+    """``fn(*arrays)`` for a function of arrays element by element (a shapely predicate or constructor): its first
+    half (cut where the cumulative ``work``, e.g. each element's points, reaches half) :func:`beside` the second,
+    concatenated, when the work is large (else, or on the worker thread itself, one call)."""
+    import threading
+
+    total = np.cumsum(work)
+    n = int(total.size)
+    if n < 2 or total[-1] < HALVES_MIN_POINTS or threading.current_thread().name.startswith(_WORKER):
+        return fn(*arrays)
+    half = max(1, min(int(np.searchsorted(total, total[-1] / 2)), n - 1))
+    first = beside(fn, *(x[:half] for x in arrays))
+    rest = fn(*(x[half:] for x in arrays))
+    return np.concatenate([first.result(), rest])
+
+
+def node_lines(lines: np.ndarray) -> np.ndarray:
+    """``shapely.node`` of each geometry of ``lines`` (noded one by one): :func:`in_halves`."""
+    import shapely
+
+    return in_halves(shapely.node, shapely.get_num_coordinates(lines), lines)
 
 
 @dataclass
@@ -196,15 +246,38 @@ def _ring_points(points: np.ndarray, offsets: np.ndarray, ids: np.ndarray, pc: n
     return ring, ring_off
 
 
+def move_chains(src_start: np.ndarray, offsets: np.ndarray, arrays: tuple) -> list[np.ndarray]:
+    """``arrays`` with the chain that starts at ``src_start[c]`` moved to ``offsets[c]`` (chains in their new order).
+    Chains that follow each other in both orders move as one run: the walk leaves most in place, so the runs are
+    few and are copied as slices (a per-point index only when they are many)."""
+    n = int(offsets[-1])
+    brk = np.ones(src_start.size, dtype=bool)
+    brk[1:] = src_start[1:] != src_start[:-1] + np.diff(offsets[:-1])
+    runs = np.flatnonzero(brk)
+    dst = offsets[:-1][runs]
+    length = np.diff(np.append(dst, n))
+    if runs.size > 4096:  # many runs: one gather by a per-point index instead of a slice copy each
+        src = np.arange(n, dtype=np.int64) + np.repeat(src_start[runs] - dst, length)
+        return [x[src] for x in arrays]
+    out = [np.empty((n, *x.shape[1:]), dtype=x.dtype) for x in arrays]
+    for s, d, m in zip(src_start[runs].tolist(), dst.tolist(), length.tolist(), strict=True):
+        for x, y in zip(arrays, out, strict=True):
+            y[d : d + m] = x[s : s + m]
+    return out
+
+
 def _polygons(points: np.ndarray, offsets: np.ndarray, ids: np.ndarray, pc: np.ndarray | None = None) -> np.ndarray:
     """Shapely polygons (no holes) of loops ``ids``, each ring closed by repeating its first point (float64 of the
-    float32 points; the same geometry as ``shapely.polygons(shapely.linearrings(...))``, made about 3x faster).
-    ``pc``: all the points as complex128, when at hand."""
+    float32 points; the same geometry as ``shapely.polygons(shapely.linearrings(...))``, made about 3x faster; in
+    halves on two threads when large, :func:`in_halves`). ``pc``: all the points as complex128, when at hand."""
     import shapely
 
-    ring, ring_off = _ring_points(points, offsets, ids, pc)
-    coords = ring.view(np.float64).reshape(-1, 2)
-    return shapely.from_ragged_array(shapely.GeometryType.POLYGON, coords, (ring_off, np.arange(ids.size + 1)))
+    def make(ids: np.ndarray) -> np.ndarray:
+        ring, ring_off = _ring_points(points, offsets, ids, pc)
+        coords = ring.view(np.float64).reshape(-1, 2)
+        return shapely.from_ragged_array(shapely.GeometryType.POLYGON, coords, (ring_off, np.arange(ids.size + 1)))
+
+    return in_halves(make, np.diff(offsets)[ids], ids)
 
 
 def filled(w: np.ndarray, fill_rule: str) -> np.ndarray:

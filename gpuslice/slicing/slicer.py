@@ -18,7 +18,7 @@ from ..prefetch import prefetch
 from ..schedule.adaptive import AdaptiveSchedule
 from ..schedule.uniform import Schedule, from_z, uniform
 from .chain import REPAIR_KINDS, chain_segments
-from .crossings import _planes32, compute_crossings, facet_layer_ranges
+from .crossings import _planes32, compute_crossings, facet_layer_ranges, vertex_layers
 from .nest import nest_loops
 from .params import SliceParams
 from .result import SliceResult
@@ -48,14 +48,16 @@ def roi_schedule(mesh: Mesh, ladder: tuple[float, ...] = (1.0, 0.5, 0.1), *, par
     return roi(mesh, ladder, slicer=lambda sched: slice_mesh(mesh, p, schedule=sched), **options)
 
 
-def _batches(mesh: Mesh, zs: np.ndarray, limit: int) -> list[tuple[int, int]]:
-    """Contiguous layer ranges whose segment counts stay under ``limit`` (one range if the whole fits)."""
-    lo, count = facet_layer_ranges(mesh, zs)
+def _batches(mesh: Mesh, zs: np.ndarray, limit: int) -> tuple[list[tuple[int, int]], np.ndarray, tuple]:
+    """Contiguous layer ranges whose segment counts stay under ``limit`` (one range if the whole fits), the
+    segment count of every layer (the facets crossing it), and (vertex layers, facets' first layer, count)."""
+    vl = vertex_layers(mesh, zs)
+    lo, count = facet_layer_ranges(mesh, zs, vl)
     # a difference array: +1 at each facet's first layer, -1 after its last
     n = zs.size + 1
     per_layer = np.cumsum(np.bincount(lo, minlength=n) - np.bincount(lo + count, minlength=n))[:-1]
     if per_layer.sum() <= limit:
-        return [(0, int(zs.size))]
+        return [(0, int(zs.size))], per_layer, (vl, lo, count)
     out, start, acc = [], 0, 0
     for k, c in enumerate(per_layer):
         if acc + c > limit and k > start:
@@ -63,7 +65,18 @@ def _batches(mesh: Mesh, zs: np.ndarray, limit: int) -> list[tuple[int, int]]:
             start, acc = k, 0
         acc += int(c)
     out.append((start, int(zs.size)))
-    return out
+    return out, per_layer, (vl, lo, count)
+
+
+def _batch_layers(ranges: tuple, a: int, b: int, n_layers: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The (vertex layers, first layer, count) of :func:`_batches` (for all ``n_layers`` planes) for the planes
+    ``zs[a:b]`` alone."""
+    vl, lo, count = ranges
+    if a == 0 and b == n_layers:
+        return vl, lo, count
+    first = np.clip(lo - a, 0, b - a)
+    end = np.clip(lo + count - a, 0, b - a)
+    return np.clip(vl - a, 0, b - a).astype(np.int32), first.astype(np.int32), (end - first).astype(np.int32)
 
 
 def slice_mesh(
@@ -137,20 +150,22 @@ def slice_mesh(
         timings[key] = 0.0
     parts = []
     n_segments = 0
-    batches = _batches(mesh, zs, params.max_segments_per_batch) if n_layers else []
+    batches, per_layer, ranges = _batches(mesh, zs, params.max_segments_per_batch) if n_layers else ([], None, None)
 
     def chained():  # crossings and chaining of each batch (on the prefetch thread when there are several)
         for a, b in batches:
             t = time.perf_counter()
             if device is not None:
-                seg = compute_crossings(mesh, zs[a:b], device, read_back=False)
+                seg = compute_crossings(mesh, zs[a:b], device, read_back=False,
+                                         layers=_batch_layers(ranges, a, b, n_layers))
                 device.queue.finish()  # so the kernels' time counts here, not in the next stage
             else:
                 seg = compute_crossings(mesh, zs[a:b])
             timings["crossings"] += time.perf_counter() - t
             count = len(seg)
             t = time.perf_counter()
-            loops = chain_segments(seg, mesh, zs[a:b], b - a, max_gap=params.max_gap, device=device)
+            loops = chain_segments(seg, mesh, zs[a:b], b - a, max_gap=params.max_gap, device=device,
+                                   layer_counts=per_layer[a:b])
             del seg
             timings["chaining"] += time.perf_counter() - t
             yield a, b, loops, count

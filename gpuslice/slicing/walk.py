@@ -6,8 +6,8 @@ twin, pointer jumping), which the tests check:
 - :func:`walk_chains` walks a successor array computed on the host (used when a mesh needs the host's general
   pairing of non-manifold slots or repairs of open chains);
 - :meth:`ChainKernels.chain_on_device` does everything on the device from the segment buffers the crossings kernel
-  left there: edge slots, successors, per-layer lists and the walk, reading back only the chain order;
-  :meth:`ChainKernels.gather_starts` then gathers the loops' points there in that order.
+  left there: edge slots, successors, per-layer lists and the walk, which also gathers the loops' points in chain
+  order; it reads back the chain order, the points and their zero-length flags.
 
 :meth:`ChainKernels.simple_loops` is nesting's screen: it proves loops simple so that GEOS's self-crossing test
 runs only on the others (its oracle is GEOS itself: ``tests/slicing/test_simple_screen.py``).
@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..device import KernelDriver
+from .rings import move_chains as _move_chains
 
 __all__ = ["ChainKernels", "walk_chains", "chain_kernels", "canonical_chain_order"]
 
@@ -31,10 +32,11 @@ def layer_lists(layer: np.ndarray, n_layers: int) -> tuple[np.ndarray, np.ndarra
     return perm, off
 
 
-def canonical_chain_order(order: np.ndarray, flag: np.ndarray, layer_off: np.ndarray):
-    """Sort walked chains by (layer, open before closed, first segment): (order, chain_offsets, closed, layer)."""
+def canonical_chain_order(order: np.ndarray, flag: np.ndarray, layer_off: np.ndarray, *along: np.ndarray):
+    """Sort walked chains by (layer, open before closed, first segment): (order, chain_offsets, closed, layer), then
+    each array of ``along`` (one entry per position of ``order``) in the same order."""
     n = order.size
-    starts = np.flatnonzero(flag)
+    starts = np.flatnonzero(flag != 0)  # (a bool mask: ~10x faster than on the uint8 flags)
     lengths = np.diff(np.append(starts, n))
     kind = flag[starts]
     chain_layer = (np.searchsorted(layer_off, starts, side="right") - 1).astype(np.int32)
@@ -42,13 +44,15 @@ def canonical_chain_order(order: np.ndarray, flag: np.ndarray, layer_off: np.nda
     offsets = np.zeros(starts.size + 1, dtype=np.int64)
     np.cumsum(lengths[o], out=offsets[1:])
     if not np.array_equal(o, np.arange(o.size)):
-        src = np.arange(n, dtype=np.int64) + np.repeat(starts[o] - offsets[:-1], lengths[o])
-        order = order[src]
-    return order, offsets, kind[o] == 2, chain_layer[o]
+        order, *along = _move_chains(starts[o], offsets, (order, *along))
+    return (order, offsets, kind[o] == 2, chain_layer[o], *along)
 
 
 class ChainKernels(KernelDriver):
     """Builds ``walk.cl`` once per device, keeps its kernels and reuses grown buffers."""
+
+    #: work-items per work-group of :meth:`_task_grid` on CPU devices (4: the best of 1 to 64 on PoCL, 2 cores)
+    CPU_TASK_GROUP = 4
 
     def __init__(self, device) -> None:
         super().__init__(device)
@@ -57,26 +61,54 @@ class ChainKernels(KernelDriver):
         self._place = prg.place_segments
         self._link = prg.link_segments
         self._walk = prg.walk_layers
-        self._gather = prg.gather_starts
         try:  # absent on devices without float64 (kernels/walk.cl builds it under cl_khr_fp64)
             self._simple = prg.simple_loops
         except AttributeError:  # pyopencl's answer for a kernel name the program lacks
             self._simple = None
 
-    def _run_walk(self, d_next, d_has_prev, d_perm, d_off, n: int, n_layers: int):
+    def _task_grid(self, n: int) -> tuple[tuple[int], tuple[int]]:
+        """The grid of the kernels that give each work-item one long task of uneven size (a layer's walk, a loop's
+        screen; ``walk_layers`` and ``simple_loops`` have no required work-group size): the device's local size on
+        GPUs; on CPU devices (PoCL), which hand whole work-groups to the cores, groups of :attr:`CPU_TASK_GROUP`
+        items, so that the cores finish together (with 64, one core idled at the end: the walk and the screen
+        took 20 to 40 % longer on benchy and an icosphere)."""
+        ls = self.device.local_size if self.device.is_gpu else self.CPU_TASK_GROUP
+        return (max(ls, ((n + ls - 1) // ls) * ls),), (ls,)
+
+    def _run_walk(self, d_next, d_has_prev, d_perm, d_off, n: int, n_layers: int, gather: bool = False,
+                  d_seg_points=None, d_conflict=None):
+        """The walk: (order, flag), and with ``gather``, from ``d_seg_points`` (the crossings kernel's segments),
+        also the start point of the segment at each position, (n,) complex64, and its zero-length flag, (n,) bool;
+        the points stay on the device in the buffer ``loop_points`` (for :meth:`simple_loops`). Nothing is walked
+        where the device int ``d_conflict`` is set."""
         import pyopencl as cl
 
+        if n == 0:
+            empty = np.zeros(0, np.int32), np.zeros(0, np.uint8)
+            return (*empty, np.zeros(0, np.complex64), np.zeros(0, bool)) if gather else empty
         q = self.device.queue
+        if d_conflict is None:
+            d_conflict = self._fill("no_conflict", 4, np.int32(0))
         d_visited = self._fill("visited", n, np.uint8(0))
         d_flag = self._fill("flag", n, np.uint8(0))
         d_order = self._buffer("order", 4 * n)
-        self._walk(q, *self._grid(n_layers), d_next, d_has_prev, d_perm, d_off, np.int32(n_layers),
-                   d_visited, d_order, d_flag)
+        d_out = self._buffer("loop_points", 8 * n) if gather else d_flag  # (a dummy argument without gather)
+        d_zero = self._buffer("zero_length", n) if gather else d_flag
+        d_points = d_seg_points if d_seg_points is not None else d_flag
+        self._walk(q, *self._task_grid(n_layers), d_next, d_has_prev, d_perm, d_off, np.int32(n_layers),
+                   d_visited, d_order, d_flag, np.int32(gather), d_points, d_out, d_zero, d_conflict)
         order = np.empty(n, dtype=np.int32)
         flag = np.empty(n, dtype=np.uint8)
         cl.enqueue_copy(q, order, d_order, is_blocking=False)
-        cl.enqueue_copy(q, flag, d_flag, is_blocking=True)
-        return order, flag
+        if not gather:
+            cl.enqueue_copy(q, flag, d_flag, is_blocking=True)
+            return order, flag
+        starts = np.empty(n, dtype=np.complex64)
+        zero = np.empty(n, dtype=np.uint8)
+        cl.enqueue_copy(q, flag, d_flag, is_blocking=False)
+        cl.enqueue_copy(q, zero, d_zero, is_blocking=False)
+        cl.enqueue_copy(q, starts, d_out, is_blocking=True)
+        return order, flag, starts, zero.view(bool)
 
     def walk(self, nxt: np.ndarray, layer: np.ndarray, n_layers: int):
         """Chains of a host successor array ``nxt`` (see :func:`walk_chains`)."""
@@ -91,12 +123,16 @@ class ChainKernels(KernelDriver):
         order, offsets, closed, _ = canonical_chain_order(order, flag, off)
         return order, offsets, closed
 
-    def chain_on_device(self, dseg, mesh, zs: np.ndarray, n_layers: int):
-        """Chain the segments left on the device by the crossings kernel.
+    def chain_on_device(self, dseg, mesh, zs: np.ndarray, n_layers: int, layer_counts: np.ndarray | None = None):
+        """Chain the segments left on the device by the crossings kernel (``layer_counts``: the number of segments
+        of each layer when known, i.e. of facets crossing it, as ``slicer._batches`` counts them; else counted here).
 
-        Returns (order, chain_offsets, chain_closed, chain_layer), or None when the mesh needs the host's general
-        pairing (a slot with several segments starting or ending: non-manifold or flipped facets) or leaves open
-        chains to repair; the caller then fetches the segments and chains them on the host.
+        Returns (order, chain_offsets, chain_closed, chain_layer, starts, zero_length, resident): the chains and, per
+        position of ``order``, its segment's start point ((S,) complex64, x + iy mm) and whether that segment has
+        zero length ((S,) bool); ``resident``: the points are also on the device in that order (for
+        :meth:`simple_loops`). None when the mesh needs the host's general pairing (a slot with several segments
+        starting or ending: non-manifold or flipped facets) or leaves open chains to repair; the caller then
+        fetches the segments and chains them on the host.
         """
         import pyopencl as cl
 
@@ -119,55 +155,47 @@ class ChainKernels(KernelDriver):
         d_starter = self._fill("starter", 4 * n_slots, np.int32(-1))
         d_enders = self._fill("n_enders", 4 * n_slots, np.int32(0))
         d_end = self._buffer("end_slot", 4 * n)
-        d_lcount = self._fill("layer_count", 4 * n_layers, np.int32(0))
+        known = layer_counts is not None and layer_counts.size == n_layers and int(layer_counts.sum()) == n
+        d_lcount = self._buffer("layer_count", 4 * n_layers) if known else self._fill(
+            "layer_count", 4 * n_layers, np.int32(0))
         d_conflict = self._fill("conflict", 4, np.int32(0))
         grid = self._grid(n)
         self._place(q, *grid, dseg.layer, dseg.edges, np.int32(n), d_k0, d_off, d_starter, d_enders, d_end,
-                    d_lcount, d_conflict)
+                    d_lcount, d_conflict, np.int32(not known))
         conflict = np.zeros(1, dtype=np.int32)
-        lcount = np.empty(n_layers, dtype=np.int32)
-        cl.enqueue_copy(q, conflict, d_conflict, is_blocking=False)
-        cl.enqueue_copy(q, lcount, d_lcount, is_blocking=True)
-        if conflict[0]:
-            return None
+        if known:  # the conflict flag is read with the walk's results (the walk skips everything when it is set)
+            lcount = layer_counts
+        else:
+            lcount = np.empty(n_layers, dtype=np.int32)
+            cl.enqueue_copy(q, conflict, d_conflict, is_blocking=False)
+            cl.enqueue_copy(q, lcount, d_lcount, is_blocking=True)
+            if conflict[0]:
+                return None
         layer_off = np.zeros(n_layers + 1, dtype=np.int64)
         np.cumsum(lcount, out=layer_off[1:])
         d_loff = self._put("layer_off", layer_off)
         d_fill = self._fill("layer_fill", 4 * n_layers, np.int32(0))
         d_next = self._buffer("next", 4 * n)
-        d_has_prev = self._fill("has_prev", n, np.uint8(0))
         d_perm = self._buffer("perm", 4 * n)
-        self._link(q, *grid, dseg.layer, d_end, np.int32(n), d_starter, d_loff, d_fill, d_next, d_has_prev, d_perm)
-        order, flag = self._run_walk(d_next, d_has_prev, d_perm, d_loff, n, n_layers)
-        if np.any(flag == 1):
-            return None  # open chains: repaired on the host
-        return canonical_chain_order(order, flag, layer_off)
+        self._link(q, *grid, dseg.layer, d_end, np.int32(n), d_starter, d_loff, d_fill, d_next, d_perm, d_conflict)
+        # (kept: a pyopencl transfer event waits for its transfer when dropped)
+        read_conflict = cl.enqueue_copy(q, conflict, d_conflict, is_blocking=False)
+        # (every chain closed, so the walk reads no predecessor flags: the list stands in for them)
+        order, flag, starts, zero = self._run_walk(d_next, d_perm, d_perm, d_loff, n, n_layers, True, dseg.points,
+                                                   d_conflict)
+        read_conflict.wait()
+        if conflict[0]:
+            return None  # several segments at one slot, open chains (or wrong layer counts): chained on the host
+        out = canonical_chain_order(order, flag, layer_off, starts, zero)
+        return (*out, out[0] is order)  # the device holds the points in the walk's order: resident if unchanged
 
-    def gather_starts(self, dseg, order: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The start points of the device segments ``dseg`` in chain ``order``, gathered on the device: (S,)
-        complex64 (x + iy, mm), and (S,) bool, True where that segment has zero length. The points stay on the
-        device for :meth:`simple_loops`."""
-        import pyopencl as cl
-
-        n = int(order.size)
-        q = self.device.queue
-        starts = np.empty(n, dtype=np.complex64)
-        zero = np.empty(n, dtype=np.uint8)
-        if n == 0:
-            return starts, zero.view(bool)
-        d_order = self._put("gather_order", order.astype(np.int32, copy=False))
-        d_zero = self._buffer("zero_length", n)
-        d_out = self._buffer("loop_points", 8 * n)
-        self._gather(q, *self._grid(n), d_order, dseg.points, np.int32(n), d_out, d_zero)
-        cl.enqueue_copy(q, zero, d_zero, is_blocking=False)
-        cl.enqueue_copy(q, starts, d_out, is_blocking=True)
-        return starts, zero.view(bool)
-
-    def simple_loops(self, points: np.ndarray, offsets: np.ndarray, *, resident: bool = False) -> np.ndarray | None:
+    def simple_loops(self, points: np.ndarray, offsets: np.ndarray, *, resident: bool = False, wait: bool = True):
         """(R,) bool: True for each loop ``points[offsets[r]:offsets[r + 1]]`` (float32 (P, 2), mm, closed) that
         ``simple_loops`` in ``kernels/walk.cl`` proves simple (no two edges meet but consecutive ones at their
         vertex); False where it may cross or touch itself. None when the device lacks float64 (no screen).
-        ``resident``: the points are already on the device, as :meth:`gather_starts` left them."""
+        ``resident``: the points are already on the device, as :meth:`chain_on_device` left them. Without
+        ``wait``, returns at once a callable that waits for the device's answer and returns it (the kernel runs
+        while the host does other work)."""
         import pyopencl as cl
 
         n = int(offsets.size) - 1
@@ -182,10 +210,18 @@ class ChainKernels(KernelDriver):
             d_points = self._put("loop_points", np.ascontiguousarray(points, dtype=np.float32))
         d_offsets = self._put("loop_offsets", offsets.astype(np.int64, copy=False))
         d_simple = self._buffer("simple", n)
-        self._simple(q, *self._grid(n), d_points, d_offsets, np.int32(n), d_simple)
+        self._simple(q, *self._task_grid(n), d_points, d_offsets, np.int32(n), d_simple)
         out = np.empty(n, dtype=np.uint8)
-        cl.enqueue_copy(q, out, d_simple, is_blocking=True)
-        return out.view(bool)
+        done = cl.enqueue_copy(q, out, d_simple, is_blocking=wait)
+        if wait:
+            return out.view(bool)
+        q.flush()
+
+        def result() -> np.ndarray:
+            done.wait()
+            return out.view(bool)
+
+        return result
 
 
 def chain_kernels(device) -> ChainKernels:
