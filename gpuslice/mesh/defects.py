@@ -191,14 +191,17 @@ def outward_facets(mesh: Mesh) -> tuple[np.ndarray, dict[str, int]]:
                 np.maximum.at(hi[:, k], shell[b], np.maximum(np.maximum(c[:, 0], c[:, 1]), c[:, 2]))
     centre = (lo + hi) / 2
     det = np.empty(n)
-    about = verts.astype(np.float64) - centre[0] if n_shells == 1 else None  # the same differences, once a vertex
-    for b in blocks:  # a block at a time: the same per-facet arithmetic as on the whole (F, 3, 3) array
-        if about is not None:
-            r = about[faces[b]]
-        else:
+    if n_shells == 1:  # the differences once a vertex, as columns: 1-D gathers (2-D fancy indexing is ~3x slower)
+        about = [verts[:, k].astype(np.float64) - centre[0, k] for k in range(3)]
+        for b in blocks:
+            f = faces[b]
+            (x0, y0, z0), (x1, y1, z1), (x2, y2, z2) = ([c[f[:, j]] for c in about] for j in range(3))
+            det[b] = x0 * (y1 * z2 - z1 * y2) + y0 * (z1 * x2 - x1 * z2) + z0 * (x1 * y2 - y1 * x2)
+        del about
+    else:
+        for b in blocks:  # a block at a time: the same per-facet arithmetic as on the whole (F, 3, 3) array
             r = verts[faces[b]].astype(np.float64) - centre[shell[b]][:, None, :]
-        det[b] = np.einsum("ij,ij->i", r[:, 0], np.cross(r[:, 1], r[:, 2]))
-    del about
+            det[b] = np.einsum("ij,ij->i", r[:, 0], np.cross(r[:, 1], r[:, 2]))
     volume = np.bincount(shell, weights=sign * det, minlength=n_shells) / 6.0  # with the first facet's winding
     del det
     # a shell is judged by its volume only when it is closed enough to have an inside (few open edges, not flat)
