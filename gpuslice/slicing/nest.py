@@ -25,6 +25,7 @@ import numpy as np
 from ..errors import ParameterError
 from ..ragged import expand_ranges
 from .chain import Loops
+from .contain import containment_pairs
 from .rings import (
     BESIDE_MIN_POINTS,
     Nested,
@@ -51,15 +52,19 @@ def _loop_boxes(points: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np
     return lo, hi
 
 
-def _containment_pairs(points, pc, offsets, layer, closed, q):
+def _containment_pairs(points, pc, offsets, layer, closed, q, area):
     """Pairs (i, j), i != j, both closed and in the same layer, where loop j contains loop i's query point; the
-    layers and loops whose boundaries may cross; the polygons made for the tests and their loops (sorted); the
-    loops' boxes (None when no layer has two closed loops: then nothing is tested, and shapely is not imported)."""
+    layers and loops whose boundaries may cross; the polygons made for the tests and their loops (sorted; (None,
+    None) when numpy made the tests, :func:`~gpuslice.slicing.contain.containment_pairs`); the loops' boxes (None
+    when no layer has two closed loops: then nothing is tested, and shapely is not imported)."""
     idx = np.flatnonzero(closed)
     # (the tree below keeps every loop: the order of its answers decides ties between equal-area parents)
     if idx.size < 2 or np.bincount(layer[idx]).max() < 2:
         empty = np.zeros(0, np.int64)
         return empty, empty, empty, empty, (None, empty), None
+    fast = containment_pairs(points, pc, offsets, layer, idx, q, area)
+    if fast is not None:
+        return (*fast[:4], (None, None), fast[4])
     import shapely
 
     lo, hi = _loop_boxes(points, offsets)
@@ -126,7 +131,7 @@ def nest_loops(loops: Loops, n_layers: int, fill_rule: str = "nonzero") -> Neste
     crossing_of = lambda: _self_crossing_loops(points, offsets, closed, loops.simple, pc)  # noqa: E731
     crossing_f = beside(crossing_of) if points.shape[0] >= BESIDE_MIN_POINTS else None
     ci, cj, crossing_layers, seeds, (polys, involved), boxes = _containment_pairs(points, pc, offsets, layer,
-                                                                                  closed & (s != 0), q)
+                                                                                  closed & (s != 0), q, area)
     w_out = np.bincount(ci, weights=s[cj], minlength=n).astype(np.int64)
     depth = np.bincount(ci, minlength=n)
     # the fill just outside each loop and just inside it (even-odd: one more loop around the point)
@@ -200,6 +205,9 @@ def nest_loops(loops: Loops, n_layers: int, fill_rule: str = "nonzero") -> Neste
         cnt = np.diff(offsets)[u]
         ring_of, sel = expand_ranges(offsets[:-1][u], cnt)
         u_rings = shapely.linearrings(points[sel].astype(np.float64), indices=ring_of)
+        if polys is None:  # (numpy made the containment tests: the containing loops' polygons made here)
+            involved = np.unique(c)
+            polys = _polygons(points, offsets, involved, pc)
         meet = shapely.intersects(u_rings, shapely.get_exterior_ring(polys[np.searchsorted(involved, c)]))
         suspect = np.union1d(suspect, layer[u[meet]])
         seeds = np.union1d(seeds, np.concatenate([u[meet], c[meet]]))
