@@ -87,6 +87,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         cli.main(args=args, prog_name="gpuslice", standalone_mode=False)
     except click.exceptions.Abort:
+        _INTERRUPTED.set()
         click.echo("gpuslice: interrupted", err=True)
         return 130
     except click.ClickException as exc:
@@ -98,6 +99,7 @@ def main(argv: list[str] | None = None) -> int:
         click.echo(f"gpuslice: error: {flatten(_message(exc))}", err=True)
         return EXIT_USAGE
     except KeyboardInterrupt:
+        _INTERRUPTED.set()
         click.echo("gpuslice: interrupted", err=True)
         return 130
     except SystemExit as exc:
@@ -129,7 +131,21 @@ def entry() -> None:
     slice 7 % slower on 2 cores). The variable is inherited by the PNG and batch worker processes."""
     if "numpy" not in sys.modules:
         os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    sys.unraisablehook = _unraisable
     exit_now(main())
+
+
+#: set once the command was interrupted (Ctrl-C): see :func:`_unraisable`
+_INTERRUPTED = threading.Event()
+
+
+def _unraisable(info) -> None:
+    """The command line's ``sys.unraisablehook``: Python's own report, except after Ctrl-C. An interrupt can land
+    inside a library's constructor (an import of PyOpenCL builds pytools' cache objects), whose finaliser then fails
+    on the half-made object and Python prints "Exception ignored ... Traceback" after "gpuslice: interrupted"; the
+    user asked to stop, and the one line has said so."""
+    if not _INTERRUPTED.is_set():
+        sys.__unraisablehook__(info)
 
 
 def exit_now(code: int) -> None:

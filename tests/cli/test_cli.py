@@ -140,3 +140,16 @@ def test_exit_now_waits_for_threads_and_hooks(monkeypatch):
     monkeypatch.delenv("GPUSLICE_SLOW_EXIT")
     monkeypatch.setitem(sys.modules, "distributed", object())
     assert not cli_main._nothing_pending()
+
+
+def test_unraisable_reports_are_kept_unless_interrupted(monkeypatch):
+    """After Ctrl-C the command line swallows finalisers' "Exception ignored" reports (a library object half made
+    when the interrupt landed); before it, Python's own report is kept."""
+    cli_main = sys.modules["gpuslice.cli.main"]
+    seen = []
+    monkeypatch.setattr(sys, "__unraisablehook__", seen.append)
+    monkeypatch.setattr(cli_main, "_INTERRUPTED", __import__("threading").Event())
+    cli_main._unraisable("first")
+    cli_main._INTERRUPTED.set()
+    cli_main._unraisable("second")
+    assert seen == ["first"]

@@ -585,8 +585,9 @@ def test_ctrl_c_while_writing_leaves_nothing(tmp_path):
 def test_ctrl_c_at_any_moment_never_leaves_a_partial_file(tmp_path):
     """The real command interrupted at several moments: a complete file (it had finished writing) or nothing at all.
 
-    A Ctrl-C during Python's own start-up and imports (before ``main`` runs, ~0.5 s) kills the process or gets
-    Python's KeyboardInterrupt report, which gpuslice cannot intercept; nothing has been opened for writing by then.
+    A Ctrl-C during Python's own start-up and imports (before ``main`` runs, ~0.1 s: numpy and PyOpenCL load inside
+    it) kills the process or gets Python's KeyboardInterrupt report, which gpuslice cannot intercept; nothing has
+    been opened for writing by then.
     After that: exit 130 and the line ``gpuslice: interrupted``.
     """
     stl = tmp_path / "torus.stl"
