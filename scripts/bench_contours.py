@@ -35,9 +35,9 @@ Measured side by side in the same run (wall times with ``time.perf_counter``; me
 Paper comparison: nefertiti scaled to the paper's head height (226 mm, its z extent) at 0.1 mm, in-process and
 whole process (the paper needed 739 s for a 189k-facet head at 0.1 mm).
 
-Targets of the issue: in-process at most half of manifold3d's time; ``gpuslice slice`` whole process at most a
-quarter of CuraEngine's.  A Markdown table goes to stdout, progress to stderr; ``--json FILE`` keeps every
-sample.
+Targets (issue 14, stricter than issue 2's half and quarter): in-process at most 0.35× manifold3d's time;
+``gpuslice slice`` whole process at most 0.2× CuraEngine's. A Markdown table goes to stdout, progress to stderr;
+``--json FILE`` keeps every sample.
 """
 
 from __future__ import annotations
@@ -69,8 +69,8 @@ PAPER_HEIGHT_MM = 226.0
 PAPER_H = 0.1
 PAPER_SECONDS = 739.0
 PAPER_FACETS = 189_000
-TARGET_IN_PROCESS = 0.5  # gpuslice in-process / manifold3d
-TARGET_WHOLE = 0.25  # gpuslice slice / CuraEngine
+TARGET_IN_PROCESS = 0.35  # gpuslice in-process / manifold3d (issue 14; issue 2 asked for 0.5)
+TARGET_WHOLE = 0.2  # gpuslice slice / CuraEngine (issue 14; issue 2 asked for 0.25)
 TRIMESH_MAX_REPEAT = 3
 STAGES = ("schedule", "device", "crossings", "chaining", "nesting")
 DEFAULT_MESHES_DIR = Path(__file__).resolve().parents[2] / "shared" / "meshes"
