@@ -25,9 +25,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..mesh.defects import connected_labels
 from ..ragged import expand_ranges
 from . import rings as _rings
-from .rings import Nested, _groups, _min_labels, _ring_points, _winding_numbers, cycle_labels, filled, signed_areas
+from .rings import Nested, _groups, _ring_points, _winding_numbers, cycle_labels, filled, signed_areas
 
 __all__ = ["resolve_overlaps"]
 
@@ -160,7 +161,7 @@ def _arrangement(ne, rz, roff, loop_g, lid, n_groups, pc, offsets, lo, hi, fill_
     at_node = np.concatenate([start_node[k], end_node[k]])
     lead_of = np.full(deg.size, -1, dtype=np.int64)
     lead_of[at_node[::-1]] = np.concatenate([pl, pl])[::-1]  # a loop through each node; all its loops join it
-    comp_loop = _min_labels(good_loop.size, np.concatenate([pl, pl]), lead_of[at_node])
+    comp_loop = connected_labels(good_loop.size, np.concatenate([pl, pl]), lead_of[at_node])
     cyc_comp = comp_loop[pl[cyc >> 1]]
     cyc_g = piece_g[cyc >> 1]
     oc = np.lexsort((cyc_area, cyc_comp))

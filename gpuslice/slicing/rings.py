@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..mesh.defects import connected_labels
 from ..ragged import expand_ranges
 
 __all__ = ["Nested", "signed_areas", "filled", "cycle_labels", "beside", "in_halves", "node_lines", "move_chains"]
@@ -189,7 +190,7 @@ def _affected_all(g, lo, hi, seed, size):
     size = np.where(whole, 0, size)
     ii, jj = _meeting_pairs(g, first, size, lo, hi)
     while True:
-        label = _min_labels(n, ii, jj)
+        label = connected_labels(n, ii, jj)
         groups = np.unique(label[seed])
         member = np.isin(label, groups)
         g_lo = np.full((n, 2), np.inf)  # hull box of each group (by its label)
@@ -205,20 +206,6 @@ def _affected_all(g, lo, hi, seed, size):
             return member | all_in
         t, k = gx[touch], gi[touch]  # joined to the group's smallest index
         ii, jj = np.concatenate([ii, t, k]), np.concatenate([jj, k, t])
-
-
-def _min_labels(n: int, ii: np.ndarray, jj: np.ndarray) -> np.ndarray:
-    """Connected components of ``n`` items joined by the pairs (ii, jj): each item's smallest joined index
-    (propagation along the pairs, both ways, with pointer jumping)."""
-    a, b = np.concatenate([ii, jj]), np.concatenate([jj, ii])
-    label = np.arange(n)
-    while True:
-        new = label.copy()
-        np.minimum.at(new, a, label[b])
-        new = new[new]
-        if np.array_equal(new, label):
-            return label
-        label = new
 
 
 def _ring_points(points: np.ndarray, offsets: np.ndarray, ids: np.ndarray, pc: np.ndarray | None = None,
