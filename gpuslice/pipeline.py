@@ -320,7 +320,8 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
     tick = (lambda k: progress(k, n)) if progress is not None else None
     settings = r.settings if r.settings is not None else r.options.settings()
     target = ResinTarget(Path(r.path.rstrip("/\\") or "."), r.spec, r.options, out.result, name, now,
-                         r.options.workers, tick, settings, bounds=bounds)
+                         r.options.workers, tick, settings, bounds=bounds,
+                         device=dev if backend == "opencl" else None)
     try:
         out.stats.update(RESIN_FORMATS[r.format].load()(layers, target))
     finally:  # a writer that failed: its layers' producer threads stop now

@@ -40,7 +40,8 @@ class ResinTarget:
     :attr:`deflater`), encoder ``workers``, a ``progress(k)`` callback and the print ``settings``
     (:class:`~gpuslice.raster.settings.PrintSettings`: exposures, lifts, per layer via ``layer_table``); ``bounds``:
     the (xmin, ymin, xmax, ymax) mm box the layers were centred by (None: the result's own, as ``masks()``), for
-    writers that place the contours themselves (``sl1svg``)."""
+    writers that place the contours themselves (``sl1svg``); ``device``: the OpenCL device of the runs, for writers
+    that encode on it (GOO)."""
 
     path: Path
     spec: RasterSpec
@@ -52,6 +53,8 @@ class ResinTarget:
     progress: Callable[[int], None] | None = None
     settings: PrintSettings = PrintSettings()
     bounds: tuple[float, float, float, float] | None = None
+    #: the OpenCL device the layers' runs were made on: writers with encoding kernels use it (None: numpy)
+    device: object | None = None
 
     @property
     def deflater(self) -> str:

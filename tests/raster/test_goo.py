@@ -8,6 +8,7 @@ from __future__ import annotations
 import datetime as dt
 import hashlib
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -359,3 +360,98 @@ def test_text_fields_are_cut_at_a_character_boundary():
         b = _text(name, 32)
         assert len(b) <= 31 and name.startswith(b.decode("utf-8"))  # decodes: no half character left
     assert len(_text("é" * 40, 32)) == 30 and len(_text("a" + "€" * 40, 32)) == 31
+
+
+# ---- the encoding kernels (kernels/goo.cl) against their numpy twin ------------------------------------------------
+def _runs_of(images: list[np.ndarray], cols: int):
+    """A :class:`~gpuslice.raster.runs.Runs` of ``images`` (each (rows, cols) uint8), as the runs kernel lays them."""
+    from gpuslice.raster.runs import Runs
+
+    parts = [_image_runs(img) for img in images]
+    offsets = np.concatenate(([0], np.cumsum([p[0].size for p in parts]))).astype(np.int64)
+    start = np.concatenate([p[0] for p in parts]).astype(np.int64)
+    length = np.concatenate([p[1] for p in parts]).astype(np.int32)
+    grey = np.concatenate([p[2] for p in parts]).astype(np.uint8)
+    return Runs(np.arange(len(images)), offsets, (start // cols).astype(np.int32), (start % cols).astype(np.int32),
+                length, grey, images[0].shape)
+
+
+def test_kernels_equal_the_twin_on_random_groups(device):
+    """Groups of layers (any first entry, blank layers first, inside and last, full layers, lone pixels at both ends
+    of the image, every grey): the kernels' bytes equal the numpy twin's, layer by layer, with no group left to it."""
+    from gpuslice.raster.goo import GooEncoder, encode_batch
+
+    enc = GooEncoder.of(device)
+    rng = np.random.default_rng(20)
+    h, w = 13, 41
+    imgs = []
+    for k in range(40):
+        img = rng.choice(np.array([0, 0, 255, 255, 1, 2, 128, 254], np.uint8), size=(h, w))
+        img[rng.random((h, w)) < 0.2 * (k % 5)] = 0
+        img[:, ::7] = 0  # no row full to its end: rows never touch with one grey
+        imgs.append(img)
+    for k in (0, 9, 10, 39):
+        imgs[k][:] = 0
+    imgs[20][:] = 0
+    imgs[20][0, 0] = imgs[20][-1, -1] = 255
+    imgs[21][:] = 0
+    imgs[21][:, 1:-1] = 200  # rows of one grey, never touching across a row end
+    runs = _runs_of(imgs, w)
+    before = enc.fallbacks
+    for a, b in ((0, 40), (0, 1), (3, 17), (9, 11), (20, 22), (39, 40), (5, 39)):
+        got = encode_batch(runs, a, b, w, h * w, device=device)
+        assert got == encode_batch(runs, a, b, w, h * w), (a, b)
+        assert got == [encode_runs(*_image_runs(imgs[k]), h * w) for k in range(a, b)]
+    assert enc.fallbacks == before
+    length, grey = decode_runs(np.frombuffer(encode_batch(runs, 21, 22, w, h * w, device=device)[0], np.uint8))
+    assert np.array_equal(np.repeat(grey, length).reshape(h, w), imgs[21])
+
+
+def test_kernels_write_every_length_width(device):
+    """One long row: runs and blank gaps on both sides of 4, 12 and 20 bits of length, a run at pixel 0 and one
+    ending the image (no tail): the kernels' bytes equal the twin's and decode to the runs."""
+    from gpuslice.raster.goo import encode_batch
+    from gpuslice.raster.runs import Runs
+
+    lengths = np.array([15, 16, 4095, 4096, 0xFFFFF, 0x100000, 1, 2, 3, 17])
+    greys = np.array([255, 7, 255, 200, 255, 1, 254, 255, 9, 255], np.uint8)
+    gaps = np.array([0, 1, 15, 16, 4095, 4096, 0x100000, 0xFFFFF, 2, 5])
+    start = np.cumsum(gaps + np.concatenate(([0], lengths[:-1])))
+    cols = int(start[-1] + lengths[-1])
+    runs = Runs(np.arange(1), np.array([0, lengths.size]), np.zeros(lengths.size, np.int32), start.astype(np.int32),
+                lengths.astype(np.int32), greys, (1, cols))
+    got = encode_batch(runs, 0, 1, cols, cols, device=device)
+    assert got == encode_batch(runs, 0, 1, cols, cols)
+    length, grey = decode_runs(np.frombuffer(got[0], np.uint8), cols)
+    assert np.array_equal(canonical_runs(np.cumsum(length) - length, length, grey),
+                          canonical_runs(start, lengths, greys))
+
+
+def test_kernels_leave_touching_runs_to_the_twin(device):
+    """A row full to its end and the next row starting with the same grey are one chunk in the twin's bytes: the
+    kernels see it and hand the group to the twin (counted), so the bytes stay the twin's."""
+    from gpuslice.raster.goo import GooEncoder, encode_batch
+
+    enc = GooEncoder.of(device)
+    img = np.zeros((4, 9), np.uint8)
+    img[1, 3:] = 255
+    img[2, :4] = 255
+    runs = _runs_of([img, np.zeros_like(img)], 9)
+    before = enc.fallbacks
+    assert enc.encode(runs, 0, 2, 9, 36) is None and enc.fallbacks == before + 1
+    got = encode_batch(runs, 0, 2, 9, 36, device=device)
+    assert got == encode_batch(runs, 0, 2, 9, 36) and got[0] == encode_runs(*_image_runs(img), 36)
+
+
+def test_writer_with_the_kernels_writes_the_twins_file(tmp_path, torus, device):
+    """The same GOO file, byte for byte, with the layers encoded on the device (the pipeline's default) and by numpy,
+    at gamma 1 and 0."""
+    for gamma in (1.0, 0.0):
+        spec = RasterSpec(resolution=(900, 700), pixel=0.05, gamma=gamma)
+        files = []
+        for dev in (device, None):
+            out = tmp_path / f"t{gamma:g}{dev is None}.goo"
+            target = replace(_target(out, spec, torus), device=dev)
+            write_goo(iter_run_layers(torus, spec, device=device), target)
+            files.append(out.read_bytes())
+        assert files[0] == files[1]
