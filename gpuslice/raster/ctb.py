@@ -70,12 +70,13 @@ from ..io.atomic import atomic_path
 from .coverage import Tile
 from .layers import RunLayer, batch_image_segments, batch_pixel_runs, pixel_runs, run_groups
 from .png import encode_all
+from .run_encoder import RunImageEncoder
 from .settings import PrintSettings, layer_table, print_time_s, resin_ml
 from .sl1 import _Thumb
 from .spec import RasterSpec
 
 __all__ = ["DEFAULT_VERSION", "MAGIC_CTB", "MAGIC_CTB_V4", "PREVIEW_SIZES", "VERSIONS", "CtbInfo", "ctb_version",
-           "quantise", "rgb15_rle", "rle7", "rle7_batch", "write_ctb", "write_target"]
+           "quantise", "rgb15_rle", "rle7", "rle7_batch", "rle7_runs", "CtbEncoder", "write_ctb", "write_target"]
 
 MAGIC_CTB = 0x12FD0086  #: v2 and v3
 MAGIC_CTB_V4 = 0x12FD0106  #: v4
@@ -181,6 +182,39 @@ def rle7_batch(start: np.ndarray, length: np.ndarray, grey: np.ndarray, offsets:
     return [data[img_off[k] : img_off[k + 1]] for k in range(n_img)]
 
 
+def _record(value: int, n: int) -> bytes:
+    """One RLE7 record of ``n`` pixels (1 <= n <= MAX_RUN) of 7-bit ``value`` (module docstring)."""
+    size = 1 if n == 1 else 2 if n <= 0x7F else 3 if n <= 0x3FFF else 4 if n <= 0x1FFFFF else 5
+    out = bytes([value | (0x80 if n > 1 else 0)])
+    if size >= 2:
+        lead = (0x00, 0x80, 0xC0, 0xE0)[size - 2]
+        out += bytes([((n >> (8 * (size - 2))) & 0xFF) | lead])
+        out += bytes((n >> (8 * (size - 1 - b))) & 0xFF for b in range(2, size))
+    return out
+
+
+class CtbEncoder(RunImageEncoder):
+    """Driver of ``kernels/ctb.cl`` (:mod:`gpuslice.raster.run_encoder`): the RLE7 layer data of a group of layers
+    from their runs, the bytes of :func:`rle7_batch` (its numpy twin, which also takes the groups the kernels leave:
+    a record merging more than 64 runs and gaps, or runs it refuses)."""
+
+    FILE, SIZES, WRITE = "ctb.cl", "ctb_sizes", "ctb_write"
+    MAX_RUN = MAX_RUN
+
+    def blank(self, n_pixels: int) -> bytes:
+        return _record(0, n_pixels)
+
+
+def rle7_runs(runs, a: int, b: int, cols: int, n_pixels: int, device=None) -> list[bytes]:
+    """:func:`rle7_batch` of entries ``a`` … ``b`` − 1 of a batch of runs (:class:`~gpuslice.raster.runs.Runs`):
+    with an OpenCL ``device``, by the kernels of ``kernels/ctb.cl`` (:class:`CtbEncoder`; the same bytes)."""
+    if device is not None:
+        out = CtbEncoder.of(device).encode(runs, a, b, cols, n_pixels)
+        if out is not None:
+            return out
+    return rle7_batch(*batch_pixel_runs(runs, a, b, cols), n_pixels)
+
+
 def rgb15_rle(rgb: np.ndarray) -> bytes:
     """A preview's RGB15 run-length bytes (module docstring) from an (h, w, 3) uint8 RGB image, row-major."""
     c = rgb.reshape(-1, 3).astype(np.uint16) >> 3
@@ -252,11 +286,13 @@ def write_ctb(
     workers: int | None = None,
     progress: Callable[[int], None] | None = None,
     now: _dt.datetime | None = None,
+    device=None,
 ) -> dict[str, float]:
     """Write a CTB file at ``path`` (atomically) with one layer per item of ``layers`` (a tile or runs, in order;
     ``len(thickness)`` of them, each that thick, mm). Layers are encoded on ``workers`` threads and written as they
     come (one layer's bytes in flight per thread, never the whole file). ``now``: the date the file records (None:
-    now; given, e.g. from ``SOURCE_DATE_EPOCH``, the bytes are reproducible). Returns the layer count, ``png_bytes``
+    now; given, e.g. from ``SOURCE_DATE_EPOCH``, the bytes are reproducible); ``device``: the OpenCL device of the
+    layers' runs, to encode them there (:class:`CtbEncoder`; None: numpy). Returns the layer count, ``png_bytes``
     (the layers' image data, bytes: the name the command line reports), ``ctb_bytes`` (the file's size) and
     ``format_version``."""
     p = Path(os.fspath(path))
@@ -292,8 +328,11 @@ def write_ctb(
 
         def encode_group(group: list[Tile | RunLayer]) -> list[bytes]:  # on a worker thread
             if isinstance(group[0], RunLayer):
-                return rle7_batch(*batch_pixel_runs(group[0].runs, group[0].j, group[-1].j + 1, cols), n_pixels)
+                return rle7_runs(group[0].runs, group[0].j, group[-1].j + 1, cols, n_pixels, device)
             return [encode(item) for item in group]
+
+        def groups(items):  # the kernels take more layers a call than the numpy passes gain from
+            return run_groups(items, size=64 if device is not None else 16)
 
         def sink(k: int, data: bytes) -> None:
             nonlocal pos
@@ -311,7 +350,7 @@ def write_ctb(
             entries[k] = np.frombuffer(LAYER_DEF.pack(*entry), "<u4")
 
         stats = encode_all(layers, encode, sink, workers, on_tile=thumb.add, progress=progress, many=encode_group,
-                           chunk=run_groups)
+                           chunk=groups)
         if stats["layers"] != n:
             raise ParameterError(f"{p}: expected {n} layers, got {stats['layers']}")
         file_size = pos
@@ -443,4 +482,5 @@ def write_target(layers: Iterable[Tile | RunLayer], target) -> dict[str, float]:
                    anti_alias=1 if target.spec.gamma == 0 else 8,
                    resin_ml=resin_ml(result.area, result.thickness))
     return write_ctb(layers, target.spec, target.path, result.thickness, target.settings, info,
-                     workers=target.workers, progress=target.progress, now=target.now)
+                     workers=target.workers, progress=target.progress, now=target.now,
+                     device=getattr(target, "device", None))

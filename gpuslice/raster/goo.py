@@ -31,9 +31,9 @@ UVtools) is the preset's build height, or the part's height without a preset.
 Layers are encoded from their runs in groups on the worker threads (:func:`gpuslice.raster.png.encode_all`): by the
 two kernels of ``kernels/goo.cl`` on the runs' OpenCL device (:class:`GooEncoder`; ``target.device``), else with a
 few numpy passes (their twin, which also takes the rare group the kernels leave: runs touching across a row end with
-one grey, which the format joins into one chunk). The bytes are the same either way. Layers are appended to the file as they come, and the
-header (which holds the previews, drawn from the layers as they pass) is written last, at offset 0, since its size
-is fixed. The file is written under a temporary name and renamed when complete
+one grey, which the format joins into one chunk). The bytes are the same either way. Layers are appended to the
+file as they come, and the header (which holds the previews, drawn from the layers as they pass) is written last,
+at offset 0, since its size is fixed. The file is written under a temporary name and renamed when complete
 (:func:`gpuslice.io.atomic.atomic_path`); with a given ``target.now`` its bytes are reproducible.
 """
 
@@ -43,7 +43,6 @@ import datetime as _dt
 import io
 import os
 import struct
-import threading
 from collections.abc import Iterable
 from dataclasses import replace
 from pathlib import Path
@@ -51,12 +50,12 @@ from typing import Any
 
 import numpy as np
 
-from ..device import KernelDriver, aligned_empty
 from ..errors import ParameterError
 from ..io.atomic import atomic_path
 from .coverage import Tile
 from .layers import RunLayer, batch_image_segments, batch_pixel_runs, image_segments, pixel_runs, run_groups
 from .png import encode_all
+from .run_encoder import RunImageEncoder
 from .settings import layer_table, print_time_s, resin_ml
 
 __all__ = ["HEADER_SIZE", "LAYER_DEF", "MAGIC", "ENDING", "PREVIEWS", "MAX_RUN", "encode_runs", "encode_batch",
@@ -74,8 +73,6 @@ MAX_RUN = 0xFFFFFFF
 VERSION = b"V3.0"
 #: layers encoded at once: by the kernels (:class:`GooEncoder`), by the numpy twin
 GROUP_KERNEL, GROUP_NUMPY = 64, 16
-#: the run arrays' dtypes (row, x, length, grey) the kernels take as they are
-_RUN_DTYPES = (np.dtype(np.int32), np.dtype(np.int32), np.dtype(np.int32), np.dtype(np.uint8))
 
 # the header around the previews: strings and levels before them, settings after them
 _HEAD = struct.Struct(">4s8s32s24s24s32s32s32sHHH")
@@ -122,94 +119,22 @@ def _chunk_bytes(n: int, v: int) -> bytes:
     return out + bytes((n >> (4 + 8 * j)) & 0xFF for j in range(extra - 1, -1, -1))
 
 
-class GooEncoder(KernelDriver):
-    """Thin driver of ``kernels/goo.cl``: GOO image data of a group of layers from their runs, the bytes of the numpy
-    twin (``encode_segments(*batch_image_segments(...))``, :func:`encode_batch` without a device). Two kernel passes
-    (each run's bytes; each run's chunks written at the prefix sum of those) and host work per layer only (the
-    prefix sum itself, each image's 0x55 and checksum). Safe to call from several threads at once: each thread
-    enqueues on a command queue of its own; the kernels' arguments are set under a lock."""
+class GooEncoder(RunImageEncoder):
+    """Driver of ``kernels/goo.cl`` (:mod:`gpuslice.raster.run_encoder`): GOO image data of a group of layers from
+    their runs, the bytes of the numpy twin (``encode_segments(*batch_image_segments(...))``, :func:`encode_batch`
+    without a device). Each layer: 0x55, the runs' chunks, the checksum (from the write pass's per-run byte sums)."""
 
-    #: more runs than this in one call: the twin (the widths' prefix sum is int32: <= 18 bytes a run)
-    MAX_RUNS = 100_000_000
+    FILE, SIZES, WRITE = "goo.cl", "goo_sizes", "goo_write"
+    MAX_RUN = MAX_RUN
+    HEAD = TAIL = 1
+    SUMS = True
 
-    def __init__(self, device) -> None:
-        super().__init__(device)
-        prog = device.program("goo.cl")
-        self._sizes, self._write = prog.goo_sizes, prog.goo_write
-        self._lock = threading.Lock()
-        self._local = threading.local()
-        #: groups left to the twin (runs touching with one grey, or runs the twin would not take as they are)
-        self.fallbacks = 0
+    def blank(self, n_pixels: int) -> bytes:
+        return _chunk_bytes(n_pixels, 0)
 
-    def _queue(self):
-        import pyopencl as cl
-
-        q = getattr(self._local, "queue", None)
-        if q is None:
-            q = self._local.queue = cl.CommandQueue(self.device.context, self.device.device)
-        return q
-
-    def encode(self, runs, a: int, b: int, cols: int, n_pixels: int) -> list[bytes] | None:
-        """The images of entries ``a`` … ``b`` − 1 of ``runs`` (as :func:`encode_batch`), or None where the twin
-        must encode them (no runs, arrays not as the runs kernel makes them, runs touching with one grey)."""
-        import pyopencl as cl
-
-        lo, hi = int(runs.layer_offsets[a]), int(runs.layer_offsets[b])
-        m, n_img = hi - lo, b - a
-        arrays = (runs.row, runs.x, runs.length, runs.grey)
-        if not (0 < m <= self.MAX_RUNS and 0 < n_pixels <= MAX_RUN and cols > 0) or any(
-                arr.dtype != dt or not arr.flags.c_contiguous for arr, dt in zip(arrays, _RUN_DTYPES, strict=True)):
-            return None
-        ctx, q, mf = self.device.context, self._queue(), cl.mem_flags
-        img_off = np.ascontiguousarray(runs.layer_offsets[a : b + 1] - lo, np.int32)
-        b_runs = [cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=arr[lo:hi]) for arr in arrays]
-        b_off = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=img_off)
-        b_width = cl.Buffer(ctx, mf.READ_WRITE, 4 * m)
-        flags = np.zeros(1, np.int32)
-        b_flags = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=flags)
-        grid, local = self._grid(m)
-        head = (np.int32(m), np.int32(n_img), np.int32(cols), np.int64(n_pixels), b_off, *b_runs)
-        with self._lock:
-            self._sizes(q, grid, local, *head, b_width, b_flags)
-        cl.enqueue_copy(q, flags, b_flags, is_blocking=True)
-        if flags[0]:
-            self.fallbacks += 1
-            return None
-        cum = np.empty(m, np.int32)
-        cl.enqueue_copy(q, cum, b_width, is_blocking=True)
-        np.cumsum(cum, out=cum)  # inclusive, in place (< MAX_RUNS * 18 bytes: no overflow)
-        b_cum = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=cum)
-        first, end = img_off[:-1].astype(np.int64), img_off[1:].astype(np.int64)
-        before = np.where(first > 0, cum[np.maximum(first - 1, 0)], 0).astype(np.int64)
-        after = np.where(end > 0, cum[np.maximum(end - 1, 0)], 0).astype(np.int64)
-        nonempty = end > first
-        blank = _chunk_bytes(int(n_pixels), 0)
-        size = 2 + np.where(nonempty, after - before, len(blank))  # 0x55, the chunks, the checksum
-        start = np.zeros(n_img + 1, np.int64)
-        np.cumsum(size, out=start[1:])
-        total = int(start[-1])
-        base = start[:-1] + 1 - before
-        out, sums = aligned_empty(total, np.uint8), aligned_empty(m, np.uint8)
-        b_out = cl.Buffer(ctx, mf.WRITE_ONLY | mf.USE_HOST_PTR, hostbuf=out)
-        b_sums = cl.Buffer(ctx, mf.WRITE_ONLY | mf.USE_HOST_PTR, hostbuf=sums)
-        b_base = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=base)
-        with self._lock:
-            self._write(q, grid, local, *head, b_cum, b_base, b_out, b_sums)
-        img = cl.enqueue_map_buffer(q, b_out, cl.map_flags.READ | cl.map_flags.WRITE, 0, (total,), np.uint8,
-                                    is_blocking=False)[0]
-        s = cl.enqueue_map_buffer(q, b_sums, cl.map_flags.READ, 0, (m,), np.uint8, is_blocking=True)[0]
-        check = np.full(n_img, sum(blank), np.uint64)
-        ne = np.flatnonzero(nonempty)
-        check[ne] = np.add.reduceat(s, first[ne], dtype=np.uint64)
-        s.base.release(q)
+    def finish(self, img: np.ndarray, start: np.ndarray, check: np.ndarray) -> None:
         img[start[:-1]] = LAYER_MAGIC
         img[start[1:] - 1] = ~(check & np.uint64(0xFF)).astype(np.uint8)
-        for k in np.flatnonzero(~nonempty):
-            img[start[k] + 1 : start[k] + 1 + len(blank)] = np.frombuffer(blank, np.uint8)
-        data = [img[start[k] : start[k + 1]].tobytes() for k in range(n_img)]
-        img.base.release(q)
-        q.finish()
-        return data
 
 
 def encode_segments(n: np.ndarray, v: np.ndarray, seg_offsets: np.ndarray) -> list[bytes]:

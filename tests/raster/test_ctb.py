@@ -412,3 +412,84 @@ def test_shared_meshes_every_layer_on_the_12k_preset(tmp_path, device, shared_re
         want = reference_runs(tile.data, cols, tile.row0, tile.col0)
         assert [np.array_equal(a, b) for a, b in zip(f.runs(tile.index), want, strict=True)] == [True] * 3
         assert tile.data.max() == 255
+
+
+# ---- the encoding kernels (kernels/ctb.cl) against their numpy twin ------------------------------------------------
+def _group_images(rng, h: int, w: int, count: int) -> list[np.ndarray]:
+    """Layers with grey ramps (neighbours equal after quantisation: one record), greys 1 (blank after it), blank
+    layers first, inside and last, and lone pixels at both ends of the image."""
+    imgs = []
+    for k in range(count):
+        img = rng.choice(np.array([0, 0, 255, 255, 1, 2, 3, 128, 129, 254], np.uint8), size=(h, w))
+        img[rng.random((h, w)) < 0.2 * (k % 5)] = 0
+        imgs.append(img)
+    for k in (0, 9, count - 1):
+        imgs[k][:] = 0
+    imgs[4][:] = 0
+    imgs[4][0, 0] = imgs[4][-1, -1] = 255
+    imgs[5][:] = 255  # whole rows: touching across row ends, one record
+    imgs[6][:, :] = np.arange(w, dtype=np.uint8)[None, :] // 2 + 1  # ramps: pairs of greys, one value each
+    return imgs
+
+
+def test_kernels_equal_the_twin_on_random_groups(device):
+    from gpuslice.raster.ctb import CtbEncoder, rle7_runs
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from run_images import image_runs, runs_of
+
+    enc = CtbEncoder.of(device)
+    rng = np.random.default_rng(21)
+    h, w = 11, 37
+    imgs = _group_images(rng, h, w, 30)
+    runs = runs_of(imgs)
+    before = enc.fallbacks
+    for a, b in ((0, 30), (0, 1), (3, 17), (4, 7), (9, 11), (29, 30), (5, 29)):
+        got = rle7_runs(runs, a, b, w, h * w, device=device)
+        assert got == rle7_runs(runs, a, b, w, h * w), (a, b)
+        assert got == [rle7(*image_runs(imgs[k]), h * w) for k in range(a, b)]
+    assert enc.fallbacks == before
+    value, length = decode_rle7(rle7_runs(runs, 6, 7, w, h * w, device=device)[0], h * w)
+    assert np.array_equal(np.repeat(value, length).reshape(h, w), imgs[6] >> 1)
+
+
+def test_kernels_every_record_length_and_long_merges(device):
+    """Records of every length class (1, 2-127, to 2^14 - 1, to 2^21 - 1, more) from single runs and gaps, and a
+    record merging more runs than a work-item looks ahead over (a ramp of 200 pixels of one value): left to the twin,
+    counted, the bytes still the twin's."""
+    from gpuslice.raster.ctb import CtbEncoder, rle7_runs
+    from gpuslice.raster.runs import Runs
+
+    enc = CtbEncoder.of(device)
+    lengths = np.array([1, 2, 127, 128, 0x3FFF, 0x4000, 0x1FFFFF, 0x200000, 3, 1])
+    greys = np.array([255, 7, 255, 200, 255, 9, 254, 255, 9, 255], np.uint8)
+    gaps = np.array([0, 1, 1, 127, 128, 0x3FFF, 0x4000, 0x1FFFFF, 0x200000, 0])
+    start = np.cumsum(gaps + np.concatenate(([0], lengths[:-1])))
+    cols = int(start[-1] + lengths[-1])
+    runs = Runs(np.arange(1), np.array([0, lengths.size]), np.zeros(lengths.size, np.int32), start.astype(np.int32),
+                lengths.astype(np.int32), greys, (1, cols))
+    before = enc.fallbacks
+    got = rle7_runs(runs, 0, 1, cols, cols, device=device)
+    assert got == rle7_runs(runs, 0, 1, cols, cols) and enc.fallbacks == before
+    value, length = decode_rle7(got[0], cols)
+    assert np.array_equal(np.repeat(value, length), np.repeat(np.insert(greys >> 1, np.arange(10), 0),
+                                                              np.insert(lengths, np.arange(10), gaps)))
+    ramp = np.zeros((2, 300), np.uint8)
+    ramp[0, 50:250] = 100 + np.arange(200) % 2  # 200 one-pixel runs, all of value 50
+    runs = Runs(np.arange(1), np.array([0, 200]), np.zeros(200, np.int32), np.arange(50, 250, dtype=np.int32),
+                np.ones(200, np.int32), ramp[0, 50:250].copy(), ramp.shape)
+    assert enc.encode(runs, 0, 1, 300, 600) is None and enc.fallbacks == before + 1
+    assert rle7_runs(runs, 0, 1, 300, 600, device=device) == rle7_runs(runs, 0, 1, 300, 600)
+
+
+def test_writer_with_the_kernels_writes_the_twins_file(tmp_path, torus, device):
+    from dataclasses import replace
+
+    for gamma in (1.0, 0.0):
+        spec = RasterSpec(resolution=(900, 700), pixel=0.05, gamma=gamma)
+        files = []
+        for dev in (device, None):
+            out = tmp_path / f"t{gamma:g}{dev is None}.ctb"
+            write_target(iter_run_layers(torus, spec, device=device), replace(_target(out, spec, torus), device=dev))
+            files.append(out.read_bytes())
+        assert files[0] == files[1]

@@ -33,6 +33,7 @@ from goo_reader import (  # noqa: E402
     layer_runs,
     read_goo,
 )
+from run_images import runs_of  # noqa: E402
 
 pytest.importorskip("PIL.Image")
 
@@ -363,19 +364,6 @@ def test_text_fields_are_cut_at_a_character_boundary():
 
 
 # ---- the encoding kernels (kernels/goo.cl) against their numpy twin ------------------------------------------------
-def _runs_of(images: list[np.ndarray], cols: int):
-    """A :class:`~gpuslice.raster.runs.Runs` of ``images`` (each (rows, cols) uint8), as the runs kernel lays them."""
-    from gpuslice.raster.runs import Runs
-
-    parts = [_image_runs(img) for img in images]
-    offsets = np.concatenate(([0], np.cumsum([p[0].size for p in parts]))).astype(np.int64)
-    start = np.concatenate([p[0] for p in parts]).astype(np.int64)
-    length = np.concatenate([p[1] for p in parts]).astype(np.int32)
-    grey = np.concatenate([p[2] for p in parts]).astype(np.uint8)
-    return Runs(np.arange(len(images)), offsets, (start // cols).astype(np.int32), (start % cols).astype(np.int32),
-                length, grey, images[0].shape)
-
-
 def test_kernels_equal_the_twin_on_random_groups(device):
     """Groups of layers (any first entry, blank layers first, inside and last, full layers, lone pixels at both ends
     of the image, every grey): the kernels' bytes equal the numpy twin's, layer by layer, with no group left to it."""
@@ -396,7 +384,7 @@ def test_kernels_equal_the_twin_on_random_groups(device):
     imgs[20][0, 0] = imgs[20][-1, -1] = 255
     imgs[21][:] = 0
     imgs[21][:, 1:-1] = 200  # rows of one grey, never touching across a row end
-    runs = _runs_of(imgs, w)
+    runs = runs_of(imgs)
     before = enc.fallbacks
     for a, b in ((0, 40), (0, 1), (3, 17), (9, 11), (20, 22), (39, 40), (5, 39)):
         got = encode_batch(runs, a, b, w, h * w, device=device)
@@ -436,7 +424,7 @@ def test_kernels_leave_touching_runs_to_the_twin(device):
     img = np.zeros((4, 9), np.uint8)
     img[1, 3:] = 255
     img[2, :4] = 255
-    runs = _runs_of([img, np.zeros_like(img)], 9)
+    runs = runs_of([img, np.zeros_like(img)])
     before = enc.fallbacks
     assert enc.encode(runs, 0, 2, 9, 36) is None and enc.fallbacks == before + 1
     got = encode_batch(runs, 0, 2, 9, 36, device=device)

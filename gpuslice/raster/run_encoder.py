@@ -1,0 +1,133 @@
+"""Archive layer images encoded on the OpenCL device straight from run-length runs: the driver the run-length
+formats' kernels share (``kernels/goo.cl``: :class:`gpuslice.raster.goo.GooEncoder`, ``kernels/ctb.cl``:
+:class:`gpuslice.raster.ctb.CtbEncoder`).
+
+Each format's kernel file has two passes over the runs of a group of layers (one work-item per run): *sizes*, the
+bytes run k writes (its records: the blank gap before it, itself, its layer's blank tail, as the format merges and
+splits them) plus flags where the group must go to the numpy twin (a case the kernels leave to it, or runs the twin
+refuses: it then raises its own error); and *write*, run k's bytes at the inclusive prefix sum of the sizes, less
+its own size, from its layer's first byte. The host does the prefix sum, places each layer (a few bytes of its own
+before and after the runs' bytes: :attr:`RunImageEncoder.HEAD`, :attr:`RunImageEncoder.TAIL`) and cuts the result
+into one ``bytes`` per layer: no numpy pass per record field. The bytes equal the twin's, layer by layer (tests).
+
+Thread safety: the writers call :meth:`RunImageEncoder.encode` from their encoder threads at once; each thread
+enqueues on a command queue of its own, and the kernels' arguments are set under a lock.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from ..device import KernelDriver, aligned_empty
+
+__all__ = ["RunImageEncoder", "RUN_DTYPES"]
+
+#: the run arrays' dtypes (row, x, length, grey) the kernels take as they are (the runs kernel's)
+RUN_DTYPES = (np.dtype(np.int32), np.dtype(np.int32), np.dtype(np.int32), np.dtype(np.uint8))
+
+
+class RunImageEncoder(KernelDriver):
+    """Base of the encoders: ``FILE`` (the kernel file), ``SIZES`` and ``WRITE`` (its two kernels), ``MAX_RUN``
+    (the longest record: larger images go to the twin), ``HEAD``/``TAIL`` (bytes of each layer before/after its
+    runs' bytes, set by :meth:`finish`), ``SUMS`` (the write pass also gives each run's byte sum mod 256, added up
+    per layer for :meth:`finish`)."""
+
+    FILE = SIZES = WRITE = ""
+    MAX_RUN = 0
+    HEAD = TAIL = 0
+    SUMS = False
+    #: more runs than this in one call: the twin (the prefix sum is int32; a run writes at most ~20 bytes)
+    MAX_RUNS = 100_000_000
+
+    def __init__(self, device) -> None:
+        super().__init__(device)
+        prog = device.program(self.FILE)
+        self._sizes, self._write = getattr(prog, self.SIZES), getattr(prog, self.WRITE)
+        self._lock = threading.Lock()
+        self._local = threading.local()
+        #: groups left to the twin
+        self.fallbacks = 0
+
+    def blank(self, n_pixels: int) -> bytes:  # pragma: no cover - every format defines it
+        """The runs' bytes of a layer with no runs (``n_pixels`` blank pixels)."""
+        raise NotImplementedError
+
+    def finish(self, img: np.ndarray, start: np.ndarray, check: np.ndarray) -> None:
+        """Write each layer's own bytes into ``img`` (layer k: ``start[k]`` … ``start[k + 1]`` − 1); ``check``:
+        each layer's byte sum of its runs' bytes (with :attr:`SUMS`; uint64, not reduced)."""
+
+    def _queue(self):
+        import pyopencl as cl
+
+        q = getattr(self._local, "queue", None)
+        if q is None:
+            q = self._local.queue = cl.CommandQueue(self.device.context, self.device.device)
+        return q
+
+    def encode(self, runs, a: int, b: int, cols: int, n_pixels: int) -> list[bytes] | None:
+        """The layer images of entries ``a`` … ``b`` − 1 of ``runs`` (a :class:`~gpuslice.raster.runs.Runs` of
+        ``cols`` columns, images of ``n_pixels``), one ``bytes`` each; None where the twin must encode them (no runs,
+        arrays not typed as the runs kernel types them, an image too large, or the kernels' flags)."""
+        import pyopencl as cl
+
+        lo, hi = int(runs.layer_offsets[a]), int(runs.layer_offsets[b])
+        m, n_img = hi - lo, b - a
+        arrays = (runs.row, runs.x, runs.length, runs.grey)
+        if not (0 < m <= self.MAX_RUNS and 0 < n_pixels <= self.MAX_RUN and cols > 0) or any(
+                arr.dtype != dt or not arr.flags.c_contiguous for arr, dt in zip(arrays, RUN_DTYPES, strict=True)):
+            return None
+        ctx, q, mf = self.device.context, self._queue(), cl.mem_flags
+        img_off = np.ascontiguousarray(runs.layer_offsets[a : b + 1] - lo, np.int32)
+        b_runs = [cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=arr[lo:hi]) for arr in arrays]
+        b_off = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=img_off)
+        b_width = cl.Buffer(ctx, mf.READ_WRITE, 4 * m)
+        flags = np.zeros(1, np.int32)
+        b_flags = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=flags)
+        grid, local = self._grid(m)
+        head = (np.int32(m), np.int32(n_img), np.int32(cols), np.int64(n_pixels), b_off, *b_runs)
+        with self._lock:
+            self._sizes(q, grid, local, *head, b_width, b_flags)
+        cl.enqueue_copy(q, flags, b_flags, is_blocking=True)
+        if flags[0]:
+            self.fallbacks += 1
+            return None
+        cum = np.empty(m, np.int32)
+        cl.enqueue_copy(q, cum, b_width, is_blocking=True)
+        np.cumsum(cum, out=cum)  # inclusive, in place (MAX_RUNS: no overflow)
+        b_cum = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=cum)
+        first, end = img_off[:-1].astype(np.int64), img_off[1:].astype(np.int64)
+        before = np.where(first > 0, cum[np.maximum(first - 1, 0)], 0).astype(np.int64)
+        after = np.where(end > 0, cum[np.maximum(end - 1, 0)], 0).astype(np.int64)
+        nonempty = end > first
+        blank = self.blank(int(n_pixels))
+        size = self.HEAD + self.TAIL + np.where(nonempty, after - before, len(blank))
+        start = np.zeros(n_img + 1, np.int64)
+        np.cumsum(size, out=start[1:])
+        total = int(start[-1])
+        base = start[:-1] + self.HEAD - before
+        out = aligned_empty(total, np.uint8)
+        b_out = cl.Buffer(ctx, mf.WRITE_ONLY | mf.USE_HOST_PTR, hostbuf=out)
+        b_base = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=base)
+        extra = []
+        if self.SUMS:
+            sums = aligned_empty(m, np.uint8)
+            extra = [cl.Buffer(ctx, mf.WRITE_ONLY | mf.USE_HOST_PTR, hostbuf=sums)]
+        with self._lock:
+            self._write(q, grid, local, *head, b_cum, b_base, b_out, *extra)
+        img = cl.enqueue_map_buffer(q, b_out, cl.map_flags.READ | cl.map_flags.WRITE, 0, (total,), np.uint8,
+                                    is_blocking=not self.SUMS)[0]
+        check = np.full(n_img, sum(blank), np.uint64)
+        if self.SUMS:
+            s = cl.enqueue_map_buffer(q, extra[0], cl.map_flags.READ, 0, (m,), np.uint8, is_blocking=True)[0]
+            ne = np.flatnonzero(nonempty)
+            check[ne] = np.add.reduceat(s, first[ne], dtype=np.uint64)
+            s.base.release(q)
+        for k in np.flatnonzero(~nonempty):
+            img[start[k] + self.HEAD : start[k] + self.HEAD + len(blank)] = np.frombuffer(blank, np.uint8)
+        self.finish(img, start, check)
+        data = [img[start[k] : start[k + 1]].tobytes() for k in range(n_img)]
+        img.base.release(q)
+        q.finish()
+        return data
