@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import threading
 from dataclasses import dataclass
 from functools import cache
 from importlib import resources
@@ -69,6 +70,9 @@ class Device:
         return _build(self, self.local_size)
 
 
+_DRIVERS_LOCK = threading.RLock()  # (a driver made inside another one's construction)
+
+
 class KernelDriver:
     """Base of the thin drivers of ``kernels/*.cl``: named device buffers grown geometrically and reused across
     calls, uploads, fills, and launch grids rounded up to the explicit local size."""
@@ -81,11 +85,16 @@ class KernelDriver:
 
     @classmethod
     def of(cls, device: Device):
-        """The driver of this class for ``device``, made (and its kernels looked up) once per process."""
+        """The driver of this class for ``device``, made (and its kernels looked up) once per process, also when
+        several threads ask at once (the archive writers' encoder threads)."""
         key = (cls, id(device))
-        if key not in KernelDriver._instances:
-            KernelDriver._instances[key] = cls(device)
-        return KernelDriver._instances[key]
+        drv = KernelDriver._instances.get(key)
+        if drv is None:
+            with _DRIVERS_LOCK:
+                drv = KernelDriver._instances.get(key)
+                if drv is None:
+                    drv = KernelDriver._instances[key] = cls(device)
+        return drv
 
     def _buffer(self, name: str, nbytes: int):
         """The buffer ``name`` with at least ``nbytes`` bytes (contents undefined when it had to grow)."""

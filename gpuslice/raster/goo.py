@@ -127,14 +127,20 @@ class GooEncoder(RunImageEncoder):
     FILE, SIZES, WRITE = "goo.cl", "goo_sizes", "goo_write"
     MAX_RUN = MAX_RUN
     HEAD = TAIL = 1
-    SUMS = True
+    EXTRA = (np.dtype(np.uint8),)  # each run's byte sum mod 256
 
     def blank(self, n_pixels: int) -> bytes:
         return _chunk_bytes(n_pixels, 0)
 
-    def finish(self, img: np.ndarray, start: np.ndarray, check: np.ndarray) -> None:
+    def reduce(self, extra: list[np.ndarray], first: np.ndarray, nonempty: np.ndarray, blank: bytes) -> np.ndarray:
+        check = np.full(first.size, sum(blank), np.uint64)  # each layer's chunk bytes, summed
+        ne = np.flatnonzero(nonempty)
+        check[ne] = np.add.reduceat(extra[0], first[ne], dtype=np.uint64)
+        return check
+
+    def finish(self, img: np.ndarray, start: np.ndarray, stats: np.ndarray) -> None:
         img[start[:-1]] = LAYER_MAGIC
-        img[start[1:] - 1] = ~(check & np.uint64(0xFF)).astype(np.uint8)
+        img[start[1:] - 1] = ~(stats & np.uint64(0xFF)).astype(np.uint8)
 
 
 def encode_segments(n: np.ndarray, v: np.ndarray, seg_offsets: np.ndarray) -> list[bytes]:

@@ -52,6 +52,7 @@ carry no date, so the bytes depend only on the layers and the options. The M7 ge
 
 from __future__ import annotations
 
+import functools
 import os
 import struct
 from collections.abc import Iterable
@@ -66,10 +67,11 @@ from ..io.atomic import atomic_path
 from .coverage import Tile
 from .layers import HeightMap, RunLayer, batch_image_segments, batch_pixel_runs, pixel_runs, run_groups
 from .png import encode_all
+from .run_encoder import RunImageEncoder
 from .settings import layer_table, print_time_s, resin_ml
 
-__all__ = ["MACHINES", "VERSIONS", "Machine", "encode_pw0", "encode_pw0_batch", "quantise", "write_photon",
-           "write_target"]
+__all__ = ["MACHINES", "VERSIONS", "Machine", "PhotonEncoder", "encode_pw0", "encode_pw0_batch", "encode_pw0_runs",
+           "quantise", "write_photon", "write_target"]
 
 VERSIONS = (1, 515, 516, 517, 518)
 
@@ -190,6 +192,53 @@ def encode_pw0_batch(start: np.ndarray, length: np.ndarray, grey: np.ndarray, of
         box[has, 1] = np.minimum.reduceat(start % cols, first)
         box[has, 3] = np.maximum.reduceat(end % cols, first)
     return [data[img_off[i] : img_off[i + 1]] for i in range(n_img)], lit, mid, box
+
+
+@functools.lru_cache(maxsize=4)
+def _blank_records(n_pixels: int) -> bytes:
+    """PW0 records of ``n_pixels`` blank pixels: two-byte records of 0xFFF, then the rest."""
+    full, rest = divmod(n_pixels, 0xFFF)
+    return b"\x0f\xff" * full + (bytes([rest >> 8, rest & 0xFF]) if rest else b"")
+
+
+class PhotonEncoder(RunImageEncoder):
+    """Driver of ``kernels/photon.cl`` (:mod:`gpuslice.raster.run_encoder`): PW0 layer images of a group of layers
+    from their runs, the bytes of :func:`encode_pw0_batch` (its numpy twin, which also takes the groups the kernels
+    leave), and its per-layer lit pixels, middle-grey flags and lit boxes from per-run values."""
+
+    FILE, SIZES, WRITE = "photon.cl", "pw_sizes", "pw_write"
+    MAX_RUN = 0x7FFFFFFF  # (records are split: any image whose pixel index fits an int)
+    EXTRA = tuple(np.dtype(d) for d in (np.int32, np.uint8, np.int32, np.int32, np.int32, np.int32))
+
+    def blank(self, n_pixels: int) -> bytes:
+        return _blank_records(n_pixels)
+
+    def reduce(self, extra: list[np.ndarray], first: np.ndarray, nonempty: np.ndarray, blank: bytes):
+        lit_run, mid_run, r0, c0, r1, c1 = extra
+        n_img = first.size
+        lit, mid = np.zeros(n_img, np.int64), np.zeros(n_img, bool)
+        box = np.full((n_img, 4), -1, np.int64)
+        ne = np.flatnonzero(nonempty)
+        if ne.size:
+            at = first[ne]
+            lit[ne] = np.add.reduceat(lit_run, at, dtype=np.int64)
+            mid[ne] = np.maximum.reduceat(mid_run, at) > 0
+            on = lit[ne] > 0
+            for col, (arr, op) in enumerate(((r0, np.minimum), (c0, np.minimum), (r1, np.maximum), (c1, np.maximum))):
+                box[ne[on], col] = op.reduceat(arr, at)[on]
+        return lit, mid, box
+
+
+def encode_pw0_runs(runs, a: int, b: int, cols: int, n_pixels: int, device=None):
+    """:func:`encode_pw0_batch` of entries ``a`` … ``b`` − 1 of a batch of runs (:class:`~gpuslice.raster.runs.Runs`
+    of ``cols`` columns): ``(images, lit, mid, box)``; with an OpenCL ``device``, by the kernels of
+    ``kernels/photon.cl`` (:class:`PhotonEncoder`; the same values)."""
+    if device is not None:
+        out = PhotonEncoder.of(device).encode_stats(runs, a, b, cols, n_pixels)
+        if out is not None:
+            return (out[0], *out[1])
+    start, length, grey, offsets = batch_pixel_runs(runs, a, b, cols)
+    return encode_pw0_batch(start, length, grey, offsets, n_pixels, cols)
 
 
 def _pitch(spec) -> tuple[float, float]:
@@ -393,11 +442,15 @@ def write_photon(layers: Iterable[Tile | RunLayer], target, *, machine: Machine,
         s, e = start[lit_runs], start[lit_runs] + length[lit_runs] - 1  # runs never cross a row end
         return data, lit, mid, (int(s[0] // cols), int((s % cols).min()), int(e[-1] // cols), int((e % cols).max()))
 
+    device = getattr(target, "device", None)
+
+    def groups(items):  # the kernels take more layers a call than the numpy passes gain from
+        return run_groups(items, size=64 if device is not None else 16)
+
     def encode_group(group: list[Tile | RunLayer]) -> list:  # on a worker thread
         if not isinstance(group[0], RunLayer):
             return [encode(item) for item in group]
-        start, length, grey, offsets = batch_pixel_runs(group[0].runs, group[0].j, group[-1].j + 1, cols)
-        data, lit, mid, box = encode_pw0_batch(start, length, grey, offsets, n_pixels, cols)
+        data, lit, mid, box = encode_pw0_runs(group[0].runs, group[0].j, group[-1].j + 1, cols, n_pixels, device)
         return [(d, int(n), bool(m), None if b[0] < 0 else tuple(int(v) for v in b))
                 for d, n, m, b in zip(data, lit, mid, box, strict=True)]
 
@@ -418,7 +471,7 @@ def write_photon(layers: Iterable[Tile | RunLayer], target, *, machine: Machine,
                 box[2:] = max(box[2], b[2]), max(box[3], b[3])
 
         stats = encode_all(layers, encode, sink, target.workers, on_tile=view.add, progress=target.progress,
-                           many=encode_group, chunk=run_groups)
+                           many=encode_group, chunk=groups)
         if stats["layers"] != n:
             raise ParameterError(f"{path}: expected {n} layers, got {stats['layers']}")
         size = f.tell()

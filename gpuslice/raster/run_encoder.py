@@ -31,13 +31,13 @@ RUN_DTYPES = (np.dtype(np.int32), np.dtype(np.int32), np.dtype(np.int32), np.dty
 class RunImageEncoder(KernelDriver):
     """Base of the encoders: ``FILE`` (the kernel file), ``SIZES`` and ``WRITE`` (its two kernels), ``MAX_RUN``
     (the longest record: larger images go to the twin), ``HEAD``/``TAIL`` (bytes of each layer before/after its
-    runs' bytes, set by :meth:`finish`), ``SUMS`` (the write pass also gives each run's byte sum mod 256, added up
-    per layer for :meth:`finish`)."""
+    runs' bytes, set by :meth:`finish`), ``EXTRA`` (dtypes of per-run arrays the write pass also fills, after its
+    output: :meth:`reduce` makes per-layer values of them)."""
 
     FILE = SIZES = WRITE = ""
     MAX_RUN = 0
     HEAD = TAIL = 0
-    SUMS = False
+    EXTRA: tuple = ()
     #: more runs than this in one call: the twin (the prefix sum is int32; a run writes at most ~20 bytes)
     MAX_RUNS = 100_000_000
 
@@ -54,9 +54,21 @@ class RunImageEncoder(KernelDriver):
         """The runs' bytes of a layer with no runs (``n_pixels`` blank pixels)."""
         raise NotImplementedError
 
-    def finish(self, img: np.ndarray, start: np.ndarray, check: np.ndarray) -> None:
-        """Write each layer's own bytes into ``img`` (layer k: ``start[k]`` … ``start[k + 1]`` − 1); ``check``:
-        each layer's byte sum of its runs' bytes (with :attr:`SUMS`; uint64, not reduced)."""
+    def reduce(self, extra: list[np.ndarray], first: np.ndarray, nonempty: np.ndarray, blank: bytes):
+        """Per-layer values of the write pass's :attr:`EXTRA` arrays (layer k's runs: ``first[k]`` onwards, none
+        where not ``nonempty[k]``; ``blank``: the bytes of a layer without runs). Default: None."""
+        return None
+
+    def finish(self, img: np.ndarray, start: np.ndarray, stats) -> None:
+        """Write each layer's own bytes into ``img`` (layer k: ``start[k]`` … ``start[k + 1]`` − 1), given
+        :meth:`reduce`'s ``stats``. Default: nothing (no bytes of their own)."""
+
+    def encode(self, runs, a: int, b: int, cols: int, n_pixels: int) -> list[bytes] | None:
+        """The layer images of entries ``a`` … ``b`` − 1 of ``runs`` (a :class:`~gpuslice.raster.runs.Runs` of
+        ``cols`` columns, images of ``n_pixels``), one ``bytes`` each; None where the twin must encode them (no runs,
+        arrays not typed as the runs kernel types them, an image too large, or the kernels' flags)."""
+        out = self.encode_stats(runs, a, b, cols, n_pixels)
+        return None if out is None else out[0]
 
     def _queue(self):
         import pyopencl as cl
@@ -66,10 +78,8 @@ class RunImageEncoder(KernelDriver):
             q = self._local.queue = cl.CommandQueue(self.device.context, self.device.device)
         return q
 
-    def encode(self, runs, a: int, b: int, cols: int, n_pixels: int) -> list[bytes] | None:
-        """The layer images of entries ``a`` … ``b`` − 1 of ``runs`` (a :class:`~gpuslice.raster.runs.Runs` of
-        ``cols`` columns, images of ``n_pixels``), one ``bytes`` each; None where the twin must encode them (no runs,
-        arrays not typed as the runs kernel types them, an image too large, or the kernels' flags)."""
+    def encode_stats(self, runs, a: int, b: int, cols: int, n_pixels: int) -> tuple[list[bytes], object] | None:
+        """:meth:`encode` and :meth:`reduce`'s per-layer values: ``(images, stats)``, or None (the twin's turn)."""
         import pyopencl as cl
 
         lo, hi = int(runs.layer_offsets[a]), int(runs.layer_offsets[b])
@@ -110,24 +120,21 @@ class RunImageEncoder(KernelDriver):
         out = aligned_empty(total, np.uint8)
         b_out = cl.Buffer(ctx, mf.WRITE_ONLY | mf.USE_HOST_PTR, hostbuf=out)
         b_base = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=base)
-        extra = []
-        if self.SUMS:
-            sums = aligned_empty(m, np.uint8)
-            extra = [cl.Buffer(ctx, mf.WRITE_ONLY | mf.USE_HOST_PTR, hostbuf=sums)]
+        b_extra = [cl.Buffer(ctx, mf.WRITE_ONLY | mf.USE_HOST_PTR, hostbuf=aligned_empty(m, dt)) for dt in self.EXTRA]
         with self._lock:
-            self._write(q, grid, local, *head, b_cum, b_base, b_out, *extra)
+            self._write(q, grid, local, *head, b_cum, b_base, b_out, *b_extra)
         img = cl.enqueue_map_buffer(q, b_out, cl.map_flags.READ | cl.map_flags.WRITE, 0, (total,), np.uint8,
-                                    is_blocking=not self.SUMS)[0]
-        check = np.full(n_img, sum(blank), np.uint64)
-        if self.SUMS:
-            s = cl.enqueue_map_buffer(q, extra[0], cl.map_flags.READ, 0, (m,), np.uint8, is_blocking=True)[0]
-            ne = np.flatnonzero(nonempty)
-            check[ne] = np.add.reduceat(s, first[ne], dtype=np.uint64)
-            s.base.release(q)
+                                    is_blocking=False)[0]
+        extra = [cl.enqueue_map_buffer(q, buf, cl.map_flags.READ, 0, (m,), dt, is_blocking=False)[0]
+                 for buf, dt in zip(b_extra, self.EXTRA, strict=True)]
+        q.finish()
+        stats = self.reduce(extra, first, nonempty, blank)
+        for arr in extra:
+            arr.base.release(q)
         for k in np.flatnonzero(~nonempty):
             img[start[k] + self.HEAD : start[k] + self.HEAD + len(blank)] = np.frombuffer(blank, np.uint8)
-        self.finish(img, start, check)
+        self.finish(img, start, stats)
         data = [img[start[k] : start[k + 1]].tobytes() for k in range(n_img)]
         img.base.release(q)
         q.finish()
-        return data
+        return data, stats

@@ -294,10 +294,11 @@ def _workload(pass_name: str) -> dict:
         _same([getattr(got_runs, f) for f in fields], [getattr(want_runs, f) for f in fields], f"runs {what}")
         for k in range(res.n_layers):
             assert np.array_equal(runs_to_mask(got_runs, k), bitmap[k]), f"runs against raster, {what} layer {k}"
-    # goo.cl and ctb.cl: the GOO and CTB images of the box's and the sphere's runs (as the runs kernel types them),
-    # layer groups from the first entry and from one inside
+    # goo.cl, ctb.cl and photon.cl: the GOO, CTB and PW0 images of the box's and the sphere's runs (as the runs
+    # kernel types them), layer groups from the first entry and from one inside
     from gpuslice.raster.ctb import rle7_runs
     from gpuslice.raster.goo import encode_batch
+    from gpuslice.raster.photon import encode_pw0_runs
     from gpuslice.raster.runs import Runs
 
     for what in ("sphere", "box"):
@@ -310,6 +311,10 @@ def _workload(pass_name: str) -> dict:
             assert got == encode_batch(r, a, len(r.layers), cols, rows * cols), f"GOO images, {what} from {a}"
             got = rle7_runs(r, a, len(r.layers), cols, rows * cols, device=dev)
             assert got == rle7_runs(r, a, len(r.layers), cols, rows * cols), f"CTB images, {what} from {a}"
+            got = encode_pw0_runs(r, a, len(r.layers), cols, rows * cols, device=dev)
+            want = encode_pw0_runs(r, a, len(r.layers), cols, rows * cols)
+            assert got[0] == want[0], f"PW0 images, {what} from {a}"
+            _same(got[1:], want[1:], f"PW0 lit, middle greys, boxes, {what} from {a}")
     return {"device": dev.name, "launched": sorted(launched)}
 
 

@@ -141,3 +141,32 @@ def test_release_scratch_drops_the_drivers_buffers_and_slicing_still_agrees(mode
     again = slice_mesh(mesh, thickness=0.25, device=device)
     assert np.array_equal(first.points, again.points) and np.array_equal(first.loop_offsets, again.loop_offsets)
     assert np.allclose(again.area, reference.area)
+
+
+def test_a_kernel_driver_is_made_once_when_threads_ask_at_once(device):
+    """The archive writers' encoder threads ask for their encoding driver at the same moment: one driver comes back
+    to all of them (made once: PyOpenCL warns on stderr when a kernel is looked up twice)."""
+    import threading
+    import warnings
+
+    from gpuslice.device import KernelDriver
+
+    class Probe(KernelDriver):
+        made = 0
+
+        def __init__(self, dev) -> None:
+            super().__init__(dev)
+            type(self).made += 1
+            gate.wait(0.2)  # hold the first maker so that the other threads come while it works
+
+    gate = threading.Event()
+    got: list = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        threads = [threading.Thread(target=lambda: got.append(Probe.of(device))) for _ in range(8)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    KernelDriver._instances.pop((Probe, id(device)), None)
+    assert len(got) == 8 and all(d is got[0] for d in got) and Probe.made == 1

@@ -370,3 +370,87 @@ def test_name_fields_are_cut_at_a_character_boundary():
     assert len(b) == 32 and b.endswith(b"\0")
     text = b.rstrip(b"\0").decode("utf-8")  # decodes: no half character left
     assert text == "ü" * 15
+
+
+# ---- the encoding kernels (kernels/photon.cl) against their numpy twin ----------------------------------------------
+def _same(got, want) -> None:
+    assert got[0] == want[0]
+    for g, w in zip(got[1:], want[1:], strict=True):
+        assert np.array_equal(g, w)
+
+
+def test_kernels_equal_the_twin_on_random_groups(device):
+    """Groups of layers with faint greys (below 16: blank after quantisation), neighbours equal after it, whole
+    rows, blank layers first, inside and last, lone pixels at both ends, and layers lit only faintly (no box): the
+    kernels' bytes, lit pixels, middle-grey flags and boxes equal the twin's, with no group left to it."""
+    import sys
+
+    from gpuslice.raster.photon import PhotonEncoder, encode_pw0_runs
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from run_images import runs_of
+
+    enc = PhotonEncoder.of(device)
+    rng = np.random.default_rng(22)
+    h, w = 12, 35
+    imgs = []
+    for k in range(30):
+        img = rng.choice(np.array([0, 0, 255, 255, 1, 15, 16, 17, 31, 128, 230, 250], np.uint8), size=(h, w))
+        img[rng.random((h, w)) < 0.2 * (k % 5)] = 0
+        imgs.append(img)
+    for k in (0, 9, 29):
+        imgs[k][:] = 0
+    imgs[4][:] = 0
+    imgs[4][0, 0] = imgs[4][-1, -1] = 255
+    imgs[5][:] = 255
+    imgs[6] = np.where(imgs[6] > 0, 7, 0).astype(np.uint8)  # faint only: blank after quantisation
+    imgs[7] = np.where(imgs[7] > 0, 255, 0).astype(np.uint8)
+    imgs[7][3, 3] = 230  # its one middle grey: the highest middle code, 14
+    runs = runs_of(imgs)
+    before = enc.fallbacks
+    for a, b in ((0, 30), (0, 1), (3, 17), (4, 8), (9, 11), (29, 30), (5, 29)):
+        got = encode_pw0_runs(runs, a, b, w, h * w, device=device)
+        _same(got, encode_pw0_runs(runs, a, b, w, h * w))
+    assert enc.fallbacks == before
+    start, length, grey = decode_pw0(np.frombuffer(encode_pw0_runs(runs, 5, 6, w, h * w, device=device)[0][0],
+                                                   np.uint8), h * w)
+    assert start.tolist() == [0] and length.tolist() == [h * w] and q(grey).tolist() == [255]
+
+
+def test_kernels_long_records_and_long_merges(device):
+    """Segments longer than a record (0xF for middle greys, 0xFFF for 0 and 15) split into full records then the
+    rest; a blank stretch of more faint runs than a work-item looks ahead over: left to the twin (counted)."""
+    from gpuslice.raster.photon import PhotonEncoder, encode_pw0_runs
+    from gpuslice.raster.runs import Runs
+
+    enc = PhotonEncoder.of(device)
+    lengths = np.array([1, 15, 16, 31, 0xFFF, 0x1000, 3 * 0xFFF + 5, 2])
+    greys = np.array([128, 128, 255, 100, 255, 255, 255, 40], np.uint8)
+    gaps = np.array([0, 1, 0xFFF, 0x1000, 1, 2 * 0xFFF, 3, 0x2001])
+    start = np.cumsum(gaps + np.concatenate(([0], lengths[:-1])))
+    cols = int(start[-1] + lengths[-1]) + 0x1003
+    runs = Runs(np.arange(1), np.array([0, lengths.size]), np.zeros(lengths.size, np.int32), start.astype(np.int32),
+                lengths.astype(np.int32), greys, (1, cols))
+    before = enc.fallbacks
+    got = encode_pw0_runs(runs, 0, 1, cols, cols, device=device)
+    _same(got, encode_pw0_runs(runs, 0, 1, cols, cols))
+    assert enc.fallbacks == before
+    n = 5000  # faint one-pixel runs with one-pixel gaps: one blank segment of ~10,000 pieces
+    runs = Runs(np.arange(1), np.array([0, n]), np.zeros(n, np.int32), np.arange(0, 2 * n, 2, dtype=np.int32),
+                np.ones(n, np.int32), np.full(n, 9, np.uint8), (1, 2 * n + 4))
+    assert enc.encode(runs, 0, 1, 2 * n + 4, 2 * n + 4) is None and enc.fallbacks == before + 1
+    _same(encode_pw0_runs(runs, 0, 1, 2 * n + 4, 2 * n + 4, device=device),
+          encode_pw0_runs(runs, 0, 1, 2 * n + 4, 2 * n + 4))
+
+
+def test_writer_with_the_kernels_writes_the_twins_file(tmp_path, torus, device):
+    from dataclasses import replace
+
+    for gamma in (1.0, 0.0):
+        spec = RasterSpec(resolution=(1200, 900), pixel=0.05, gamma=gamma)
+        files = []
+        for dev in (device, None):
+            out = tmp_path / f"t{gamma:g}{dev is None}.pwmx"
+            write_target(iter_run_layers(torus, spec, device=device), replace(target(out, torus, spec), device=dev))
+            files.append(out.read_bytes())
+        assert files[0] == files[1]
