@@ -224,12 +224,14 @@ def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | Non
 
 
 def _prestart_encoders(r: ResinOutput) -> None:
-    """PNG-layer outputs: start the PNG encoder processes now, so their imports overlap the slicing."""
+    """PNG-layer outputs: start the PNG encoder processes now, so their imports overlap the slicing; only where the
+    layers' PNGs are made in them: with the OpenCL rasteriser (runs) they are made on its device (``kernels/png.cl``,
+    :mod:`gpuslice.raster.png_runs`) unless ``GPUSLICE_PNG_PROCESSES=1`` asks for the processes."""
     from .raster.coverage import choose_backend
     from .raster.outputs import RESIN_FORMATS
 
     runs = choose_backend(r.options.raster_backend) == "opencl"  # layers as runs, PNGs straight from them
-    if RESIN_FORMATS[r.format].png and r.options.png_level == 1 and runs:
+    if RESIN_FORMATS[r.format].png and r.options.png_level == 1 and runs and _png_processes():
         import os
 
         from .raster.png_procs import prestart
@@ -321,7 +323,8 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
     settings = r.settings if r.settings is not None else r.options.settings()
     target = ResinTarget(Path(r.path.rstrip("/\\") or "."), r.spec, r.options, out.result, name, now,
                          r.options.workers, tick, settings, bounds=bounds,
-                         device=dev if backend == "opencl" else None)
+                         device=dev if backend == "opencl" and not (RESIN_FORMATS[r.format].png and _png_processes())
+                         else None)
     try:
         out.stats.update(RESIN_FORMATS[r.format].load()(layers, target))
     finally:  # a writer that failed: its layers' producer threads stop now
@@ -331,6 +334,14 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
     out.stats["raster_backend"] = backend
     t_sub = out.timings.get("z_samples", 0.0)
     out.timings["raster"] = time.perf_counter() - t - t_sub  # the z sub-slices have their own line
+
+
+def _png_processes() -> bool:
+    """``GPUSLICE_PNG_PROCESSES=1``: PNG layers from runs made by numpy in processes (the numpy twin of the PNG
+    kernel, as before it), not on the device; for comparisons and for devices where the kernel is slow."""
+    import os
+
+    return os.environ.get("GPUSLICE_PNG_PROCESSES", "").strip().lower() in ("1", "yes", "true", "on")
 
 
 #: layers whose z sub-planes are sliced at once (memory: their K-fold sub-slice, not the whole model's)

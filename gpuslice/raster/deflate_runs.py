@@ -12,7 +12,11 @@ segment of n bytes of value v is deflated (RFC 1951) with distance-1 copies, whi
 
 The zlib stream is ``78 01``, one final deflate block, the Adler-32. The block's codes are (``huffman``):
 
-* ``"dynamic"`` (default): Huffman code lengths (≤ 15) from this layer's symbol counts; the header sends every code
+* ``"static"`` (default): one code for every layer (:data:`STATIC_LENGTHS`), sent in a dynamic block's header as
+  ``"dynamic"`` sends its own; a <258, 1> copy is two 0 bits. The PNG kernel (``kernels/png.cl``,
+  :mod:`gpuslice.raster.png_runs`) writes these bytes, this module is its twin; files ~2-3 % larger than
+  ``"dynamic"``'s on the armadillo job;
+* ``"dynamic"``: Huffman code lengths (≤ 15) from this layer's symbol counts; the header sends every code
   length with a flat 4-bit code-length code (about 150 bytes). The only distance is 1, one code of one bit, so a
   body copy costs about 2 bits per 258 bytes (zlib level 9 does no better on zeros);
 * ``"fixed"``: RFC 1951 §3.2.6's fixed codes: no header, but 13 bits per 258 bytes, so blank areas come out ~6×
@@ -44,7 +48,7 @@ from .runs import Runs
 
 __all__ = ["encode_png_from_runs", "HUFFMAN"]
 
-HUFFMAN = ("dynamic", "fixed")
+HUFFMAN = ("dynamic", "fixed", "static")
 _SIG = b"\x89PNG\r\n\x1a\n"
 _MOD = 65521
 _MAXLEN = 258
@@ -82,6 +86,17 @@ def _canonical(lengths: np.ndarray) -> np.ndarray:
 
 
 _FIXED_CODE = _canonical(_FIXED_LENGTHS)
+
+#: ``"static"``: one dynamic-block code for every layer (RFC 1951 §3.2.7 header, sent as ``"dynamic"`` sends it):
+#: the <258, 1> copy's length symbol 285 gets 1 bit, the literals 0 and 255 3 bits, literals 200-253 11 bits and the
+#: other literals, lengths and the end of block 10 bits (a complete code: 1/2 + 2/8 + 229/1024 + 54/2048 = 1). With
+#: the one distance code of 1 bit, a <258, 1> copy is two 0 bits: blank areas cost no writes (the PNG kernel's
+#: bodies are its zeroed buffer). Files about as small as "dynamic"'s for binary layers, a few % larger with greys.
+STATIC_LENGTHS = np.full(286, 10, np.int64)
+STATIC_LENGTHS[[0, 255]] = 3
+STATIC_LENGTHS[200:254] = 11
+STATIC_LENGTHS[285] = 1
+STATIC_CODE = _canonical(STATIC_LENGTHS)
 
 
 def _huffman_lengths(freq: np.ndarray, limit: int = 15) -> np.ndarray:
@@ -203,14 +218,17 @@ def _codes(seg_v: np.ndarray, q: np.ndarray, r: np.ndarray, huffman: str):
     ``seg_v`` with ``q`` body copies and tails of ``r`` bytes (module docstring)."""
     if huffman == "fixed":
         return _FIXED_CODE, _FIXED_LENGTHS, np.array([3]), np.array([3]), 5  # BFINAL 1, BTYPE 01
-    tail_match = r >= 3
-    freq = np.zeros(286, np.int64)
-    freq[:256] = np.bincount(seg_v, weights=1 + np.where(tail_match, 0, r), minlength=256)
-    freq[256] = 1
-    freq[_LSYM[_MAXLEN]] += int(q.sum())
-    np.add.at(freq, _LSYM[r[tail_match]], 1)
-    lengths = _huffman_lengths(freq)
-    code = _canonical(lengths)
+    if huffman == "static":
+        lengths, code = STATIC_LENGTHS, STATIC_CODE
+    else:
+        tail_match = r >= 3
+        freq = np.zeros(286, np.int64)
+        freq[:256] = np.bincount(seg_v, weights=1 + np.where(tail_match, 0, r), minlength=256)
+        freq[256] = 1
+        freq[_LSYM[_MAXLEN]] += int(q.sum())
+        np.add.at(freq, _LSYM[r[tail_match]], 1)
+        lengths = _huffman_lengths(freq)
+        code = _canonical(lengths)
     nlit = int(np.flatnonzero(lengths)[-1]) + 1
     cl = [4 * (s < 16) for s in _CL_ORDER]  # the code-length code: symbols 0..15, 4 bits each
     code_lens = np.concatenate((lengths[:nlit], [1]))  # then one distance code of 1 bit
@@ -257,10 +275,11 @@ def _deflate(seg_v: np.ndarray, seg_n: np.ndarray, huffman: str) -> bytes:
     return _pack(val.astype(_U64), nb, body, pattern, pbits)
 
 
-def encode_png_from_runs(runs: Runs, k: int, width: int, height: int, huffman: str = "dynamic") -> bytes:
+def encode_png_from_runs(runs: Runs, k: int, width: int, height: int, huffman: str = "static") -> bytes:
     """The PNG file (greyscale, 8 bits, ``width`` × ``height``) of entry ``k`` of ``runs`` (a position in
-    ``runs.layers``): its decoded pixels are ``runs.to_mask(k)``. ``huffman``: ``"dynamic"`` (smaller files) or
-    ``"fixed"`` (RFC 1951's fixed codes); see the module docstring for the encoding."""
+    ``runs.layers``): its decoded pixels are ``runs.to_mask(k)``. ``huffman``: ``"static"`` (one code for every
+    layer: the PNG kernel's bytes), ``"dynamic"`` (each layer's own code) or ``"fixed"`` (RFC 1951's fixed codes);
+    see the module docstring for the encoding."""
     if huffman not in HUFFMAN:
         raise ParameterError(f"unknown huffman '{huffman}' (use {', '.join(HUFFMAN)})")
     width, height = int(width), int(height)

@@ -52,10 +52,11 @@ from ..errors import ParameterError
 from ..formats.numbers import point_bounds
 from ..io.atomic import atomic_path
 from .coverage import Tile
-from .layers import RUNS_LEVEL, RunLayer, encode_png, pixel_runs, run_groups
+from .layers import RUNS_LEVEL, RunLayer, encode_png, pixel_runs
 from .png import PngEncoder, encode_all
+from .png_runs import kernel_groups, png_group
 from .settings import PrintSettings, print_time_s, resin_ml
-from .sl1 import _Thumb, _write_deflated, _zip_time, check_one_layer_height
+from .sl1 import _member, _Thumb, _write_deflated, _zip_time, check_one_layer_height
 from .spec import RasterSpec
 
 __all__ = ["PREVIEW_SIZE", "polygon_areas", "write_nanodlp", "write_target"]
@@ -124,10 +125,12 @@ def write_nanodlp(
     workers: int | None = None,
     progress: Callable[[int], None] | None = None,
     now: _dt.datetime | None = None,
+    device=None,
 ) -> dict[str, float]:
     """Write a NanoDLP plate of ``result``'s layers (``tiles``: tiles or runs, in order) at ``path``, atomically
     (module docstring). ``bounds``: the box the layers were centred by (only for the part's box in the manifests;
-    None: the result's). Returns the layer count and PNG bytes."""
+    None: the result's). ``device``: the OpenCL device of the layers' runs, where their PNGs are made
+    (``kernels/png.cl``) at ``level`` 1 (None: numpy). Returns the layer count and PNG bytes."""
     from .. import __version__
     from .edges import result_bounds
 
@@ -190,15 +193,18 @@ def write_nanodlp(
 
         def encode(item: Tile | RunLayer) -> tuple[bytes, bytes, tuple[int, int, int, int]]:  # on a worker
             png = encode_png(item, enc)
-            c = enc.z.compressobj(1, enc.z.DEFLATED, -15)
-            return png, c.compress(png) + c.flush(), _lit_box(item, cols)
+            return png, _member(enc, png), _lit_box(item, cols)
 
         from .png_procs import encode_group as encode_procs
         from .png_procs import process_pool, threads_for
 
-        pool = process_pool(workers or os.cpu_count()) if level == RUNS_LEVEL else None
+        device = device if level == RUNS_LEVEL else None
+        pool = process_pool(workers or os.cpu_count()) if level == RUNS_LEVEL and device is None else None
 
         def encode_group(group: list[Tile | RunLayer]) -> list[tuple[bytes, bytes, tuple[int, int, int, int]]]:
+            pngs = png_group(device, group, enc.nx, enc.ny)
+            if pngs is not None:  # made on the device; members deflated here (on a worker thread)
+                return [(png, _member(enc, png), _lit_box(item, cols)) for png, item in zip(pngs, group, strict=True)]
             if pool is None or not isinstance(group[0], RunLayer):  # (on a worker thread)
                 return [encode(item) for item in group]
             done = encode_procs(pool, group, enc.nx, enc.ny, deflater)  # PNGs and members made in the processes
@@ -209,8 +215,7 @@ def write_nanodlp(
             boxes.append(item[2])
 
         stats = encode_all(tiles, encode, sink, threads_for(pool, workers), on_tile=thumb.add, progress=progress,
-                           many=encode_group,
-                           chunk=run_groups)
+                           many=encode_group, chunk=lambda items: kernel_groups(items, device))
         if stats["layers"] != n:
             raise ParameterError(f"{p}: expected {n} layers, got {stats['layers']}")
         info = []
@@ -236,4 +241,4 @@ def write_target(tiles: Iterable[Tile | RunLayer], target) -> dict[str, float]:
     return write_nanodlp(tiles, target.result, target.spec, target.path, target.settings, name=target.name,
                          title=preset.title if preset is not None else "", bounds=target.bounds,
                          level=target.options.png_level, deflater=target.deflater, workers=target.workers,
-                         progress=target.progress, now=target.now)
+                         progress=target.progress, now=target.now, device=getattr(target, "device", None))

@@ -10,8 +10,9 @@ from pathlib import Path
 from ..errors import ParameterError
 from ..io.atomic import atomic_path
 from .coverage import Tile
-from .layers import RUNS_LEVEL, RunLayer, encode_png, run_groups
+from .layers import RUNS_LEVEL, RunLayer, encode_png
 from .png import PngEncoder, encode_all
+from .png_runs import kernel_groups, png_group
 from .spec import RasterSpec
 
 __all__ = ["write_png_stack", "write_target"]
@@ -28,11 +29,13 @@ def write_png_stack(
     deflater: str = "auto",
     workers: int | None = None,
     progress: Callable[[int], None] | None = None,
+    device=None,
 ) -> dict[str, float]:
     """Write one greyscale PNG per layer (a tile or runs, :mod:`gpuslice.raster.layers`) into ``directory``
     (``<prefix>00000.png`` upward), atomically: the directory is built under a temporary name and renamed over
     ``directory`` when complete. An existing ``directory`` is replaced only when it holds nothing but
-    ``<prefix>NNNNN.png`` files (an earlier run)."""
+    ``<prefix>NNNNN.png`` files (an earlier run). ``device``: the OpenCL device of the layers' runs, where their
+    PNGs are made (``kernels/png.cl``) at ``level`` 1; None: numpy, in processes where the command allows them."""
     out = Path(os.fspath(directory))
     if out.exists() and not out.is_dir():
         raise ParameterError(f"{out}: exists and is not a directory")
@@ -48,7 +51,8 @@ def write_png_stack(
         from .png_procs import process_pool, threads_for
         from .png_procs import write_group as write_procs
 
-        pool = process_pool(workers or os.cpu_count()) if level == RUNS_LEVEL else None
+        device = device if level == RUNS_LEVEL else None
+        pool = process_pool(workers or os.cpu_count()) if level == RUNS_LEVEL and device is None else None
 
         def encode_and_write(pair: tuple[int, Tile]) -> bytes:  # in the pool: file creation overlaps the encoding
             k, item = pair
@@ -57,18 +61,24 @@ def write_png_stack(
             return data
 
         def group_and_write(pairs: list[tuple[int, Tile | RunLayer]]) -> list[bytes] | list[int]:  # on a worker thread
+            pngs = png_group(device, [item for _, item in pairs], enc.nx, enc.ny)
+            if pngs is not None:  # made on the device, written here
+                for (k, _), data in zip(pairs, pngs, strict=True):
+                    (tmp / f"{prefix}{k:0{digits}d}.png").write_bytes(data)
+                return pngs
             if pool is None or not isinstance(pairs[0][1], RunLayer):
                 return [encode_and_write(pair) for pair in pairs]
             paths = [tmp / f"{prefix}{k:0{digits}d}.png" for k, _ in pairs]  # written by the processes
             return write_procs(pool, [item for _, item in pairs], enc.nx, enc.ny, paths)
 
         stats = encode_all(enumerate(tiles), encode_and_write, lambda k, data: None, threads_for(pool, workers),
-                           progress=progress,
-                           many=group_and_write, chunk=lambda pairs: run_groups(pairs, key=lambda pair: pair[1]))
+                           progress=progress, many=group_and_write,
+                           chunk=lambda pairs: kernel_groups(pairs, device, key=lambda pair: pair[1]))
     return stats
 
 
 def write_target(tiles: Iterable[Tile], target) -> dict[str, float]:
     """The registry's writer (:mod:`gpuslice.raster.outputs`): a PNG stack named after ``target.name``."""
     return write_png_stack(tiles, target.spec, target.path, prefix=target.name, level=target.options.png_level,
-                           deflater=target.deflater, workers=target.workers, progress=target.progress)
+                           deflater=target.deflater, workers=target.workers, progress=target.progress,
+                           device=getattr(target, "device", None))

@@ -23,8 +23,9 @@ import numpy as np
 from ..errors import ParameterError
 from ..io.atomic import atomic_path
 from .coverage import Tile
-from .layers import RUNS_LEVEL, HeightMap, RunLayer, encode_png, run_groups
+from .layers import RUNS_LEVEL, HeightMap, RunLayer, encode_png
 from .png import PngEncoder, encode_all
+from .png_runs import kernel_groups, png_group
 from .spec import RasterSpec
 
 __all__ = ["SL1Info", "config_ini", "prusaslicer_ini", "read_sl1_config", "write_sl1", "info_from",
@@ -236,8 +237,11 @@ def write_sl1(
     workers: int | None = None,
     progress: Callable[[int], None] | None = None,
     now: _dt.datetime | None = None,
+    device=None,
 ) -> dict[str, float]:
     """Write an SL1 archive at ``path`` (atomically) with one PNG per tile; ``n_layers`` tiles are expected.
+    ``device``: the OpenCL device of the layers' runs, where their PNGs are made (``kernels/png.cl``) at ``level``
+    1; None: numpy, in processes where the command allows them.
 
     Every member is deflated, as PrusaSlicer does (our PNGs shrink to ~0.6 in the zip: their deflate streams repeat
     row after row); the layers' members are deflated on the worker threads with the PNGs.
@@ -260,15 +264,18 @@ def write_sl1(
 
         def encode(item: Tile | RunLayer) -> tuple[bytes, bytes]:  # on a worker: the PNG and its deflated member
             png = encode_png(item, enc)
-            c = enc.z.compressobj(1, enc.z.DEFLATED, -15)
-            return png, c.compress(png) + c.flush()
+            return png, _member(enc, png)
 
         from .png_procs import encode_group as encode_procs
         from .png_procs import process_pool, threads_for
 
-        pool = process_pool(workers or os.cpu_count()) if level == RUNS_LEVEL else None
+        device = device if level == RUNS_LEVEL else None
+        pool = process_pool(workers or os.cpu_count()) if level == RUNS_LEVEL and device is None else None
 
         def encode_group(group: list[Tile | RunLayer]) -> list[tuple[bytes, bytes]]:  # on a worker thread
+            pngs = png_group(device, group, enc.nx, enc.ny)
+            if pngs is not None:  # made on the device; the members deflated here (zlib releases the GIL)
+                return [(png, _member(enc, png)) for png in pngs]
             if pool is not None and isinstance(group[0], RunLayer):  # PNGs and members made in the processes
                 return encode_procs(pool, group, enc.nx, enc.ny, deflater)
             return [encode(item) for item in group]
@@ -277,13 +284,18 @@ def write_sl1(
             _write_deflated(z, entry(f"{info.job_dir}{k:05d}.png"), *item)
 
         stats = encode_all(tiles, encode, sink, threads_for(pool, workers), on_tile=thumb.add, progress=progress,
-                           many=encode_group,
-                           chunk=run_groups)
+                           many=encode_group, chunk=lambda items: kernel_groups(items, device))
         if stats["layers"] != n_layers:
             raise ParameterError(f"{p}: expected {n_layers} layers, got {stats['layers']}")
         for w, h in THUMBNAILS:
             z.writestr(entry(f"thumbnail/thumbnail{w}x{h}.png"), thumb.png((w, h)))
     return stats
+
+
+def _member(enc: PngEncoder, png: bytes) -> bytes:
+    """A PNG's zip member data: raw deflate at level 1 (as the archive's other members)."""
+    c = enc.z.compressobj(1, enc.z.DEFLATED, -15)
+    return c.compress(png) + c.flush()
 
 
 def _zip_time(now: _dt.datetime | None) -> tuple[int, int, int, int, int, int]:
@@ -328,5 +340,6 @@ def write_target(tiles: Iterable[Tile], target) -> dict[str, float]:
     info = info_from(target.result, target.name, sl1_values(target))
     n = target.result.n_layers
     stats = write_sl1(tiles, target.spec, target.path, info, n, level=target.options.png_level,
-                      deflater=target.deflater, workers=target.workers, progress=target.progress, now=target.now)
+                      deflater=target.deflater, workers=target.workers, progress=target.progress, now=target.now,
+                      device=getattr(target, "device", None))
     return {**stats, "print_time_s": sl1_print_time(info, n)}

@@ -294,11 +294,13 @@ def _workload(pass_name: str) -> dict:
         _same([getattr(got_runs, f) for f in fields], [getattr(want_runs, f) for f in fields], f"runs {what}")
         for k in range(res.n_layers):
             assert np.array_equal(runs_to_mask(got_runs, k), bitmap[k]), f"runs against raster, {what} layer {k}"
-    # goo.cl, ctb.cl and photon.cl: the GOO, CTB and PW0 images of the box's and the sphere's runs (as the runs
-    # kernel types them), layer groups from the first entry and from one inside
+    # goo.cl, ctb.cl, photon.cl and png.cl: the GOO, CTB, PW0 and PNG images of the box's and the sphere's runs (as
+    # the runs kernel types them), layer groups from the first entry and from one inside
     from gpuslice.raster.ctb import rle7_runs
+    from gpuslice.raster.deflate_runs import encode_png_from_runs
     from gpuslice.raster.goo import encode_batch
     from gpuslice.raster.photon import encode_pw0_runs
+    from gpuslice.raster.png_runs import PngRunsEncoder
     from gpuslice.raster.runs import Runs
 
     for what in ("sphere", "box"):
@@ -315,6 +317,9 @@ def _workload(pass_name: str) -> dict:
             want = encode_pw0_runs(r, a, len(r.layers), cols, rows * cols)
             assert got[0] == want[0], f"PW0 images, {what} from {a}"
             _same(got[1:], want[1:], f"PW0 lit, middle greys, boxes, {what} from {a}")
+            got = PngRunsEncoder.of(dev).encode(r, a, len(r.layers), cols, rows)
+            want = [encode_png_from_runs(r, k, cols, rows, "static") for k in range(a, len(r.layers))]
+            assert got == want, f"PNG layers, {what} from {a}"
     return {"device": dev.name, "launched": sorted(launched)}
 
 

@@ -153,7 +153,7 @@ def test_image_larger_than_runs_shape():
 def test_errors():
     runs = make_runs([[(0, 2, 3, 9)]], (2, 5))
     with pytest.raises(ParameterError):
-        encode_png_from_runs(runs, 0, 5, 2, huffman="static")
+        encode_png_from_runs(runs, 0, 5, 2, huffman="adaptive")
     with pytest.raises(ParameterError):
         encode_png_from_runs(runs, 0, 4, 2)  # run past the right edge
     with pytest.raises(ParameterError):
@@ -235,3 +235,66 @@ def test_sliced_model(torus, gamma, resolution, pixel):
     assert runs.n_runs > 0
     for k in range(len(layers)):
         check(runs, k)
+
+
+# ---- the PNG kernels (kernels/png.cl) against their twin, huffman="static" -----------------------------------------
+def test_kernels_write_the_static_twins_bytes(device):
+    """Groups of layers (any first entry; blank layers first, inside and last; whole rows; lone pixels in the
+    corners; every grey): the kernels' PNGs equal the twin's, byte for byte, and decode to the layers."""
+    import sys
+    from pathlib import Path
+
+    from gpuslice.raster.png_runs import PngRunsEncoder
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from run_images import runs_of
+
+    enc = PngRunsEncoder.of(device)
+    rng = np.random.default_rng(23)
+    h, w = 19, 61
+    imgs = []
+    for k in range(24):
+        img = rng.choice(np.array([0, 0, 0, 255, 255, 1, 2, 77, 200, 230, 254], np.uint8), size=(h, w))
+        img[rng.random((h, w)) < 0.2 * (k % 5)] = 0
+        imgs.append(img)
+    for k in (0, 9, 23):
+        imgs[k][:] = 0
+    imgs[4][:] = 0
+    imgs[4][0, 0] = imgs[4][-1, -1] = 255
+    imgs[5][:] = 255
+    runs = runs_of(imgs)
+    before = enc.fallbacks
+    for a, b in ((0, 24), (0, 1), (3, 17), (4, 6), (9, 11), (23, 24), (5, 23)):
+        got = enc.encode(runs, a, b, w, h)
+        assert got == [encode_png_from_runs(runs, k, w, h, "static") for k in range(a, b)], (a, b)
+        for k, png in zip(range(a, b), got, strict=True):
+            assert np.array_equal(np.asarray(Image.open(io.BytesIO(png))), imgs[k])
+    assert enc.fallbacks == before
+
+
+def test_kernels_every_tail_and_long_blanks(device):
+    """Runs and blank stretches of every tail (r = 0 … 257 bytes after the bodies of 258: literals for r < 3, one
+    copy from 3), a 16K display's blank layer around one pixel (bodies of ~360,000 copies), and runs the twin
+    refuses (overlapping): left to it, which raises."""
+    from gpuslice.raster.png_runs import PngRunsEncoder
+
+    enc = PngRunsEncoder.of(device)
+    lengths = np.concatenate((np.arange(1, 261), np.arange(517, 778, 13)))
+    cols = int(lengths.sum() + 2 * lengths.size) + 5
+    x = np.cumsum(np.concatenate(([0], lengths[:-1] + 2))).astype(np.int32)
+    grey = np.where(np.arange(lengths.size) % 3 == 0, 255, 1 + np.arange(lengths.size) % 250).astype(np.uint8)
+    runs = Runs(np.arange(1), np.array([0, lengths.size]), np.zeros(lengths.size, np.int32), x,
+                lengths.astype(np.int32), grey, (2, cols))
+    got = enc.encode(runs, 0, 1, cols, 2)
+    assert got == [encode_png_from_runs(runs, 0, cols, 2, "static")]
+    assert np.array_equal(np.asarray(Image.open(io.BytesIO(got[0]))), runs.to_mask(0))
+    big = Runs(np.arange(2), np.array([0, 1, 1]), np.array([3000], np.int32), np.array([7000], np.int32),
+               np.array([1], np.int32), np.array([200], np.uint8), (6230, 15120))
+    got = enc.encode(big, 0, 2, 15120, 6230)
+    assert got == [encode_png_from_runs(big, k, 15120, 6230, "static") for k in range(2)]
+    n = struct.unpack(">I", got[0][33:37])[0]  # the IDAT after the signature and IHDR (zlib: no pixel-count limit)
+    img = np.frombuffer(zlib.decompress(got[0][41 : 41 + n]), np.uint8).reshape(6230, 15121)[:, 1:]
+    assert img[3000, 7000] == 200 and int(img.sum()) == 200
+    bad = make_runs([[(0, 0, 3, 9), (0, 2, 2, 5)]], (2, 5))
+    before = enc.fallbacks
+    assert enc.encode(bad, 0, 1, 5, 2) is None and enc.fallbacks == before + 1

@@ -30,9 +30,12 @@ def _raster(stl, out, *extra) -> None:
 
 @pytest.mark.parametrize("suffix", [".sl1", ".nanodlp", "/"])
 def test_processes_write_the_threads_bytes(tmp_path, torus_stl, device, monkeypatch, suffix):
-    """The command line encodes PNG layers in worker processes (two workers); `--workers 1` on one thread: the same
-    archive bytes (SL1, NanoDLP) or files (PNG stack) under SOURCE_DATE_EPOCH. The pool was made and let go."""
+    """With GPUSLICE_PNG_PROCESSES=1 the command line encodes PNG layers by numpy in worker processes (two
+    workers); `--workers 1` on one thread: the same archive bytes (SL1, NanoDLP) or files (PNG stack) under
+    SOURCE_DATE_EPOCH. The pool was made and let go. By default the PNGs are made on the device (kernels/png.cl,
+    no pool): the same bytes again."""
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
+    monkeypatch.setenv("GPUSLICE_PNG_PROCESSES", "1")
     made = []
     real = png_procs.process_pool
 
@@ -51,13 +54,18 @@ def test_processes_write_the_threads_bytes(tmp_path, torus_stl, device, monkeypa
     made.clear()
     _raster(torus_stl, f"{b}/" if suffix == "/" else b, "--workers", "1")
     assert made and all(p is None for p in made)
+    monkeypatch.delenv("GPUSLICE_PNG_PROCESSES")
+    made.clear()
+    c = tmp_path / ("device" if suffix == "/" else f"device{suffix}")
+    _raster(torus_stl, f"{c}/" if suffix == "/" else c, "--workers", "2")
+    assert not made  # no pool asked for
     if suffix == "/":
         names = sorted(p.name for p in a.iterdir())
-        assert names and names == sorted(p.name for p in b.iterdir())
+        assert names and names == sorted(p.name for p in b.iterdir()) == sorted(p.name for p in c.iterdir())
         for name in names:
-            assert (a / name).read_bytes() == (b / name).read_bytes(), name
+            assert (a / name).read_bytes() == (b / name).read_bytes() == (c / name).read_bytes(), name
     else:
-        assert a.read_bytes() == b.read_bytes()
+        assert a.read_bytes() == b.read_bytes() == c.read_bytes()
         with zipfile.ZipFile(a) as z:
             assert z.testzip() is None and sum(n.endswith(".png") for n in z.namelist()) >= 20
 

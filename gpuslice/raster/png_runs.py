@@ -1,0 +1,174 @@
+"""PNG layers encoded on the OpenCL device straight from run-length runs (``kernels/png.cl``): the driver.
+
+The PNGs are those of :func:`gpuslice.raster.deflate_runs.encode_png_from_runs` with ``huffman="static"``, its
+numpy twin, byte for byte: greyscale, 8 bits, filter 0 on every row, one IDAT holding one final dynamic deflate
+block whose code is the same for every layer (``deflate_runs.STATIC_LENGTHS``: a <258, 1> copy is two 0 bits). The
+kernels write each layer's deflate bits (its block header, then per run the tokens of the blank stretch before it,
+itself, and after the last run the blank tail and the end of block) and the runs' Adler-32 terms; the host does the
+prefix sum of the bits, places each layer's stream on a byte, and wraps it: zlib header, Adler-32, the PNG chunks
+and their CRCs. A layer without runs (or a group the kernels flag) is made by the twin.
+"""
+
+from __future__ import annotations
+
+import struct
+import threading
+import zlib
+
+import numpy as np
+
+from ..device import KernelDriver
+from . import deflate_runs as _d
+from .png import png_chunk
+from .run_encoder import RUN_DTYPES
+
+__all__ = ["PngRunsEncoder"]
+
+_SIG = b"\x89PNG\r\n\x1a\n"
+_MOD = 65521
+
+
+def _tables() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """The static code's tables for the kernels: literal/length codes and lengths, the length tokens for r = 3..258
+    (code, extra bits, the 1-bit distance code 0), and the block header as 32-bit words and its bit count."""
+    lengths, code = _d.STATIC_LENGTHS, _d.STATIC_CODE
+    len_val, len_nb = np.zeros(259, np.uint32), np.zeros(259, np.uint8)
+    r = np.arange(3, 259)
+    sym = _d._LSYM[r]
+    len_val[r] = code[sym] | (_d._LXVAL[r] << lengths[sym])
+    len_nb[r] = lengths[sym] + _d._LXBITS[r] + 1
+    _, _, hdr_val, hdr_nb, _ = _d._codes(None, None, None, "static")
+    acc, pos = 0, 0
+    for v, nb in zip(hdr_val.tolist(), hdr_nb.tolist(), strict=True):
+        acc |= int(v) << pos
+        pos += int(nb)
+    n_words = (pos + 31) // 32
+    hdr = np.array([(acc >> (32 * w)) & 0xFFFFFFFF for w in range(n_words)], np.uint32)
+    return code.astype(np.uint32), lengths.astype(np.uint8), len_val, len_nb, hdr, pos
+
+
+class PngRunsEncoder(KernelDriver):
+    """Driver of ``kernels/png.cl`` (module docstring). Safe to call from several threads at once (a command queue
+    per thread; the kernels' arguments set under a lock)."""
+
+    #: a group's bits are counted in int32: groups that could pass this go to the twin
+    MAX_BITS = 2**31 - 2**24
+
+    def __init__(self, device) -> None:
+        import pyopencl as cl
+
+        super().__init__(device)
+        prog = device.program("png.cl")
+        self._sizes, self._write = prog.png_sizes, prog.png_write
+        self._lock = threading.Lock()
+        self._local = threading.local()
+        code, lengths, len_val, len_nb, hdr, self._hdr_bits = _tables()
+        if int(len_val[258]) != 0:  # pragma: no cover - the static code's property the kernel relies on
+            raise AssertionError("the static code's <258, 1> copy must be zero bits")
+        mf, ctx = cl.mem_flags, device.context
+        self._tabs = [cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a) for a in (code, lengths, len_val,
+                                                                                            len_nb)]
+        self._hdr = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=hdr)
+        self._little = bool(device.device.endian_little)
+        #: groups (or layers) made by the twin
+        self.fallbacks = 0
+
+    def _queue(self):
+        import pyopencl as cl
+
+        q = getattr(self._local, "queue", None)
+        if q is None:
+            q = self._local.queue = cl.CommandQueue(self.device.context, self.device.device)
+        return q
+
+    def encode(self, runs, a: int, b: int, width: int, height: int) -> list[bytes] | None:
+        """The PNGs (``width`` × ``height``) of entries ``a`` … ``b`` − 1 of ``runs``, or None where the twin must
+        make them all (arrays not typed as the runs kernel types them, a group too large, the kernels' flags)."""
+        import pyopencl as cl
+
+        lo, hi = int(runs.layer_offsets[a]), int(runs.layer_offsets[b])
+        m, n_img = hi - lo, b - a
+        n_bytes = height * (width + 1)
+        arrays = (runs.row, runs.x, runs.length, runs.grey)
+        if m == 0 and width > 0 and height > 0:  # blank layers only: the twin's bytes are the kernels'
+            return [_d.encode_png_from_runs(runs, k, width, height, "static") for k in range(a, b)]
+        worst = n_img * (n_bytes // 129 + 2 * self._hdr_bits) + 64 * m
+        if not (0 < m and worst < self.MAX_BITS and self._little and width > 0 and height > 0) or any(
+                arr.dtype != dt or not arr.flags.c_contiguous for arr, dt in zip(arrays, RUN_DTYPES, strict=True)):
+            return None
+        ctx, q, mf = self.device.context, self._queue(), cl.mem_flags
+        img_off = np.ascontiguousarray(runs.layer_offsets[a : b + 1] - lo, np.int32)
+        b_runs = [cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=arr[lo:hi]) for arr in arrays]
+        b_off = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=img_off)
+        b_bits = cl.Buffer(ctx, mf.READ_WRITE, 4 * m)
+        flags = np.zeros(1, np.int32)
+        b_flags = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=flags)
+        grid, local = self._grid(m)
+        head = (np.int32(m), np.int32(n_img), np.int32(width), np.int32(height), b_off, *b_runs, *self._tabs)
+        with self._lock:
+            self._sizes(q, grid, local, *head, b_bits, b_flags)
+        cl.enqueue_copy(q, flags, b_flags, is_blocking=True)
+        if flags[0]:
+            self.fallbacks += 1
+            return None
+        cum = np.empty(m, np.int32)
+        cl.enqueue_copy(q, cum, b_bits, is_blocking=True)
+        np.cumsum(cum, out=cum)  # inclusive, in place (worst < MAX_BITS: no overflow)
+        first, end = img_off[:-1].astype(np.int64), img_off[1:].astype(np.int64)
+        before = np.where(first > 0, cum[np.maximum(first - 1, 0)], 0).astype(np.int64)
+        after = np.where(end > 0, cum[np.maximum(end - 1, 0)], 0).astype(np.int64)
+        nonempty = end > first
+        size = np.where(nonempty, (self._hdr_bits + after - before + 7) // 8, 0)  # each stream's bytes
+        start = np.zeros(n_img + 1, np.int64)
+        np.cumsum(size, out=start[1:])
+        n_words = int(start[-1]) // 4 + 2
+        base = 8 * start[:-1] + self._hdr_bits - before
+        b_cum = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=cum)
+        b_base = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=base)
+        words = np.zeros(n_words, np.uint32)
+        b_out = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=words)
+        b_ad = [cl.Buffer(ctx, mf.WRITE_ONLY, 4 * m) for _ in range(2)]
+        with self._lock:
+            self._write(q, grid, local, *head, b_cum, b_base, self._hdr, np.int32(self._hdr_bits), b_out, *b_ad)
+        ad = [np.empty(m, np.uint32), np.empty(m, np.uint32)]
+        cl.enqueue_copy(q, words, b_out, is_blocking=False)
+        for arr, buf in zip(ad, b_ad, strict=True):
+            cl.enqueue_copy(q, arr, buf, is_blocking=False)
+        q.finish()
+        ne = np.flatnonzero(nonempty)
+        sum_a, sum_b = np.zeros(n_img, np.int64), np.zeros(n_img, np.int64)
+        if ne.size:
+            sum_a[ne] = np.add.reduceat(ad[0], first[ne], dtype=np.int64)
+            sum_b[ne] = np.add.reduceat(ad[1], first[ne], dtype=np.int64)
+        adler = ((n_bytes + sum_b) % _MOD) << 16 | ((1 + sum_a) % _MOD)
+        data = words.view(np.uint8)
+        ihdr = png_chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0))
+        tail = png_chunk(b"IEND", b"")
+        out = []
+        for k in range(n_img):
+            if not nonempty[k]:  # no runs: the twin (the same bytes the kernels would give)
+                out.append(_d.encode_png_from_runs(runs, a + k, width, height, "static"))
+                continue
+            idat = b"\x78\x01" + data[start[k] : start[k + 1]].tobytes() + struct.pack(">I", int(adler[k]))
+            out.append(_SIG + ihdr + struct.pack(">I", len(idat)) + b"IDAT" + idat
+                       + struct.pack(">I", zlib.crc32(idat, zlib.crc32(b"IDAT"))) + tail)
+        return out
+
+
+def png_group(device, group: list, width: int, height: int) -> list[bytes] | None:
+    """The PNGs of a writer's group of consecutive :class:`~gpuslice.raster.layers.RunLayer` entries of one batch,
+    made by the kernels on ``device``; None when there is no device, the group is not runs, or the kernels leave it
+    to the twin (the writer then encodes each layer itself)."""
+    from .layers import RunLayer
+
+    if device is None or not isinstance(group[0], RunLayer):
+        return None
+    return PngRunsEncoder.of(device).encode(group[0].runs, group[0].j, group[-1].j + 1, width, height)
+
+
+def kernel_groups(items, device, key=None):
+    """:func:`gpuslice.raster.layers.run_groups` of ``items`` in groups of 64 layers with a device (the kernels
+    take more layers a call than the numpy path gains from), else of 16."""
+    from .layers import run_groups
+
+    return run_groups(items, size=64 if device is not None else 16, key=key)
