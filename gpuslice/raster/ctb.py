@@ -331,9 +331,6 @@ def write_ctb(
                 return rle7_runs(group[0].runs, group[0].j, group[-1].j + 1, cols, n_pixels, device)
             return [encode(item) for item in group]
 
-        def groups(items):  # the kernels take more layers a call than the numpy passes gain from
-            return run_groups(items, size=64 if device is not None else 16)
-
         def sink(k: int, data: bytes) -> None:
             nonlocal pos
             if k >= n:
@@ -350,7 +347,7 @@ def write_ctb(
             entries[k] = np.frombuffer(LAYER_DEF.pack(*entry), "<u4")
 
         stats = encode_all(layers, encode, sink, workers, on_tile=thumb.add, progress=progress, many=encode_group,
-                           chunk=groups)
+                           chunk=run_groups)
         if stats["layers"] != n:
             raise ParameterError(f"{p}: expected {n} layers, got {stats['layers']}")
         file_size = pos

@@ -71,8 +71,6 @@ PREVIEWS = ((116, 116), (290, 290))
 #: the longest run one chunk holds (28 bits)
 MAX_RUN = 0xFFFFFFF
 VERSION = b"V3.0"
-#: layers encoded at once: by the kernels (:class:`GooEncoder`), by the numpy twin
-GROUP_KERNEL, GROUP_NUMPY = 64, 16
 
 # the header around the previews: strings and levels before them, settings after them
 _HEAD = struct.Struct(">4s8s32s24s24s32s32s32sHHH")
@@ -318,9 +316,6 @@ def write_goo(layers: Iterable[Tile | RunLayer], target) -> dict[str, Any]:
             return encode_batch(group[0].runs, group[0].j, group[-1].j + 1, cols, n_pixels, device=device)
         return [encode(item) for item in group]
 
-    def groups(items):  # the kernels take more layers a call than the numpy passes gain from
-        return run_groups(items, size=GROUP_KERNEL if device is not None else GROUP_NUMPY)
-
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.seek(HEADER_SIZE)  # the header (with the previews) goes in last
 
@@ -333,7 +328,7 @@ def write_goo(layers: Iterable[Tile | RunLayer], target) -> dict[str, Any]:
             f.write(DELIMITER)
 
         stats = encode_all(layers, encode, sink, target.workers, on_tile=thumb.add, progress=target.progress,
-                           many=encode_group, chunk=groups)
+                           many=encode_group, chunk=run_groups)
         if stats["layers"] != n:
             raise ParameterError(f"{path}: expected {n} layers, got {stats['layers']}")
         f.write(ENDING)

@@ -52,9 +52,9 @@ from ..errors import ParameterError
 from ..formats.numbers import point_bounds
 from ..io.atomic import atomic_path
 from .coverage import Tile
-from .layers import RUNS_LEVEL, RunLayer, encode_png, pixel_runs
+from .layers import RUNS_LEVEL, RunLayer, encode_png, pixel_runs, run_groups
 from .png import PngEncoder, encode_all
-from .png_runs import kernel_groups, png_group
+from .png_runs import png_group
 from .settings import PrintSettings, print_time_s, resin_ml
 from .sl1 import _member, _Thumb, _write_deflated, _zip_time, check_one_layer_height
 from .spec import RasterSpec
@@ -215,7 +215,7 @@ def write_nanodlp(
             boxes.append(item[2])
 
         stats = encode_all(tiles, encode, sink, threads_for(pool, workers), on_tile=thumb.add, progress=progress,
-                           many=encode_group, chunk=lambda items: kernel_groups(items, device))
+                           many=encode_group, chunk=run_groups)
         if stats["layers"] != n:
             raise ParameterError(f"{p}: expected {n} layers, got {stats['layers']}")
         info = []

@@ -444,9 +444,6 @@ def write_photon(layers: Iterable[Tile | RunLayer], target, *, machine: Machine,
 
     device = getattr(target, "device", None)
 
-    def groups(items):  # the kernels take more layers a call than the numpy passes gain from
-        return run_groups(items, size=64 if device is not None else 16)
-
     def encode_group(group: list[Tile | RunLayer]) -> list:  # on a worker thread
         if not isinstance(group[0], RunLayer):
             return [encode(item) for item in group]
@@ -471,7 +468,7 @@ def write_photon(layers: Iterable[Tile | RunLayer], target, *, machine: Machine,
                 box[2:] = max(box[2], b[2]), max(box[3], b[3])
 
         stats = encode_all(layers, encode, sink, target.workers, on_tile=view.add, progress=target.progress,
-                           many=encode_group, chunk=groups)
+                           many=encode_group, chunk=run_groups)
         if stats["layers"] != n:
             raise ParameterError(f"{path}: expected {n} layers, got {stats['layers']}")
         size = f.tell()

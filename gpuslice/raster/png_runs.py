@@ -165,10 +165,3 @@ def png_group(device, group: list, width: int, height: int) -> list[bytes] | Non
         return None
     return PngRunsEncoder.of(device).encode(group[0].runs, group[0].j, group[-1].j + 1, width, height)
 
-
-def kernel_groups(items, device, key=None):
-    """:func:`gpuslice.raster.layers.run_groups` of ``items`` in groups of 64 layers with a device (the kernels
-    take more layers a call than the numpy path gains from), else of 16."""
-    from .layers import run_groups
-
-    return run_groups(items, size=64 if device is not None else 16, key=key)

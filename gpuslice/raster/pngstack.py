@@ -10,9 +10,9 @@ from pathlib import Path
 from ..errors import ParameterError
 from ..io.atomic import atomic_path
 from .coverage import Tile
-from .layers import RUNS_LEVEL, RunLayer, encode_png
+from .layers import RUNS_LEVEL, RunLayer, encode_png, run_groups
 from .png import PngEncoder, encode_all
-from .png_runs import kernel_groups, png_group
+from .png_runs import png_group
 from .spec import RasterSpec
 
 __all__ = ["write_png_stack", "write_target"]
@@ -73,7 +73,7 @@ def write_png_stack(
 
         stats = encode_all(enumerate(tiles), encode_and_write, lambda k, data: None, threads_for(pool, workers),
                            progress=progress, many=group_and_write,
-                           chunk=lambda pairs: kernel_groups(pairs, device, key=lambda pair: pair[1]))
+                           chunk=lambda pairs: run_groups(pairs, key=lambda pair: pair[1]))
     return stats
 
 

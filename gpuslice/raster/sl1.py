@@ -23,9 +23,9 @@ import numpy as np
 from ..errors import ParameterError
 from ..io.atomic import atomic_path
 from .coverage import Tile
-from .layers import RUNS_LEVEL, HeightMap, RunLayer, encode_png
+from .layers import RUNS_LEVEL, HeightMap, RunLayer, encode_png, run_groups
 from .png import PngEncoder, encode_all
-from .png_runs import kernel_groups, png_group
+from .png_runs import png_group
 from .spec import RasterSpec
 
 __all__ = ["SL1Info", "config_ini", "prusaslicer_ini", "read_sl1_config", "write_sl1", "info_from",
@@ -284,7 +284,7 @@ def write_sl1(
             _write_deflated(z, entry(f"{info.job_dir}{k:05d}.png"), *item)
 
         stats = encode_all(tiles, encode, sink, threads_for(pool, workers), on_tile=thumb.add, progress=progress,
-                           many=encode_group, chunk=lambda items: kernel_groups(items, device))
+                           many=encode_group, chunk=run_groups)
         if stats["layers"] != n_layers:
             raise ParameterError(f"{p}: expected {n_layers} layers, got {stats['layers']}")
         for w, h in THUMBNAILS:
