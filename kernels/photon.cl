@@ -79,8 +79,9 @@ inline long pw_segment(const int p, const int a, const int n, PW_ARGS, int *v) {
 // bytes of the records of a segment of n pixels of code c
 inline long pw_width(const long n, const int c) {
     const int two = c == 0 || c == 15;
-    const long cap = two ? 0xFFF : 0xF;
-    return ((n + cap - 1) / cap) * (two ? 2 : 1);
+    const uint cap = two ? 0xFFF : 0xF;
+    const uint records = n <= cap ? 1 : ((uint)n + cap - 1) / cap;  // (n < 2^31: the host checks; 32-bit division)
+    return (long)records * (two ? 2 : 1);
 }
 
 __kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))

@@ -53,18 +53,21 @@ inline void png_put(__global uint *out, const long pos, const uint val, const in
 #define PNG_TABLE_ARGS lit_code, lit_len, len_val, len_nb
 
 // bits of a segment of n >= 1 bytes of value v
+// body copies and tail bytes of a segment of n >= 1 bytes (n < 2^32: the host checks; no division when short)
+#define PNG_SPLIT(n_)                                                         \
+    const uint q = (n_) <= 258 ? 0 : (uint)((n_) - 1) / 258;                  \
+    const int r = (int)((n_) - 1 - (long)q * 258)
+
 inline long png_seg_bits(const long n, const int v, PNG_TABLES) {
-    const long q = (n - 1) / 258;
-    const int r = (int)((n - 1) - q * 258);
-    return lit_len[v] + q * len_nb[258] + (r >= 3 ? len_nb[r] : r * lit_len[v]);
+    PNG_SPLIT(n);
+    return lit_len[v] + (long)q * len_nb[258] + (r >= 3 ? len_nb[r] : r * lit_len[v]);
 }
 
 // writes the segment's tokens from pos; returns the bit after them
 inline long png_seg_write(__global uint *out, long pos, const long n, const int v, PNG_TABLES) {
-    const long q = (n - 1) / 258;
-    const int r = (int)((n - 1) - q * 258);
+    PNG_SPLIT(n);
     png_put(out, pos, lit_code[v], lit_len[v]);
-    pos += lit_len[v] + q * len_nb[258];  // the body: zero bits (the host checks len_val[258] == 0)
+    pos += lit_len[v] + (long)q * len_nb[258];  // the body: zero bits (the host checks len_val[258] == 0)
     if (r >= 3) {
         png_put(out, pos, len_val[r], len_nb[r]);
         pos += len_nb[r];

@@ -93,7 +93,8 @@ class PngRunsEncoder(KernelDriver):
         if m == 0 and width > 0 and height > 0:  # blank layers only: the twin's bytes are the kernels'
             return [_d.encode_png_from_runs(runs, k, width, height, "static") for k in range(a, b)]
         worst = n_img * (n_bytes // 129 + 2 * self._hdr_bits) + 64 * m
-        if not (0 < m and worst < self.MAX_BITS and self._little and width > 0 and height > 0) or any(
+        fits = 0 < m and worst < self.MAX_BITS and n_bytes < 2**31 and width > 0 and height > 0
+        if not (fits and self._little) or any(
                 arr.dtype != dt or not arr.flags.c_contiguous for arr, dt in zip(arrays, RUN_DTYPES, strict=True)):
             return None
         ctx, q, mf = self.device.context, self._queue(), cl.mem_flags
