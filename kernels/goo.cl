@@ -29,19 +29,6 @@ inline int goo_chunk_width(const long n, const int v) {
     return 1 + (v != 0 && v != 255) + goo_extra(n);
 }
 
-// the image of run k: the largest i with img_off[i] <= k (img_off[0] = 0 <= k < img_off[n_img])
-inline int goo_image(__global const int *img_off, const int n_img, const int k) {
-    int lo = 0, hi = n_img;
-    while (hi - lo > 1) {
-        const int mid = (lo + hi) >> 1;
-        if (img_off[mid] <= k)
-            lo = mid;
-        else
-            hi = mid;
-    }
-    return lo;
-}
-
 // run k's pixel index, its end, and the end of the run before it in its image (0 for the image's first run)
 #define GOO_RUN(k_, i_)                                                     \
     const int r = (k_);                                                     \
@@ -58,7 +45,7 @@ void goo_sizes(const int m, const int n_img, const int cols, const long n_pixels
                __global int *width, __global int *flags) {
     const int k = get_global_id(0);
     if (k >= m) return;
-    const int i = goo_image(img_off, n_img, k);
+    const int i = run_image(img_off, n_img, k);
     GOO_RUN(k, i);
     if (!first && s == ps && g == grey[r - 1]) atomic_or(flags, 1);
     if (s < ps || len[r] < 1 || g == 0 || e > n_pixels) atomic_or(flags, 2);
@@ -95,7 +82,7 @@ void goo_write(const int m, const int n_img, const int cols, const long n_pixels
                __global const int *cum, __global const long *base, __global uchar *out, __global uchar *sums) {
     const int k = get_global_id(0);
     if (k >= m) return;
-    const int i = goo_image(img_off, n_img, k);
+    const int i = run_image(img_off, n_img, k);
     GOO_RUN(k, i);
     int w = goo_chunk_width(len[r], g);
     if (s > ps) w += goo_chunk_width(s - ps, 0);

@@ -25,19 +25,6 @@
 
 #define PNG_MOD 65521
 
-// the layer of run k: the largest i with img_off[i] <= k (img_off[0] = 0 <= k < img_off[n_img])
-inline int png_image(__global const int *img_off, const int n_img, const int k) {
-    int lo = 0, hi = n_img;
-    while (hi - lo > 1) {
-        const int mid = (lo + hi) >> 1;
-        if (img_off[mid] <= k)
-            lo = mid;
-        else
-            hi = mid;
-    }
-    return lo;
-}
-
 // a token of nb <= 32 bits at stream bit pos
 inline void png_put(__global uint *out, const long pos, const uint val, const int nb) {
     if (val == 0) return;
@@ -83,7 +70,7 @@ inline long png_seg_write(__global uint *out, long pos, const long n, const int 
 // run k's byte position p in the flat filtered image, its end, the end of the run before it (0: none), whether it
 // is its layer's last run, the image's byte count N
 #define PNG_RUN(k_)                                                                             \
-    const int i = png_image(img_off, n_img, k_);                                              \
+    const int i = run_image(img_off, n_img, k_);                                              \
     const int first = (k_) == img_off[i], last = (k_) == img_off[i + 1] - 1;                  \
     const long N = (long)rows * (cols + 1);                                                     \
     const long p = (long)row[k_] * (cols + 1) + 1 + x[k_];                                      \

@@ -12,15 +12,13 @@ and their CRCs. A layer without runs (or a group the kernels flag) is made by th
 from __future__ import annotations
 
 import struct
-import threading
 import zlib
 
 import numpy as np
 
-from ..device import KernelDriver
 from . import deflate_runs as _d
 from .png import png_chunk
-from .run_encoder import RUN_DTYPES
+from .run_encoder import RunImageEncoder
 
 __all__ = ["PngRunsEncoder"]
 
@@ -47,10 +45,11 @@ def _tables() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarra
     return code.astype(np.uint32), lengths.astype(np.uint8), len_val, len_nb, hdr, pos
 
 
-class PngRunsEncoder(KernelDriver):
-    """Driver of ``kernels/png.cl`` (module docstring). Safe to call from several threads at once (a command queue
-    per thread; the kernels' arguments set under a lock)."""
+class PngRunsEncoder(RunImageEncoder):
+    """Driver of ``kernels/png.cl`` (module docstring), on the run-length encoders' base (its kernels, a command
+    queue per thread, the kernels' arguments set under a lock) with an :meth:`encode` of its own: bits, not bytes."""
 
+    FILE, SIZES, WRITE = "png.cl", "png_sizes", "png_write"
     #: a group's bits are counted in int32: groups that could pass this go to the twin
     MAX_BITS = 2**31 - 2**24
 
@@ -58,10 +57,6 @@ class PngRunsEncoder(KernelDriver):
         import pyopencl as cl
 
         super().__init__(device)
-        prog = device.program("png.cl")
-        self._sizes, self._write = prog.png_sizes, prog.png_write
-        self._lock = threading.Lock()
-        self._local = threading.local()
         code, lengths, len_val, len_nb, hdr, self._hdr_bits = _tables()
         if int(len_val[258]) != 0:  # pragma: no cover - the static code's property the kernel relies on
             raise AssertionError("the static code's <258, 1> copy must be zero bits")
@@ -70,61 +65,34 @@ class PngRunsEncoder(KernelDriver):
                                                                                             len_nb)]
         self._hdr = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=hdr)
         self._little = bool(device.device.endian_little)
-        #: groups (or layers) made by the twin
-        self.fallbacks = 0
-
-    def _queue(self):
-        import pyopencl as cl
-
-        q = getattr(self._local, "queue", None)
-        if q is None:
-            q = self._local.queue = cl.CommandQueue(self.device.context, self.device.device)
-        return q
 
     def encode(self, runs, a: int, b: int, width: int, height: int) -> list[bytes] | None:
         """The PNGs (``width`` × ``height``) of entries ``a`` … ``b`` − 1 of ``runs``, or None where the twin must
         make them all (arrays not typed as the runs kernel types them, a group too large, the kernels' flags)."""
         import pyopencl as cl
 
-        lo, hi = int(runs.layer_offsets[a]), int(runs.layer_offsets[b])
-        m, n_img = hi - lo, b - a
+        m, n_img = int(runs.layer_offsets[b]) - int(runs.layer_offsets[a]), b - a
         n_bytes = height * (width + 1)
-        arrays = (runs.row, runs.x, runs.length, runs.grey)
         if m == 0 and width > 0 and height > 0:  # blank layers only: the twin's bytes are the kernels'
             return [_d.encode_png_from_runs(runs, k, width, height, "static") for k in range(a, b)]
         worst = n_img * (n_bytes // 129 + 2 * self._hdr_bits) + 64 * m
         fits = 0 < m and worst < self.MAX_BITS and n_bytes < 2**31 and width > 0 and height > 0
-        if not (fits and self._little) or any(
-                arr.dtype != dt or not arr.flags.c_contiguous for arr, dt in zip(arrays, RUN_DTYPES, strict=True)):
+        got = self._inputs(runs, a, b) if fits and self._little else None
+        if got is None:
             return None
+        m, n_img, img_off, b_off, b_runs = got
         ctx, q, mf = self.device.context, self._queue(), cl.mem_flags
-        img_off = np.ascontiguousarray(runs.layer_offsets[a : b + 1] - lo, np.int32)
-        b_runs = [cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=arr[lo:hi]) for arr in arrays]
-        b_off = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=img_off)
-        b_bits = cl.Buffer(ctx, mf.READ_WRITE, 4 * m)
-        flags = np.zeros(1, np.int32)
-        b_flags = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=flags)
-        grid, local = self._grid(m)
         head = (np.int32(m), np.int32(n_img), np.int32(width), np.int32(height), b_off, *b_runs, *self._tabs)
-        with self._lock:
-            self._sizes(q, grid, local, *head, b_bits, b_flags)
-        cl.enqueue_copy(q, flags, b_flags, is_blocking=True)
-        if flags[0]:
-            self.fallbacks += 1
+        counted = self._counted(q, head, m, img_off)  # (worst < MAX_BITS: the bits' prefix sum fits)
+        if counted is None:
             return None
-        cum = np.empty(m, np.int32)
-        cl.enqueue_copy(q, cum, b_bits, is_blocking=True)
-        np.cumsum(cum, out=cum)  # inclusive, in place (worst < MAX_BITS: no overflow)
-        first, end = img_off[:-1].astype(np.int64), img_off[1:].astype(np.int64)
-        before = np.where(first > 0, cum[np.maximum(first - 1, 0)], 0).astype(np.int64)
-        after = np.where(end > 0, cum[np.maximum(end - 1, 0)], 0).astype(np.int64)
-        nonempty = end > first
+        b_cum, _, first, before, after, nonempty = counted
+        grid, local = self._grid(m)
         size = np.where(nonempty, (self._hdr_bits + after - before + 7) // 8, 0)  # each stream's bytes
         start = np.zeros(n_img + 1, np.int64)
         np.cumsum(size, out=start[1:])
         n_words = int(start[-1]) // 4 + 2
         base = 8 * start[:-1] + self._hdr_bits - before
-        b_cum = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=cum)
         b_base = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=base)
         words = np.zeros(n_words, np.uint32)
         b_out = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=words)

@@ -78,25 +78,32 @@ class RunImageEncoder(KernelDriver):
             q = self._local.queue = cl.CommandQueue(self.device.context, self.device.device)
         return q
 
-    def encode_stats(self, runs, a: int, b: int, cols: int, n_pixels: int) -> tuple[list[bytes], object] | None:
-        """:meth:`encode` and :meth:`reduce`'s per-layer values: ``(images, stats)``, or None (the twin's turn)."""
+    def _inputs(self, runs, a: int, b: int) -> tuple | None:
+        """``(m, n_img, img_off, its buffer, the run arrays' buffers)`` of entries ``a`` … ``b`` − 1 of ``runs`` (the
+        group's runs copied to the device), or None when the arrays are not typed as the runs kernel types them."""
         import pyopencl as cl
 
         lo, hi = int(runs.layer_offsets[a]), int(runs.layer_offsets[b])
-        m, n_img = hi - lo, b - a
         arrays = (runs.row, runs.x, runs.length, runs.grey)
-        if not (0 < m <= self.MAX_RUNS and 0 < n_pixels <= self.MAX_RUN and cols > 0) or any(
-                arr.dtype != dt or not arr.flags.c_contiguous for arr, dt in zip(arrays, RUN_DTYPES, strict=True)):
+        if any(arr.dtype != dt or not arr.flags.c_contiguous for arr, dt in zip(arrays, RUN_DTYPES, strict=True)):
             return None
-        ctx, q, mf = self.device.context, self._queue(), cl.mem_flags
+        ctx, mf = self.device.context, cl.mem_flags
         img_off = np.ascontiguousarray(runs.layer_offsets[a : b + 1] - lo, np.int32)
         b_runs = [cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=arr[lo:hi]) for arr in arrays]
         b_off = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=img_off)
+        return hi - lo, b - a, img_off, b_off, b_runs
+
+    def _counted(self, q, head: tuple, m: int, img_off: np.ndarray) -> tuple | None:
+        """The sizes pass (arguments ``head``) over ``m`` runs and the host's prefix sum: ``(cum buffer, cum, first,
+        before, after, nonempty)`` (each layer's first run, the sums before and after its runs, whether it has
+        any), or None when the kernel flagged the group for the twin."""
+        import pyopencl as cl
+
+        ctx, mf = self.device.context, cl.mem_flags
         b_width = cl.Buffer(ctx, mf.READ_WRITE, 4 * m)
         flags = np.zeros(1, np.int32)
         b_flags = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=flags)
         grid, local = self._grid(m)
-        head = (np.int32(m), np.int32(n_img), np.int32(cols), np.int64(n_pixels), b_off, *b_runs)
         with self._lock:
             self._sizes(q, grid, local, *head, b_width, b_flags)
         cl.enqueue_copy(q, flags, b_flags, is_blocking=True)
@@ -105,12 +112,30 @@ class RunImageEncoder(KernelDriver):
             return None
         cum = np.empty(m, np.int32)
         cl.enqueue_copy(q, cum, b_width, is_blocking=True)
-        np.cumsum(cum, out=cum)  # inclusive, in place (MAX_RUNS: no overflow)
+        np.cumsum(cum, out=cum)  # inclusive, in place (the callers bound the sum below 2^31)
         b_cum = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=cum)
         first, end = img_off[:-1].astype(np.int64), img_off[1:].astype(np.int64)
         before = np.where(first > 0, cum[np.maximum(first - 1, 0)], 0).astype(np.int64)
         after = np.where(end > 0, cum[np.maximum(end - 1, 0)], 0).astype(np.int64)
-        nonempty = end > first
+        return b_cum, cum, first, before, after, end > first
+
+    def encode_stats(self, runs, a: int, b: int, cols: int, n_pixels: int) -> tuple[list[bytes], object] | None:
+        """:meth:`encode` and :meth:`reduce`'s per-layer values: ``(images, stats)``, or None (the twin's turn)."""
+        import pyopencl as cl
+
+        m = int(runs.layer_offsets[b]) - int(runs.layer_offsets[a])
+        got = self._inputs(runs, a, b) if 0 < m <= self.MAX_RUNS and 0 < n_pixels <= self.MAX_RUN and cols > 0 \
+            else None
+        if got is None:
+            return None
+        m, n_img, img_off, b_off, b_runs = got
+        ctx, q, mf = self.device.context, self._queue(), cl.mem_flags
+        head = (np.int32(m), np.int32(n_img), np.int32(cols), np.int64(n_pixels), b_off, *b_runs)
+        counted = self._counted(q, head, m, img_off)
+        if counted is None:
+            return None
+        b_cum, _, first, before, after, nonempty = counted
+        grid, local = self._grid(m)
         blank = self.blank(int(n_pixels))
         size = self.HEAD + self.TAIL + np.where(nonempty, after - before, len(blank))
         start = np.zeros(n_img + 1, np.int64)

@@ -33,7 +33,7 @@ from goo_reader import (  # noqa: E402
     layer_runs,
     read_goo,
 )
-from run_images import runs_of  # noqa: E402
+from run_images import image_runs, runs_of  # noqa: E402
 
 pytest.importorskip("PIL.Image")
 
@@ -59,29 +59,16 @@ def test_chunks_match_the_spec_examples():
     assert encode_runs([16, 21], [5, 1], [255, 0x80], 24) == b"\x55" + body + bytes([_checksum(body)])
 
 
-def _image_runs(img: np.ndarray):
-    """(start, length, grey) of the non-blank runs of ``img`` row by row (the tests' own run coder)."""
-    h, w = img.shape
-    flat = img.reshape(-1)
-    change = np.ones(flat.size, bool)
-    change[1:] = flat[1:] != flat[:-1]
-    change[::w] = True
-    start = np.flatnonzero(change)
-    length = np.diff(np.append(start, flat.size))
-    keep = flat[start] != 0
-    return start[keep], length[keep], flat[start][keep]
-
-
 def test_random_images_round_trip():
     rng = np.random.default_rng(19)
     for h, w in ((1, 1), (3, 17), (37, 53), (64, 300)):
         img = rng.choice(np.array([0, 0, 0, 255, 255, 1, 17, 128, 254], np.uint8), size=(h, w))
         img[rng.random((h, w)) < 0.3] = 0
         img[h // 2] = 255  # a whole row: touches the next row's run when that starts at column 0
-        data = encode_runs(*_image_runs(img), h * w)
+        data = encode_runs(*image_runs(img), h * w)
         length, grey = decode_runs(np.frombuffer(data, np.uint8), h * w)
         assert np.array_equal(np.repeat(grey, length).reshape(h, w), img)
-    blank = encode_runs(*_image_runs(np.zeros((4, 4), np.uint8)), 16)
+    blank = encode_runs(*image_runs(np.zeros((4, 4), np.uint8)), 16)
     assert blank == bytes([0x55, 0x10, 0x01, _checksum(b"\x10\x01")])
 
 
@@ -100,7 +87,7 @@ def test_images_encoded_together_equal_one_by_one():
     imgs[5][:] = 255
     imgs[6][:] = 255
     imgs[7][0, 0] = imgs[7][-1, -1] = 255
-    runs = [_image_runs(img) for img in imgs]
+    runs = [image_runs(img) for img in imgs]
     offsets = np.concatenate(([0], np.cumsum([r[0].size for r in runs])))
     start, length, grey = (np.concatenate([r[i] for r in runs]) for i in range(3))
     n, v, seg = batch_image_segments(start, length, grey, offsets, h * w)
@@ -389,7 +376,7 @@ def test_kernels_equal_the_twin_on_random_groups(device):
     for a, b in ((0, 40), (0, 1), (3, 17), (9, 11), (20, 22), (39, 40), (5, 39)):
         got = encode_batch(runs, a, b, w, h * w, device=device)
         assert got == encode_batch(runs, a, b, w, h * w), (a, b)
-        assert got == [encode_runs(*_image_runs(imgs[k]), h * w) for k in range(a, b)]
+        assert got == [encode_runs(*image_runs(imgs[k]), h * w) for k in range(a, b)]
     assert enc.fallbacks == before
     length, grey = decode_runs(np.frombuffer(encode_batch(runs, 21, 22, w, h * w, device=device)[0], np.uint8))
     assert np.array_equal(np.repeat(grey, length).reshape(h, w), imgs[21])
@@ -428,7 +415,7 @@ def test_kernels_leave_touching_runs_to_the_twin(device):
     before = enc.fallbacks
     assert enc.encode(runs, 0, 2, 9, 36) is None and enc.fallbacks == before + 1
     got = encode_batch(runs, 0, 2, 9, 36, device=device)
-    assert got == encode_batch(runs, 0, 2, 9, 36) and got[0] == encode_runs(*_image_runs(img), 36)
+    assert got == encode_batch(runs, 0, 2, 9, 36) and got[0] == encode_runs(*image_runs(img), 36)
 
 
 def test_writer_with_the_kernels_writes_the_twins_file(tmp_path, torus, device):
