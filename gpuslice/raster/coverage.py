@@ -170,6 +170,8 @@ class RasterKernel(KernelDriver):
         edge_tile = np.repeat(np.arange(len(t), dtype=np.int32), counts)
         row_tile = np.repeat(np.arange(len(t), dtype=np.int32), t[:, 2])
         need = total_px * 4
+        if "acc" not in self._buffers:  # never made, or dropped by release_scratch: the next one is zeroed whole
+            self._acc_size = 0
         if need > self._acc_size:
             self._acc_size = max(need, int(self._acc_size * 1.5) // 4 * 4)
             acc = self._fill("acc", self._acc_size, np.int32(0))

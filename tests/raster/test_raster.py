@@ -423,3 +423,57 @@ def test_slice_and_raster_read_npz_as_a_mesh_file(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert "t.npz" in err and len(err.splitlines()) == 1
     assert not (tmp_path / "x.svg").exists() and not (tmp_path / "x.sl1").exists()
+
+
+def test_fit_check_is_the_points_own_box():
+    """check_points_fit measures the points' box corners, not every point: the same pixel box (exactly) on any
+    display, pitch, mirror, portrait and placement, so a model touching the display's edge passes or fails as its
+    points do."""
+    from gpuslice.formats.numbers import point_bounds
+    from gpuslice.raster.edges import check_points_fit
+
+    rng = np.random.default_rng(18)
+    for _ in range(200):
+        spec = RasterSpec(resolution=(int(rng.integers(50, 12000)), int(rng.integers(50, 6000))),
+                          pixel=float(rng.uniform(0.01, 0.1)), mirror_x=bool(rng.integers(2)),
+                          mirror_y=bool(rng.integers(2)), portrait=bool(rng.integers(2)))
+        xy = (rng.normal(size=(500, 2)) * rng.uniform(1, 50)).astype(np.float32)
+        bounds = tuple(float(b) for b in rng.normal(size=4) * 5)
+        lo, hi = point_bounds(spec.to_pixels(xy, bounds))  # every point
+        (x0, y0), (x1, y1) = point_bounds(xy)
+        corners = np.array([[x0, y0], [x0, y1], [x1, y0], [x1, y1]], np.float64)
+        box = point_bounds(spec.to_pixels(corners, bounds))
+        assert np.array_equal(box[0], lo) and np.array_equal(box[1], hi)  # the same bits
+        cols, rows = spec.png_size
+        inside = lo[0] >= -1e-6 and lo[1] >= -1e-6 and hi[0] <= cols + 1e-6 and hi[1] <= rows + 1e-6
+        try:
+            check_points_fit(xy, spec, bounds)
+            assert inside
+        except ParameterError:
+            assert not inside
+
+
+def test_bitmap_kernel_after_release_scratch(torus, device, monkeypatch):
+    """The bitmap kernel's accumulator is zeroed when it is made again after release_scratch (between the jobs of a
+    batch, before a job's raster stage). It was taken as still zeroed, so a later job's layers got whatever the new
+    allocation held added to their coverage. New buffers are filled with garbage here to make that visible."""
+    import pyopencl as cl
+
+    from gpuslice.device import KernelDriver, release_scratch
+    from gpuslice.raster.coverage import RasterKernel
+
+    real = KernelDriver._buffer
+
+    def dirty(self, name, nbytes):
+        fresh = name not in self._buffers or self._buffers[name][1] < nbytes
+        buf = real(self, name, nbytes)
+        if fresh:
+            cl.enqueue_fill_buffer(self.device.queue, buf, np.int32(0x01010101), 0, self._buffers[name][1] // 4 * 4)
+        return buf
+
+    monkeypatch.setattr(RasterKernel, "_buffer", dirty)
+    spec = RasterSpec(resolution=SMALL.resolution, pixel=SMALL.pixel)
+    want = masks(torus, spec, backend="numpy")
+    assert np.abs(masks(torus, spec, backend="opencl-bitmap", device=device).astype(int) - want).max() <= 1
+    release_scratch(device)
+    assert np.abs(masks(torus, spec, backend="opencl-bitmap", device=device).astype(int) - want).max() <= 1
