@@ -4,7 +4,7 @@
 //   runs_prep: one work-item per edge: an upper bound of the cell records (touched cells, one more at a piece's
 //       end) it gives each of its rows, added to a difference array over rows (integer atomics), and whether it is
 //       one work unit (<= rows_max rows, RunsKernel.ROWS_PER_UNIT: nearly all edges); host: two prefix sums ->
-//       each row's capacity (rounded up to even) and first slot row_off (in int2 slots);
+//       each row's capacity (rounded up to even) and first slot row_off (slots: a piece takes 2, a record 1);
 //   runs_edges (whole edges) and runs_pieces (the host's units (edge, <= rows_max rows) of the others): every row piece
 //       (the part of an edge in one row) written as one descriptor int4 (ca << 16 | ce, umin, umax, dy: its first
 //       and last touched cells, the floats as int bits) into its row's slice of pcs (int4 slot row_off / 2 + an
@@ -14,8 +14,9 @@
 //       to right, each cell's integer contributions computed there as raster.cl does (a piece alone in its cells:
 //       straight into the row sum; overlapping pieces: summed per cell first), the prefix sum S, grey =
 //       lut[min(lut_max, |S| >> 8)] (lut_max 255, or 256*K-1 for K z samples), and only the grey changes written,
-//       (column, grey), to recs at row_off; rows of more than ch cell records are left to the host (row_runs = -1),
-//       a row whose pieces did not fit its capacity is flagged (row_runs = -2: the host redoes the batch);
+//       column << 8 | grey, to recs (ints) at row_off; rows of more than ch cell records are left to the host
+//       (row_runs = -1), a row whose pieces did not fit its capacity is flagged (row_runs = -2: the host redoes the
+//       batch);
 //   host: prefix sum of the run counts -> run_off;
 //   runs_emit: one work-item per row: a run from each non-blank grey change to the next; display coordinates.
 // Tiles: tiles[t] = (first global row of the tile, cols, display row of tile row 0, display column of tile col 0);
@@ -146,7 +147,10 @@ void runs_edges(const int n_edges, __global const uchar *whole, __global const f
 // K sub-layers' records together, and lut[i] = gamma_lut[i / K], so lut[min(lut_max, |S| >> 8)] is the grey of the
 // mean coverage floor(256 * |S| / (65536 * K)), exactly.
 inline uchar runs_grey(__global const uchar *lut, const uint lut_max, const int s) {
-    const uint i = (uint)abs(s) >> 8;  // (a builtin: clang makes llvm.abs of any other form, unknown to Oclgrind)
+    // |s| as uint, exact for every int: s for s >= 0, ~s + 1 = -s else (n = 1). Not the abs builtin (PoCL calls it
+    // out of line: ~10% of runs_rows' time) nor a compare-and-negate or s * (s >> 31 | 1) (clang makes llvm.abs of
+    // those, unknown to Oclgrind).
+    const uint n = (uint)s >> 31, i = (((uint)s ^ (0u - n)) + n) >> 8;
     return lut[i < lut_max ? i : lut_max];
 }
 
@@ -185,26 +189,26 @@ inline uchar runs_grey(__global const uchar *lut, const uint lut_max, const int 
         s += (v_);                                          \
         const uchar gr_ = runs_grey(lut, (uint)lut_max, s); \
         const int ch_ = gr_ != prev;                        \
-        out[k] = (int2)((c_), gr_);                         \
+        out[k] = (c_) << 8 | gr_;                           \
         k += ch_;                                           \
         runs += ch_ & (gr_ != zero);                        \
         prev = gr_;                                         \
     } while (0)
 
 // a cell's contribution added into the group's sums (acc[c - ca] = out[k0 + c - ca], see runs_rows)
-#define RUNS_ACC(c_, v_) (acc[(c_) - ca].y += (v_))
+#define RUNS_ACC(c_, v_) (acc[(c_) - ca] += (v_))
 
 // One work-item per global row: sort its pieces by first cell (insertion sort in place), then per group of pieces
 // whose cells overlap (first cells ascending: their cells are contiguous; nearly always one piece, else mostly two
-// sharing an end cell), the cells left to right, and keep where the grey changes: recs[row_off + j] = (column,
-// grey from there on), row_m = how many, row_runs = how many of them start a non-blank run. A group of several
-// pieces first sums its cells in the row's own recs slice, at the first slot not yet written (k0): it holds the
-// row's cells (<= its records <= its capacity), and a grey change is written at k <= the cell read. row_runs = -1:
-// more than ch cell records (the host finishes the row); -2: its pieces did not fit its capacity (the host redoes
-// the batch).
+// sharing an end cell), the cells left to right, and keep where the grey changes: recs[row_off + j] = column << 8 |
+// grey from there on (columns < 2^15), row_m = how many, row_runs = how many of them start a non-blank run. A group
+// of several pieces first sums its cells in the row's own recs slice, at the first slot not yet written (k0): it
+// holds the row's cells (<= its records <= its capacity), and a grey change is written at k <= the cell read.
+// row_runs = -1: more than ch cell records (the host finishes the row); -2: its pieces did not fit its capacity (the
+// host redoes the batch).
 __kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
 void runs_rows(const int n_rows, const int ch, __global const int *row_off, __global const int *row_count,
-               __global int4 *pcs, __global int2 *recs, __global const int *row_tile, __global const int4 *tiles,
+               __global int4 *pcs, __global int *recs, __global const int *row_tile, __global const int4 *tiles,
                __global const uchar *lut, const int lut_max, __global int *row_m, __global int *row_runs) {
     const int g = get_global_id(0);
     if (g >= n_rows) return;
@@ -231,7 +235,7 @@ void runs_rows(const int n_rows, const int ch, __global const int *row_off, __gl
         row_runs[g] = nrec > cap ? -2 : -1;
         return;
     }
-    __global int2 *out = recs + a0;
+    __global int *out = recs + a0;
     const uchar zero = lut[0];
     uchar prev = zero;
     int s = 0, k = 0, runs = 0;
@@ -246,14 +250,14 @@ void runs_rows(const int n_rows, const int ch, __global const int *row_off, __gl
         if (j == i + 1) {  // alone in its cells
             RUNS_PIECE(v, w, RUNS_CELL);
         } else {
-            __global int2 *acc = out + k;
-            for (int c = 0; c <= ce - ca; ++c) acc[c] = (int2)(0, 0);
+            __global int *acc = out + k;
+            for (int c = 0; c <= ce - ca; ++c) acc[c] = 0;
             for (int m = i; m < j; ++m) {
                 const int4 q = p[m];
                 RUNS_PIECE(q, w, RUNS_ACC);
             }
             for (int c = ca; c <= ce; ++c) {
-                const int sum = acc[c - ca].y;
+                const int sum = acc[c - ca];
                 RUNS_CELL(c, sum);
             }
         }
@@ -265,7 +269,7 @@ void runs_rows(const int n_rows, const int ch, __global const int *row_off, __gl
 
 // One work-item per global row with row_m > 0: its runs at run_off[g] in display coordinates, from its grey changes.
 __kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
-void runs_emit(const int n_rows, __global const int *row_off, __global const int2 *recs, __global const int *row_m,
+void runs_emit(const int n_rows, __global const int *row_off, __global const int *recs, __global const int *row_m,
                __global const int *row_tile, __global const int4 *tiles, __global const uchar *lut,
                __global const int *run_off, __global int *out_row, __global int *out_x, __global int *out_len,
                __global uchar *out_grey) {
@@ -274,17 +278,17 @@ void runs_emit(const int n_rows, __global const int *row_off, __global const int
     const int m = row_m[g];
     if (m <= 0) return;
     const int4 t = tiles[row_tile[g]];
-    __global const int2 *c = recs + row_off[g];
+    __global const int *c = recs + row_off[g];
     const int drow = t.z + (g - t.x);
     const uchar zero = lut[0];
     int k = run_off[g];
     for (int i = 0; i < m; ++i) {
-        const int2 v = c[i];
-        if ((uchar)v.y == zero) continue;
+        const int v = c[i], x = v >> 8;
+        if ((uchar)v == zero) continue;
         out_row[k] = drow;
-        out_x[k] = t.w + v.x;
-        out_len[k] = (i + 1 < m ? c[i + 1].x : t.y) - v.x;
-        out_grey[k] = (uchar)v.y;
+        out_x[k] = t.w + x;
+        out_len[k] = (i + 1 < m ? c[i + 1] >> 8 : t.y) - x;
+        out_grey[k] = (uchar)v;
         ++k;
     }
 }

@@ -6,8 +6,10 @@ an 11520x5120 display of 0.019 mm pixels, gamma 0 and gamma 1. The file's talles
 0.76), so it is rotated +90 degrees about X, (x, y, z) -> (x, -z, y), to make Y the height; then ``fit=95``.
 
 In-process, warm (one warm-up run first), median of ``--repeat`` (wall and process CPU seconds: the CPU time of
-PoCL's threads counts, so it tells what a loaded machine hides): ``layer_edges``; runs with OpenCL (given the
-edges; the stages split out in one more run that drains the queue after each; long rows finished on the host) and
+PoCL's threads counts, so it tells what a loaded machine hides): ``layer_edges`` (float32, as the runs take them);
+runs with OpenCL (given those edges; the stages split out in one more run that drains the queue after each; long
+rows finished on the host); both as the writers call them (``iter_runs`` making the edges chunk by chunk, the next
+chunk's on a thread while this one's runs are made: issue 18's in-process target, <= 0.3 s at gamma 0) and
 with the numpy twin (``--skip-numpy``); once, for reference, the old bitmap path
 ``iter_tiles(backend="opencl-bitmap")`` with every tile consumed, its own ``layer_edges`` included (``--skip-old``,
 it takes ~20 s). Prints layers/s, the run count and the process's peak RSS after each stage, and the load average.
@@ -87,8 +89,8 @@ def main(argv: list[str] | None = None) -> int:
         spec = RasterSpec(resolution=(11520, 5120), pixel=0.019, gamma=gamma)
         print(f"\n### gamma {gamma:g}, 11520x5120 @ 0.019 mm")
         print("| stage | wall (median) | CPU (median) | rate | peak RSS | notes |\n|---|---|---|---|---|---|")
-        wall, cpu, le = timed(lambda spec=spec: layer_edges(res, spec), args.repeat)
-        row("layer_edges", wall, cpu, f"{le.edges.shape[0]} edges")
+        wall, cpu, le = timed(lambda spec=spec: layer_edges(res, spec, dtype=np.float32), args.repeat)
+        row("layer_edges (float32)", wall, cpu, f"{le.edges.shape[0]} edges")
 
         def runs(backend, le=le, spec=spec):
             count = 0
@@ -98,6 +100,8 @@ def main(argv: list[str] | None = None) -> int:
 
         wall, cpu, count = timed(lambda: runs("opencl"), args.repeat)
         row("runs, OpenCL (given the edges)", wall, cpu, f"{count} runs")
+        wall, cpu, count = timed(lambda: runs("opencl", None), args.repeat)
+        row("layer_edges + runs, OpenCL, as the writers call them", wall, cpu, f"{count} runs")
         kern.timings, long0, fb0 = {}, kern.long_rows, kern.fallbacks
         runs("opencl")
         split = ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in kern.timings.items())

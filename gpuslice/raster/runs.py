@@ -35,6 +35,7 @@ import numpy as np
 
 from ..device import KernelDriver, aligned_empty, get_device
 from ..errors import ParameterError
+from ..prefetch import prefetch
 from ..ragged import expand_ranges, group_ranks
 from .edges import LayerEdges, iter_layer_edges
 from .spec import RasterSpec, gamma_lut
@@ -260,6 +261,16 @@ def runs_numpy(le: LayerEdges, lut: np.ndarray, shape: tuple[int, int], batch: r
 
 
 # ---- OpenCL -------------------------------------------------------------------------------------------------------
+def _owners(counts: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """``np.repeat(np.arange(len(counts)), counts)`` written into ``out`` (``counts.sum()`` items, int): each item's
+    group. Built in place (no new array): 1 after each group's end, then a prefix sum."""
+    out[:] = 0
+    ends = np.cumsum(counts[:-1])
+    np.add.at(out, ends[ends < out.size], 1)
+    np.cumsum(out, out=out)
+    return out
+
+
 def _units(e: np.ndarray, edge_h: np.ndarray, rows_max: int) -> np.ndarray:
     """Work units of ``runs_pieces``: (edge, first row, last row, 0), each at most ``rows_max`` rows of an edge
     (a piece is one descriptor whatever its width: flat edges need no cutting)."""
@@ -298,6 +309,16 @@ class RunsKernel(KernelDriver):
         self._t = 0.0
         self._lock = threading.Lock()
 
+    def _host(self, name: str, n: int, dtype) -> np.ndarray:
+        """The reused host array ``name``: ``n`` items of ``dtype`` (contents undefined), kept with the device
+        buffers (:func:`gpuslice.device.release_scratch` drops both), grown like them."""
+        key = "host:" + name
+        a = self._buffers.get(key, (None, 0))[0]
+        if a is None or a.dtype != dtype or a.size < n:
+            a = np.empty(max(n, int(1.5 * a.size) if a is not None and a.dtype == dtype else 0, 16), dtype)
+            self._buffers[key] = (a, a.nbytes)
+        return a[:n]
+
     def _mark(self, name: str | None) -> None:
         if self.timings is None:
             return
@@ -332,30 +353,40 @@ class RunsKernel(KernelDriver):
             return runs_numpy(le, lut, shape, batch, lay)
         self._mark(None)
         e = np.asarray(le.edges[e0:e1], np.float32)
-        edge_k = np.repeat(np.arange(len(t), dtype=np.int32), np.diff(le.edge_offsets[batch.start : batch.stop + 1]))
+        # host scratch arrays are reused across batches (fresh ones cost a page fault per 4 KiB each time: numpy's
+        # cumsum into a new array was ~1 ms per 160k rows, 10x the sum); they never leave this call, and an upload
+        # from one is complete before it is written again (an in-order queue: edge_tile and row_tile are uploaded
+        # before this batch's blocking reads, the others are rewritten only after the next batch's first one)
+        edge_k = _owners(np.diff(le.edge_offsets[batch.start : batch.stop + 1]),
+                         self._host("edge_tile", n_edges, np.int32))
         tiles = np.zeros((len(t) + 1, 4), np.int32)
         tiles[:, 0] = row_off_t
         tiles[:-1, 1], tiles[:-1, 2], tiles[:-1, 3] = t[:, 3], t[:, 0], t[:, 1]
         b_edges, b_et = self._put("edges", e), self._put("edge_tile", edge_k)
         b_tiles, b_lut = self._put("tiles", tiles), self._put("lut", lut)
-        b_rt = self._put("row_tile", np.repeat(np.arange(len(t), dtype=np.int32), t[:, 2]))
+        b_rt = self._put("row_tile", _owners(t[:, 2], self._host("row_tile", n_rows, np.int32)))
         b_whole = self._buffer("whole", n_edges)
         b_diff = self._fill("cap_diff", 4 * (n_rows + 1), np.int32(0))
         ge, le_ = self._grid(n_edges)
         self._prep(q, ge, le_, np.int32(n_edges), np.int32(self.ROWS_PER_UNIT), np.int32(self.CAP_EXTRA), b_edges,
                    b_et, b_tiles, b_whole, b_diff)
-        whole, diff = np.empty(n_edges, np.uint8), np.empty(n_rows, np.int32)
+        whole, diff = self._host("whole", n_edges, np.uint8), self._host("cap_diff", n_rows, np.int32)
         cl.enqueue_copy(q, whole, b_whole, is_blocking=False)
         cl.enqueue_copy(q, diff, b_diff, is_blocking=True)
-        cap = np.cumsum(diff, dtype=np.int64)  # each row's capacity (int2 slots), even: its pieces are int4
-        cap += cap & 1
-        row_off = np.zeros(n_rows + 1, np.int64)
-        np.cumsum(cap, out=row_off[1:])
+        row_off = self._host("row_off", n_rows + 1, np.int64)
+        row_off[0], cap = 0, row_off[1:]
+        cap[:] = diff
+        np.cumsum(cap, out=cap)  # each row's capacity (int2 slots), even: its pieces are int4
+        cap += 1
+        np.bitwise_and(cap, ~1, out=cap)
+        np.cumsum(cap, out=cap)  # (in place: row_off[1:])
         if row_off[-1] >= 2**31:
             raise ParameterError("too many pieces in one batch of layers: lower max_batch_pieces")
         split = np.flatnonzero(whole == 0)
         self._mark("prep: bounds, capacities")
-        b_off = self._put("row_off", row_off.astype(np.int32))
+        off32 = self._host("row_off32", n_rows + 1, np.int32)
+        off32[:] = row_off
+        b_off = self._put("row_off", off32)
         b_pcs = self._buffer("pcs", 8 * max(int(row_off[-1]), 2))
         b_cnt = self._fill("row_count", 4 * n_rows, np.int32(0))
         self._edges(q, ge, le_, np.int32(n_edges), b_whole, b_edges, b_et, b_tiles, b_cnt, b_off, b_pcs)
@@ -367,28 +398,30 @@ class RunsKernel(KernelDriver):
             self._pieces(q, gu, lu, np.int32(len(units)), self._put("units", units), b_edges, b_et, b_tiles, b_cnt,
                          b_off, b_pcs)
         self._mark("pieces: cut edges")
-        b_recs = self._buffer("recs", 8 * max(int(row_off[-1]), 1))
+        b_recs = self._buffer("recs", 4 * max(int(row_off[-1]), 1))  # one int (column << 8 | grey) a slot
         b_m, b_runs = self._buffer("row_m", 4 * n_rows), self._buffer("row_runs", 4 * n_rows)
         gr, lr = self._grid(n_rows)
         self._rows_k(q, gr, lr, np.int32(n_rows), np.int32(self.CH), b_off, b_cnt, b_pcs, b_recs, b_rt, b_tiles,
                      b_lut, np.int32(lut.size - 1), b_m, b_runs)
-        row_runs = np.empty(n_rows, np.int32)
+        row_runs = self._host("row_runs", n_rows, np.int32)
         cl.enqueue_copy(q, row_runs, b_runs, is_blocking=True)
         self._mark("rows: sort, grey changes")
-        if np.any(row_runs == -2):  # a capacity bound too low (never seen but with CAP_EXTRA < 0): the twin
+        flagged = row_runs.min() < 0  # (one pass: rows are nearly never flagged)
+        if flagged and np.any(row_runs == -2):  # a capacity bound too low (never seen but with CAP_EXTRA < 0)
             self.fallbacks += 1
             return runs_numpy(le, lut, shape, batch, lay)
-        long_rows = np.flatnonzero(row_runs < 0)
+        long_rows = np.flatnonzero(row_runs < 0) if flagged else np.zeros(0, np.int64)
         self.long_rows += long_rows.size
         host = None
         if long_rows.size:  # rows too long for one work-item: the numpy back half from their pieces
             host = self._host_rows(long_rows, row_off, b_cnt, b_pcs, t, lut)
             row_runs[long_rows] = np.bincount(host[0], minlength=n_rows)[long_rows]
         self._mark("host: long rows")
-        run_off = np.zeros(n_rows + 1, np.int64)
+        run_off = self._host("run_off", n_rows + 1, np.int32)  # (int32: runs <= records <= row_off[-1] < 2^31)
+        run_off[0] = 0
         np.cumsum(row_runs, out=run_off[1:])
         n_runs = int(run_off[-1])
-        b_ro = self._put("run_off", run_off[:-1].astype(np.int32))
+        b_ro = self._put("run_off", run_off[:-1])
         # the outputs: new host arrays that the device writes into (USE_HOST_PTR: no copy on a CPU device; a GPU
         # driver copies when they are mapped); the reused scratch buffers never leave this call
         arrs = [aligned_empty(n_runs, d) for d in (np.int32, np.int32, np.int32, np.uint8)]
@@ -407,7 +440,7 @@ class RunsKernel(KernelDriver):
             row[pos], x[pos] = rows.drow[host[0]], host[1] + rows.col0[host[0]]
             length[pos], grey[pos] = host[2], host[3]
         off = np.zeros(len(t) + 1, np.int64)
-        off[1:] = run_off[row_off_t[1:]]
+        off[1:] = run_off[row_off_t[1:]]  # (a new array: it leaves with the runs)
         self._mark("map, long rows in")
         return Runs(lay, off, row, x, length, grey, shape)
 
@@ -432,11 +465,18 @@ class RunsKernel(KernelDriver):
 # ---- public entry points ------------------------------------------------------------------------------------------
 def _batches(le: LayerEdges, max_pieces: int) -> Iterator[range]:
     """Consecutive layer ranges of at most about ``max_pieces`` cell records each (at least one layer)."""
-    e = le.edges
-    est = np.abs(e[:, 3] - e[:, 1]) + np.abs(e[:, 2] - e[:, 0]) + 2.0  # cells an edge touches, roughly
-    cum = np.concatenate(([0.0], np.cumsum(est)))[le.edge_offsets]  # per layer boundary
-    cum += np.arange(len(cum)) * 64.0  # a floor per layer: rows and bookkeeping
-    start, n = 0, len(le.tiles)
+    e, off, n = le.edges, le.edge_offsets, len(le.tiles)
+    d = np.subtract(e[: off[-1], 3], e[: off[-1], 1])  # cells an edge touches, roughly: |dv| + |du| + 2
+    np.abs(d, out=d)
+    du = np.subtract(e[: off[-1], 2], e[: off[-1], 0])
+    d += np.abs(du, out=du)
+    per = 2.0 * np.diff(off) + 64.0  # a floor per layer: rows and bookkeeping
+    nz = np.flatnonzero(off[1:] > off[:-1])
+    if nz.size:
+        per[nz] += np.add.reduceat(d, off[nz])  # per layer (float32 sums: an estimate)
+    cum = np.zeros(n + 1)
+    np.cumsum(per, out=cum[1:])
+    start = 0
     while start < n:
         stop = int(np.searchsorted(cum, cum[start] + max_pieces, side="right")) - 1
         stop = min(max(stop, start + 1), n)
@@ -479,7 +519,9 @@ def iter_runs(
     if lut[0] != 0:  # pragma: no cover - gamma_lut maps no coverage to black for every gamma
         raise ParameterError("the gamma table must map coverage 0 to grey 0")
     kern = RunsKernel.of(device if device is not None else get_device()) if backend == "opencl" else None
-    for pos, le in iter_layer_edges(result, spec, bounds, layers, edges, k, dtype=np.float32):
+    # the next chunk's edges are made on a thread while this one's batches run (numpy releases the GIL)
+    chunks = iter_layer_edges(result, spec, bounds, layers, edges, k, dtype=np.float32)
+    for pos, le in prefetch(chunks, depth=0 if edges is not None else 1):
         if le.edges.dtype != np.float32:  # every backend computes on float32: convert once, not per batch
             le = LayerEdges(le.edges.astype(np.float32), le.edge_offsets, le.tiles)
         for batch in _batches(le, max_batch_pieces):

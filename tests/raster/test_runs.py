@@ -340,3 +340,63 @@ def test_tile_wider_than_15_bits(device):
     res = make_result([[(np.array([[0.5, 1.2], [39999.5, 2.7], [20000.0, 5.5]]), False, -1, True)]])
     got, _ = check_against_raster(res, spec, [0], device)
     assert got["opencl"].n_runs > 0
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_layer_edges_against_a_loop_by_loop_reference(dtype):
+    """layer_edges (consecutive loops read as one slice of the points, open and two-point loops dropped, each edge's
+    end copied from its successor's start) == each kept loop's edges made one by one: float64 pixels from
+    RasterSpec.to_pixels minus the tile corner, rounded once; every orientation of the display."""
+    rng = np.random.default_rng(3)
+    loop = lambda n, c: c + rng.uniform(-9.0, 9.0, (n, 2))  # noqa: E731
+    layers = [[(loop(5, 20.0), False, -1, True), (loop(4, 30.0), False, -1, True)],
+              [(loop(6, 25.0), False, -1, False), (loop(7, 25.0), False, -1, True)],  # an open loop first: a gap
+              [(loop(2, 25.0), False, -1, True)], [],  # a two-point loop only; no loops
+              [(loop(3, 15.0), False, -1, True), (loop(9, 35.0), False, -1, False), (loop(8, 22.0), False, -1, True)]]
+    res = make_result(layers)
+    for spec in (SMALL, RasterSpec(resolution=(640, 480), pixel=0.1, mirror_x=True),
+                 RasterSpec(resolution=(640, 480), pixel=0.1, portrait=True, mirror_y=True)):
+        for sel in (None, [4, 1, 1]):
+            le = layer_edges(res, spec, layers=sel, dtype=dtype)
+            assert le.edges.dtype == dtype
+            for k, i in enumerate(range(res.n_layers) if sel is None else sel):
+                want = []
+                for j in range(res.layer_offsets[i], res.layer_offsets[i + 1]):
+                    p = res.points[res.loop_offsets[j] : res.loop_offsets[j + 1]]
+                    if res.loop_closed[j] and len(p) >= 3:
+                        want.append(spec.to_pixels(np.asarray(p, np.float64), res_bounds(res)))
+                got = le.edges[le.edge_offsets[k] : le.edge_offsets[k + 1]]
+                if not want:
+                    assert got.shape == (0, 4) and np.all(le.tiles[k] == 0)
+                    continue
+                uv = np.concatenate(want)
+                r0, c0 = np.floor(uv[:, 1].min()), np.floor(uv[:, 0].min())
+                assert le.tiles[k].tolist() == [r0, c0, np.floor(uv[:, 1].max()) + 1 - r0,
+                                                np.floor(uv[:, 0].max()) + 1 - c0]
+                ref = np.concatenate([np.c_[w, np.roll(w, -1, axis=0)] for w in want]) - [c0, r0, c0, r0]
+                assert np.array_equal(got, ref.astype(dtype))
+
+
+def res_bounds(res):
+    lo, hi = res.points.min(axis=0).astype(np.float64), res.points.max(axis=0).astype(np.float64)
+    return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+
+
+def test_batches_cover_the_layers_within_the_estimate(solid):
+    """_batches: consecutive ranges covering every layer; a batch of several layers holds at most about max_pieces
+    records by the estimate (per edge |du| + |dv| + 2 cells, 64 more a layer), and the next layer would not fit."""
+    from gpuslice.raster.runs import _batches
+
+    le = layer_edges(solid, SPEC4K, dtype=np.float32)
+    e, off = le.edges.astype(np.float64), le.edge_offsets
+    per_edge = np.abs(e[:, 3] - e[:, 1]) + np.abs(e[:, 2] - e[:, 0]) + 2.0
+    per = np.array([per_edge[off[i] : off[i + 1]].sum() + 64.0 for i in range(len(le.tiles))])
+    for max_pieces in (1, 5_000, 40_000, 10**9):
+        parts = list(_batches(le, max_pieces))
+        assert parts[0].start == 0 and parts[-1].stop == len(le.tiles)
+        assert all(a.stop == b.start and len(a) >= 1 for a, b in zip(parts, parts[1:], strict=False))
+        for b in parts:
+            est = per[b.start : b.stop].sum()
+            assert len(b) == 1 or est <= max_pieces * 1.001
+            if b.stop < len(le.tiles):
+                assert est + per[b.stop] > max_pieces * 0.999
