@@ -44,12 +44,13 @@ inline long run_piece(const int p, const int a, const int n, RUN_ARGS, int *v) {
 inline long run_segment(const int p, const int a, const int n, RUN_ARGS, const int scan, int *v) {
     const long lp = run_piece(p, a, n, RUN_PASS, v);
     if (lp <= 0) return 0;
-    int q = p - 1, vq = -1;
-    if (q >= 0 && run_piece(q, a, n, RUN_PASS, &vq) == 0) q -= 1;  // an empty gap: the run before it
-    if (q >= 0) {
-        run_piece(q, a, n, RUN_PASS, &vq);
-        if (vq == *v) return 0;  // the segment started earlier
+    // the non-empty piece before p: p - 1, or the run before an empty gap (runs are never empty); none: vq = -1
+    int vq = -1;
+    if (p >= 1 && run_piece(p - 1, a, n, RUN_PASS, &vq) == 0) {
+        vq = -1;
+        if (p >= 2) run_piece(p - 2, a, n, RUN_PASS, &vq);
     }
+    if (vq == *v) return 0;  // the segment started earlier
     long total = lp;
     for (int t = p + 1; t <= 2 * n; ++t) {
         if (t - p > scan) return -1;
