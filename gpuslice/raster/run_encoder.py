@@ -142,7 +142,7 @@ class RunImageEncoder(KernelDriver):
         np.cumsum(size, out=start[1:])
         total = int(start[-1])
         base = start[:-1] + self.HEAD - before
-        out = aligned_empty(total, np.uint8)
+        out = aligned_empty(max(total, 1), np.uint8)  # (never 0 with correct kernels: a buffer cannot be empty)
         b_out = cl.Buffer(ctx, mf.WRITE_ONLY | mf.USE_HOST_PTR, hostbuf=out)
         b_base = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=base)
         b_extra = [cl.Buffer(ctx, mf.WRITE_ONLY | mf.USE_HOST_PTR, hostbuf=aligned_empty(m, dt)) for dt in self.EXTRA]
