@@ -321,10 +321,10 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
     n = out.result.n_layers
     tick = (lambda k: progress(k, n)) if progress is not None else None
     settings = r.settings if r.settings is not None else r.options.settings()
+    png_by_numpy = RESIN_FORMATS[r.format].png and _png_processes()  # (GPUSLICE_PNG_PROCESSES=1)
     target = ResinTarget(Path(r.path.rstrip("/\\") or "."), r.spec, r.options, out.result, name, now,
                          r.options.workers, tick, settings, bounds=bounds,
-                         device=dev if backend == "opencl" and not (RESIN_FORMATS[r.format].png and _png_processes())
-                         else None)
+                         device=dev if backend == "opencl" and not png_by_numpy else None)
     try:
         out.stats.update(RESIN_FORMATS[r.format].load()(layers, target))
     finally:  # a writer that failed: its layers' producer threads stop now

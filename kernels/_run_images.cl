@@ -62,6 +62,19 @@ inline long run_segment(const int p, const int a, const int n, RUN_ARGS, const i
     return total;
 }
 
+// the segments run a + j heads, in its pieces' order (t = 0: the gap before it, 1: itself, 2: for the image's last
+// run the tail): their lengths in seg[t] (0: no segment starts there, or not its piece) and values in val[t];
+// returns 1 when one runs over scan pieces (its seg[t] is -1)
+inline int run_heads(const int a, const int n, const int j, RUN_ARGS, const int scan, long *seg, int *val) {
+    int over = 0;
+    for (int t = 0; t < 3; ++t) {
+        val[t] = 0;
+        seg[t] = t < 2 || j == n - 1 ? run_segment(2 * j + t, a, n, RUN_PASS, scan, val + t) : 0;
+        over |= seg[t] < 0;
+    }
+    return over;
+}
+
 // run k is invalid for the twins (out of order, overlapping, outside the image, empty)
 inline int run_invalid(const int k, const int first, RUN_ARGS) {
     const long s = (long)row[k] * cols + x[k];

@@ -43,14 +43,11 @@ void pw_sizes(const int m, const int n_img, const int cols, const long n_pixels,
         width[k] = 0;
         return;
     }
-    long w = 0;
-    const int last = j == n - 1 ? 2 * n : 2 * j + 1;
-    for (int p = 2 * j; p <= last; ++p) {
-        int v;
-        const long seg = run_segment(p, a, n, RUN_PASS, PW_SCAN, &v);
-        if (seg < 0) atomic_or(flags, 1);
-        if (seg > 0) w += pw_width(seg, v);
-    }
+    long seg[3], w = 0;
+    int val[3];
+    if (run_heads(a, n, j, RUN_PASS, PW_SCAN, seg, val)) atomic_or(flags, 1);
+    for (int t = 0; t < 3; ++t)
+        if (seg[t] > 0) w += pw_width(seg[t], val[t]);
     width[k] = (int)w;
 }
 
@@ -63,16 +60,13 @@ void pw_write(const int m, const int n_img, const int cols, const long n_pixels,
     if (k >= m) return;
     const int i = run_image(img_off, n_img, k);
     const int a = img_off[i], n = img_off[i + 1] - a, j = k - a;
-    const int last = j == n - 1 ? 2 * n : 2 * j + 1;
-    long seg[3];
+    long seg[3], w = 0;
     int val[3];
-    long w = 0;
-    for (int p = 2 * j; p <= last; ++p) {
-        seg[p - 2 * j] = run_segment(p, a, n, RUN_PASS, PW_SCAN, val + p - 2 * j);
-        if (seg[p - 2 * j] > 0) w += pw_width(seg[p - 2 * j], val[p - 2 * j]);
-    }
+    run_heads(a, n, j, RUN_PASS, PW_SCAN, seg, val);
+    for (int t = 0; t < 3; ++t)
+        if (seg[t] > 0) w += pw_width(seg[t], val[t]);
     long at = base[i] + cum[k] - w;
-    for (int t = 0; t <= last - 2 * j; ++t) {
+    for (int t = 0; t < 3; ++t) {
         long left = seg[t];
         const int c = val[t], two = c == 0 || c == 15;
         const long cap = two ? 0xFFF : 0xF;

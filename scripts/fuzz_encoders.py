@@ -12,32 +12,12 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 import numpy as np
 
-
-def runs_of(images: list[np.ndarray]):
-    """A :class:`~gpuslice.raster.runs.Runs` of ``images`` (row by row, runs never crossing a row end)."""
-    from gpuslice.raster.runs import Runs
-
-    h, w = images[0].shape
-    starts, lengths, greys, counts = [], [], [], []
-    for img in images:
-        flat = img.reshape(-1)
-        change = np.ones(flat.size, bool)
-        change[1:] = flat[1:] != flat[:-1]
-        change[::w] = True
-        start = np.flatnonzero(change)
-        length = np.diff(np.append(start, flat.size))
-        keep = flat[start] != 0
-        starts.append(start[keep])
-        lengths.append(length[keep])
-        greys.append(flat[start][keep])
-        counts.append(int(keep.sum()))
-    start = np.concatenate(starts)
-    off = np.concatenate(([0], np.cumsum(counts))).astype(np.int64)
-    return Runs(np.arange(len(images)), off, (start // w).astype(np.int32), (start % w).astype(np.int32),
-                np.concatenate(lengths).astype(np.int32), np.concatenate(greys).astype(np.uint8), (h, w))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "raster"))
+from run_images import runs_of  # noqa: E402  (the tests' helper: layers as the runs kernel lays them out)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -182,17 +182,6 @@ def rle7_batch(start: np.ndarray, length: np.ndarray, grey: np.ndarray, offsets:
     return [data[img_off[k] : img_off[k + 1]] for k in range(n_img)]
 
 
-def _record(value: int, n: int) -> bytes:
-    """One RLE7 record of ``n`` pixels (1 <= n <= MAX_RUN) of 7-bit ``value`` (module docstring)."""
-    size = 1 if n == 1 else 2 if n <= 0x7F else 3 if n <= 0x3FFF else 4 if n <= 0x1FFFFF else 5
-    out = bytes([value | (0x80 if n > 1 else 0)])
-    if size >= 2:
-        lead = (0x00, 0x80, 0xC0, 0xE0)[size - 2]
-        out += bytes([((n >> (8 * (size - 2))) & 0xFF) | lead])
-        out += bytes((n >> (8 * (size - 1 - b))) & 0xFF for b in range(2, size))
-    return out
-
-
 class CtbEncoder(RunImageEncoder):
     """Driver of ``kernels/ctb.cl`` (:mod:`gpuslice.raster.run_encoder`): the RLE7 layer data of a group of layers
     from their runs, the bytes of :func:`rle7_batch` (its numpy twin, which also takes the groups the kernels leave:
@@ -202,7 +191,7 @@ class CtbEncoder(RunImageEncoder):
     MAX_RUN = MAX_RUN
 
     def blank(self, n_pixels: int) -> bytes:
-        return _record(0, n_pixels)
+        return rle7(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.uint8), n_pixels)
 
 
 def rle7_runs(runs, a: int, b: int, cols: int, n_pixels: int, device=None) -> list[bytes]:
@@ -480,4 +469,4 @@ def write_target(layers: Iterable[Tile | RunLayer], target) -> dict[str, float]:
                    resin_ml=resin_ml(result.area, result.thickness))
     return write_ctb(layers, target.spec, target.path, result.thickness, target.settings, info,
                      workers=target.workers, progress=target.progress, now=target.now,
-                     device=getattr(target, "device", None))
+                     device=target.device)

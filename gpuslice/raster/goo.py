@@ -109,14 +109,6 @@ def encode_batch(runs, a: int, b: int, cols: int, n_pixels: int, device=None) ->
     return encode_segments(*batch_image_segments(start, length, grey, offsets, n_pixels))
 
 
-def _chunk_bytes(n: int, v: int) -> bytes:
-    """One chunk of ``n`` pixels (``n`` < 2^28) of grey ``v`` (module docstring)."""
-    extra = (n > 0xF) + (n > 0xFFF) + (n > 0xFFFFF)
-    kind = 0 if v == 0 else 3 if v == 255 else 1
-    out = bytes([(kind << 6) | (extra << 4) | (n & 0xF)]) + (bytes([v]) if kind == 1 else b"")
-    return out + bytes((n >> (4 + 8 * j)) & 0xFF for j in range(extra - 1, -1, -1))
-
-
 class GooEncoder(RunImageEncoder):
     """Driver of ``kernels/goo.cl`` (:mod:`gpuslice.raster.run_encoder`): GOO image data of a group of layers from
     their runs, the bytes of the numpy twin (``encode_segments(*batch_image_segments(...))``, :func:`encode_batch`
@@ -128,7 +120,8 @@ class GooEncoder(RunImageEncoder):
     EXTRA = (np.dtype(np.uint8),)  # each run's byte sum mod 256
 
     def blank(self, n_pixels: int) -> bytes:
-        return _chunk_bytes(n_pixels, 0)
+        none = np.zeros(0, np.int64)
+        return encode_runs(none, none, np.zeros(0, np.uint8), n_pixels)[1:-1]  # (without its 0x55 and checksum)
 
     def reduce(self, extra: list[np.ndarray], first: np.ndarray, nonempty: np.ndarray, blank: bytes) -> np.ndarray:
         check = np.full(first.size, sum(blank), np.uint64)  # each layer's chunk bytes, summed
@@ -309,7 +302,7 @@ def write_goo(layers: Iterable[Tile | RunLayer], target) -> dict[str, Any]:
     def encode(item: Tile | RunLayer) -> bytes:  # on a worker thread
         return encode_runs(*pixel_runs(item, cols), n_pixels)
 
-    device = getattr(target, "device", None)
+    device = target.device
 
     def encode_group(group: list[Tile | RunLayer]) -> list[bytes]:  # on a worker thread
         if isinstance(group[0], RunLayer):

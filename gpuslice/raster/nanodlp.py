@@ -52,9 +52,9 @@ from ..errors import ParameterError
 from ..formats.numbers import point_bounds
 from ..io.atomic import atomic_path
 from .coverage import Tile
-from .layers import RUNS_LEVEL, RunLayer, encode_png, pixel_runs, run_groups
+from .layers import RunLayer, encode_png, pixel_runs, run_groups
 from .png import PngEncoder, encode_all
-from .png_runs import png_group
+from .png_runs import png_encoders, png_group
 from .settings import PrintSettings, print_time_s, resin_ml
 from .sl1 import _member, _Thumb, _write_deflated, _zip_time, check_one_layer_height
 from .spec import RasterSpec
@@ -196,10 +196,9 @@ def write_nanodlp(
             return png, _member(enc, png), _lit_box(item, cols)
 
         from .png_procs import encode_group as encode_procs
-        from .png_procs import process_pool, threads_for
+        from .png_procs import threads_for
 
-        device = device if level == RUNS_LEVEL else None
-        pool = process_pool(workers or os.cpu_count()) if level == RUNS_LEVEL and device is None else None
+        device, pool = png_encoders(level, device, workers)
 
         def encode_group(group: list[Tile | RunLayer]) -> list[tuple[bytes, bytes, tuple[int, int, int, int]]]:
             pngs = png_group(device, group, enc.nx, enc.ny)
@@ -241,4 +240,4 @@ def write_target(tiles: Iterable[Tile | RunLayer], target) -> dict[str, float]:
     return write_nanodlp(tiles, target.result, target.spec, target.path, target.settings, name=target.name,
                          title=preset.title if preset is not None else "", bounds=target.bounds,
                          level=target.options.png_level, deflater=target.deflater, workers=target.workers,
-                         progress=target.progress, now=target.now, device=getattr(target, "device", None))
+                         progress=target.progress, now=target.now, device=target.device)

@@ -52,7 +52,6 @@ carry no date, so the bytes depend only on the layers and the options. The M7 ge
 
 from __future__ import annotations
 
-import functools
 import os
 import struct
 from collections.abc import Iterable
@@ -194,13 +193,6 @@ def encode_pw0_batch(start: np.ndarray, length: np.ndarray, grey: np.ndarray, of
     return [data[img_off[i] : img_off[i + 1]] for i in range(n_img)], lit, mid, box
 
 
-@functools.lru_cache(maxsize=4)
-def _blank_records(n_pixels: int) -> bytes:
-    """PW0 records of ``n_pixels`` blank pixels: two-byte records of 0xFFF, then the rest."""
-    full, rest = divmod(n_pixels, 0xFFF)
-    return b"\x0f\xff" * full + (bytes([rest >> 8, rest & 0xFF]) if rest else b"")
-
-
 class PhotonEncoder(RunImageEncoder):
     """Driver of ``kernels/photon.cl`` (:mod:`gpuslice.raster.run_encoder`): PW0 layer images of a group of layers
     from their runs, the bytes of :func:`encode_pw0_batch` (its numpy twin, which also takes the groups the kernels
@@ -211,7 +203,7 @@ class PhotonEncoder(RunImageEncoder):
     EXTRA = tuple(np.dtype(d) for d in (np.int32, np.uint8, np.int32, np.int32, np.int32, np.int32))
 
     def blank(self, n_pixels: int) -> bytes:
-        return _blank_records(n_pixels)
+        return encode_pw0(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.uint8), n_pixels)[0]
 
     def reduce(self, extra: list[np.ndarray], first: np.ndarray, nonempty: np.ndarray, blank: bytes):
         lit_run, mid_run, r0, c0, r1, c1 = extra
@@ -442,7 +434,7 @@ def write_photon(layers: Iterable[Tile | RunLayer], target, *, machine: Machine,
         s, e = start[lit_runs], start[lit_runs] + length[lit_runs] - 1  # runs never cross a row end
         return data, lit, mid, (int(s[0] // cols), int((s % cols).min()), int(e[-1] // cols), int((e % cols).max()))
 
-    device = getattr(target, "device", None)
+    device = target.device
 
     def encode_group(group: list[Tile | RunLayer]) -> list:  # on a worker thread
         if not isinstance(group[0], RunLayer):

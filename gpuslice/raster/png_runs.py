@@ -18,7 +18,7 @@ import numpy as np
 
 from . import deflate_runs as _d
 from .png import png_chunk
-from .run_encoder import RunImageEncoder
+from .run_encoder import RunKernels
 
 __all__ = ["PngRunsEncoder"]
 
@@ -45,9 +45,10 @@ def _tables() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarra
     return code.astype(np.uint32), lengths.astype(np.uint8), len_val, len_nb, hdr, pos
 
 
-class PngRunsEncoder(RunImageEncoder):
-    """Driver of ``kernels/png.cl`` (module docstring), on the run-length encoders' base (its kernels, a command
-    queue per thread, the kernels' arguments set under a lock) with an :meth:`encode` of its own: bits, not bytes."""
+class PngRunsEncoder(RunKernels):
+    """Driver of ``kernels/png.cl`` (module docstring), on what the run-length encoders share (its kernels, a command
+    queue per thread, the kernels' arguments set under a lock, the sizes pass) with an :meth:`encode` of its own:
+    bits, not bytes."""
 
     FILE, SIZES, WRITE = "png.cl", "png_sizes", "png_write"
     #: a group's bits are counted in int32: groups that could pass this go to the twin
@@ -122,6 +123,21 @@ class PngRunsEncoder(RunImageEncoder):
             out.append(_SIG + ihdr + struct.pack(">I", len(idat)) + b"IDAT" + idat
                        + struct.pack(">I", zlib.crc32(idat, zlib.crc32(b"IDAT"))) + tail)
         return out
+
+
+def png_encoders(level: int, device, workers: int | None) -> tuple:
+    """``(device, pool)`` a PNG-layer writer encodes runs with at deflate ``level``: the device's kernels at
+    :data:`~gpuslice.raster.layers.RUNS_LEVEL` when there is one, else the numpy encoder processes of
+    :func:`gpuslice.raster.png_procs.process_pool` at that level (where the command allows them); each None when
+    not used."""
+    import os
+
+    from .layers import RUNS_LEVEL
+    from .png_procs import process_pool
+
+    if level != RUNS_LEVEL:
+        return None, None
+    return (device, None) if device is not None else (None, process_pool(workers or os.cpu_count()))
 
 
 def png_group(device, group: list, width: int, height: int) -> list[bytes] | None:

@@ -10,9 +10,9 @@ from pathlib import Path
 from ..errors import ParameterError
 from ..io.atomic import atomic_path
 from .coverage import Tile
-from .layers import RUNS_LEVEL, RunLayer, encode_png, run_groups
+from .layers import RunLayer, encode_png, run_groups
 from .png import PngEncoder, encode_all
-from .png_runs import png_group
+from .png_runs import png_encoders, png_group
 from .spec import RasterSpec
 
 __all__ = ["write_png_stack", "write_target"]
@@ -48,11 +48,10 @@ def write_png_stack(
     with atomic_path(out) as tmp:
         tmp.mkdir()
 
-        from .png_procs import process_pool, threads_for
+        from .png_procs import threads_for
         from .png_procs import write_group as write_procs
 
-        device = device if level == RUNS_LEVEL else None
-        pool = process_pool(workers or os.cpu_count()) if level == RUNS_LEVEL and device is None else None
+        device, pool = png_encoders(level, device, workers)
 
         def encode_and_write(pair: tuple[int, Tile]) -> bytes:  # in the pool: file creation overlaps the encoding
             k, item = pair
@@ -81,4 +80,4 @@ def write_target(tiles: Iterable[Tile], target) -> dict[str, float]:
     """The registry's writer (:mod:`gpuslice.raster.outputs`): a PNG stack named after ``target.name``."""
     return write_png_stack(tiles, target.spec, target.path, prefix=target.name, level=target.options.png_level,
                            deflater=target.deflater, workers=target.workers, progress=target.progress,
-                           device=getattr(target, "device", None))
+                           device=target.device)

@@ -17,29 +17,24 @@ enqueues on a command queue of its own, and the kernels' arguments are set under
 from __future__ import annotations
 
 import threading
+from abc import ABC, abstractmethod
 
 import numpy as np
 
 from ..device import KernelDriver, aligned_empty
 
-__all__ = ["RunImageEncoder", "RUN_DTYPES"]
+__all__ = ["RunKernels", "RunImageEncoder", "RUN_DTYPES"]
 
 #: the run arrays' dtypes (row, x, length, grey) the kernels take as they are (the runs kernel's)
 RUN_DTYPES = (np.dtype(np.int32), np.dtype(np.int32), np.dtype(np.int32), np.dtype(np.uint8))
 
 
-class RunImageEncoder(KernelDriver):
-    """Base of the encoders: ``FILE`` (the kernel file), ``SIZES`` and ``WRITE`` (its two kernels), ``MAX_RUN``
-    (the longest record: larger images go to the twin), ``HEAD``/``TAIL`` (bytes of each layer before/after its
-    runs' bytes, set by :meth:`finish`), ``EXTRA`` (dtypes of per-run arrays the write pass also fills, after its
-    output: :meth:`reduce` makes per-layer values of them)."""
+class RunKernels(KernelDriver):
+    """What the encoders' drivers share: ``FILE`` (the kernel file), ``SIZES`` and ``WRITE`` (its two kernels), a
+    command queue per thread, the group's runs copied to the device (:meth:`_inputs`) and the sizes pass with its
+    prefix sum (:meth:`_counted`); ``fallbacks`` counts the groups left to the numpy twin."""
 
     FILE = SIZES = WRITE = ""
-    MAX_RUN = 0
-    HEAD = TAIL = 0
-    EXTRA: tuple = ()
-    #: more runs than this in one call: the twin (the prefix sum is int32; a run writes at most ~20 bytes)
-    MAX_RUNS = 100_000_000
 
     def __init__(self, device) -> None:
         super().__init__(device)
@@ -49,26 +44,6 @@ class RunImageEncoder(KernelDriver):
         self._local = threading.local()
         #: groups left to the twin
         self.fallbacks = 0
-
-    def blank(self, n_pixels: int) -> bytes:  # pragma: no cover - every format defines it
-        """The runs' bytes of a layer with no runs (``n_pixels`` blank pixels)."""
-        raise NotImplementedError
-
-    def reduce(self, extra: list[np.ndarray], first: np.ndarray, nonempty: np.ndarray, blank: bytes):
-        """Per-layer values of the write pass's :attr:`EXTRA` arrays (layer k's runs: ``first[k]`` onwards, none
-        where not ``nonempty[k]``; ``blank``: the bytes of a layer without runs). Default: None."""
-        return None
-
-    def finish(self, img: np.ndarray, start: np.ndarray, stats) -> None:
-        """Write each layer's own bytes into ``img`` (layer k: ``start[k]`` … ``start[k + 1]`` − 1), given
-        :meth:`reduce`'s ``stats``. Default: nothing (no bytes of their own)."""
-
-    def encode(self, runs, a: int, b: int, cols: int, n_pixels: int) -> list[bytes] | None:
-        """The layer images of entries ``a`` … ``b`` − 1 of ``runs`` (a :class:`~gpuslice.raster.runs.Runs` of
-        ``cols`` columns, images of ``n_pixels``), one ``bytes`` each; None where the twin must encode them (no runs,
-        arrays not typed as the runs kernel types them, an image too large, or the kernels' flags)."""
-        out = self.encode_stats(runs, a, b, cols, n_pixels)
-        return None if out is None else out[0]
 
     def _queue(self):
         import pyopencl as cl
@@ -118,6 +93,39 @@ class RunImageEncoder(KernelDriver):
         before = np.where(first > 0, cum[np.maximum(first - 1, 0)], 0).astype(np.int64)
         after = np.where(end > 0, cum[np.maximum(end - 1, 0)], 0).astype(np.int64)
         return b_cum, cum, first, before, after, end > first
+
+
+class RunImageEncoder(RunKernels, ABC):
+    """Base of the byte-oriented encoders (GOO, CTB, PW0): ``MAX_RUN`` (the longest record: larger images go to the
+    twin), ``HEAD``/``TAIL`` (bytes of each layer before/after its runs' bytes, set by :meth:`finish`), ``EXTRA``
+    (dtypes of per-run arrays the write pass also fills, after its output: :meth:`reduce` makes per-layer values of
+    them), :meth:`blank` (the bytes of a layer without runs: the twin's)."""
+
+    MAX_RUN = 0
+    HEAD = TAIL = 0
+    EXTRA: tuple = ()
+    #: more runs than this in one call: the twin (the prefix sum is int32; a run writes at most ~20 bytes)
+    MAX_RUNS = 100_000_000
+
+    @abstractmethod
+    def blank(self, n_pixels: int) -> bytes:
+        """The runs' bytes of a layer with no runs (``n_pixels`` blank pixels), as the twin writes them."""
+
+    def reduce(self, extra: list[np.ndarray], first: np.ndarray, nonempty: np.ndarray, blank: bytes):
+        """Per-layer values of the write pass's :attr:`EXTRA` arrays (layer k's runs: ``first[k]`` onwards, none
+        where not ``nonempty[k]``; ``blank``: the bytes of a layer without runs). Default: None."""
+        return None
+
+    def finish(self, img: np.ndarray, start: np.ndarray, stats) -> None:
+        """Write each layer's own bytes into ``img`` (layer k: ``start[k]`` … ``start[k + 1]`` − 1), given
+        :meth:`reduce`'s ``stats``. Default: nothing (no bytes of their own)."""
+
+    def encode(self, runs, a: int, b: int, cols: int, n_pixels: int) -> list[bytes] | None:
+        """The layer images of entries ``a`` … ``b`` − 1 of ``runs`` (a :class:`~gpuslice.raster.runs.Runs` of
+        ``cols`` columns, images of ``n_pixels``), one ``bytes`` each; None where the twin must encode them (no runs,
+        arrays not typed as the runs kernel types them, an image too large, or the kernels' flags)."""
+        out = self.encode_stats(runs, a, b, cols, n_pixels)
+        return None if out is None else out[0]
 
     def encode_stats(self, runs, a: int, b: int, cols: int, n_pixels: int) -> tuple[list[bytes], object] | None:
         """:meth:`encode` and :meth:`reduce`'s per-layer values: ``(images, stats)``, or None (the twin's turn)."""

@@ -23,9 +23,9 @@ import numpy as np
 from ..errors import ParameterError
 from ..io.atomic import atomic_path
 from .coverage import Tile
-from .layers import RUNS_LEVEL, HeightMap, RunLayer, encode_png, run_groups
+from .layers import HeightMap, RunLayer, encode_png, run_groups
 from .png import PngEncoder, encode_all
-from .png_runs import png_group
+from .png_runs import png_encoders, png_group
 from .spec import RasterSpec
 
 __all__ = ["SL1Info", "config_ini", "prusaslicer_ini", "read_sl1_config", "write_sl1", "info_from",
@@ -267,10 +267,9 @@ def write_sl1(
             return png, _member(enc, png)
 
         from .png_procs import encode_group as encode_procs
-        from .png_procs import process_pool, threads_for
+        from .png_procs import threads_for
 
-        device = device if level == RUNS_LEVEL else None
-        pool = process_pool(workers or os.cpu_count()) if level == RUNS_LEVEL and device is None else None
+        device, pool = png_encoders(level, device, workers)
 
         def encode_group(group: list[Tile | RunLayer]) -> list[tuple[bytes, bytes]]:  # on a worker thread
             pngs = png_group(device, group, enc.nx, enc.ny)
@@ -341,5 +340,5 @@ def write_target(tiles: Iterable[Tile], target) -> dict[str, float]:
     n = target.result.n_layers
     stats = write_sl1(tiles, target.spec, target.path, info, n, level=target.options.png_level,
                       deflater=target.deflater, workers=target.workers, progress=target.progress, now=target.now,
-                      device=getattr(target, "device", None))
+                      device=target.device)
     return {**stats, "print_time_s": sl1_print_time(info, n)}

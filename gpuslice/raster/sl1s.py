@@ -69,5 +69,5 @@ def write_target(tiles: Iterable[Tile], target) -> dict[str, float]:
     n = target.result.n_layers
     stats = write_sl1(tiles, target.spec, path, info, n, level=o.png_level, deflater=target.deflater,
                       workers=target.workers, progress=target.progress, now=target.now,
-                      device=getattr(target, "device", None))
+                      device=target.device)
     return {**stats, "print_time_s": sl1_print_time(info, n)}
