@@ -356,17 +356,42 @@ def _z_sampled_layers(job: Job, out: JobResult, spec, dev, bounds, k: int):
     from .slicing.slicer import slice_mesh
 
     z, th = z_sample_planes(out.result, k)
+    refusal, kern = _segment_shortcut(job, out, spec, dev, bounds)
+    out.stats["z_samples_from"] = "segments" if refusal is None else f"polygons ({refusal})"
     for a in range(0, out.result.n_layers, Z_SAMPLE_CHUNK):
         b = min(a + Z_SAMPLE_CHUNK, out.result.n_layers)
         t = time.perf_counter()
-        sub = slice_mesh(out.mesh, job.params, z=z[a * k : b * k], layer_thickness=th[a * k : b * k])
-        out.timings["z_samples"] = out.timings.get("z_samples", 0.0) + time.perf_counter() - t
-        chunk = iter_run_layers(sub, spec, device=dev, bounds=bounds, z_samples=k)
+        if kern is not None:  # the sub-planes' segments straight to the runs (raster/segment_edges.py)
+            from .slicing.crossings import compute_crossings
+
+            seg = compute_crossings(out.mesh, z[a * k : b * k], dev, read_back=False)
+            merged = kern(seg, (b - a) * k, k, spec, bounds)
+            del seg
+            out.timings["z_samples"] = out.timings.get("z_samples", 0.0) + time.perf_counter() - t
+            chunk = iter_run_layers(None, spec, device=dev, bounds=bounds, z_samples=k, merged=merged)
+        else:
+            sub = slice_mesh(out.mesh, job.params, z=z[a * k : b * k], layer_thickness=th[a * k : b * k])
+            out.timings["z_samples"] = out.timings.get("z_samples", 0.0) + time.perf_counter() - t
+            chunk = iter_run_layers(sub, spec, device=dev, bounds=bounds, z_samples=k)
         try:
             for item in chunk:
                 yield RunLayer(a + item.index, item.runs, item.j)
         finally:
             chunk.close()
+
+
+def _segment_shortcut(job: Job, out: JobResult, spec, dev, bounds):
+    """(why the z sub-planes go through chaining and nesting, or None; the driver that makes their edges from their
+    segments instead, or None): :mod:`gpuslice.raster.segment_edges`."""
+    from .raster.segment_edges import SegmentEdgesKernel, shortcut_refusal
+
+    if job.params.backend != "opencl" or out.device is None:
+        return "the slices are made by numpy", None
+    refusal = shortcut_refusal(out.mesh, out.result, job.params.fill_rule, spec, bounds)
+    if refusal is not None:
+        return refusal, None
+    kern = SegmentEdgesKernel.of(dev)
+    return (None, kern) if kern.available else ("the device has no doubles", None)
 
 
 def _run_checks(job: Job, out: JobResult) -> None:

@@ -17,8 +17,8 @@ from ..formats.numbers import point_bounds
 from ..slicing.result import SliceResult
 from .spec import RasterSpec
 
-__all__ = ["LayerEdges", "check_fits", "check_points_fit", "iter_layer_edges", "layer_edges", "merge_layer_groups",
-           "result_bounds", "z_sample_planes"]
+__all__ = ["LayerEdges", "box_tiles", "check_fits", "check_points_fit", "iter_layer_edges", "layer_edges",
+           "merge_layer_groups", "merge_tiles", "result_bounds", "z_sample_planes"]
 
 
 @dataclass
@@ -85,6 +85,18 @@ def _to_pixels(spec: RasterSpec, pc: np.ndarray, bounds) -> tuple[np.ndarray, np
     return out[0], out[1]
 
 
+def box_tiles(c_lo, c_hi, r_lo, r_hi, spec: RasterSpec) -> np.ndarray:
+    """(n, 4) int64 tiles (row0, col0, rows, cols) of pixel boxes given as the floors of their points' smallest and
+    largest u (columns) and v (rows), clipped to the display; a box left empty by the clipping has rows = cols = 0."""
+    cols, rows = spec.png_size
+    c0 = np.clip(c_lo, 0, cols).astype(np.int64)
+    c1 = np.clip(np.asarray(c_hi) + 1, 0, cols).astype(np.int64)
+    r0 = np.clip(r_lo, 0, rows).astype(np.int64)
+    r1 = np.clip(np.asarray(r_hi) + 1, 0, rows).astype(np.int64)
+    empty = (c1 <= c0) | (r1 <= r0)
+    return np.stack([r0, c0, np.where(empty, 0, r1 - r0), np.where(empty, 0, c1 - c0)], axis=1)
+
+
 def layer_edges(result: SliceResult, spec: RasterSpec, bounds=None, layers: Sequence[int] | None = None,
                 dtype=np.float64) -> LayerEdges:
     """The edges of the closed loops of ``layers`` (default all) in tile-local pixel coordinates; see
@@ -125,17 +137,9 @@ def layer_edges(result: SliceResult, spec: RasterSpec, bounds=None, layers: Sequ
     nonempty = counts > 0
     if total:
         nz = offsets[:-1][nonempty]
-        umin = np.minimum.reduceat(u, nz)
-        umax = np.maximum.reduceat(u, nz)
-        vmin = np.minimum.reduceat(v, nz)
-        vmax = np.maximum.reduceat(v, nz)
-        cols, rows = spec.png_size
-        c0 = np.clip(np.floor(umin), 0, cols).astype(np.int64)
-        c1 = np.clip(np.floor(umax) + 1, 0, cols).astype(np.int64)
-        r0 = np.clip(np.floor(vmin), 0, rows).astype(np.int64)
-        r1 = np.clip(np.floor(vmax) + 1, 0, rows).astype(np.int64)
-        empty = (c1 <= c0) | (r1 <= r0)
-        tiles[nonempty] = np.stack([r0, c0, np.where(empty, 0, r1 - r0), np.where(empty, 0, c1 - c0)], axis=1)
+        tiles[nonempty] = box_tiles(*(np.floor(f.reduceat(w, nz)) for f, w in ((np.minimum, u), (np.maximum, u),
+                                                                               (np.minimum, v), (np.maximum, v))),
+                                    spec)
     # each point relative to its layer's tile corner: a float64 difference rounded once to dtype (written straight
     # into the edges); an edge's end is its successor in the loop (the last point's: the first), of the same layer,
     # so its coordinates are the successor's start coordinates, copied
@@ -194,16 +198,7 @@ def merge_layer_groups(le: LayerEdges, k: int) -> LayerEdges:
     """Entries k·i … k·i + k − 1 of ``le`` (the sub-planes of one layer) as entry i: the union of their tiles, and
     their edges moved to its corner (by whole pixels)."""
     n = len(le.tiles) // k
-    t = le.tiles[: n * k].reshape(n, k, 4)
-    has = (t[:, :, 2] > 0) & (t[:, :, 3] > 0)
-    big = np.iinfo(np.int64).max
-    r0 = np.where(has, t[:, :, 0], big).min(axis=1)
-    c0 = np.where(has, t[:, :, 1], big).min(axis=1)
-    r1 = np.where(has, t[:, :, 0] + t[:, :, 2], -1).max(axis=1)
-    c1 = np.where(has, t[:, :, 1] + t[:, :, 3], -1).max(axis=1)
-    empty = ~has.any(axis=1)
-    tiles = np.stack([np.where(empty, 0, r0), np.where(empty, 0, c0), np.where(empty, 0, r1 - r0),
-                      np.where(empty, 0, c1 - c0)], axis=1).astype(np.int64)
+    tiles = merge_tiles(le.tiles, k)
     counts = np.diff(le.edge_offsets[: n * k + 1])
     group = np.repeat(np.arange(n * k) // k, counts)
     sub = np.repeat(np.arange(n * k), counts)
@@ -215,3 +210,19 @@ def merge_layer_groups(le: LayerEdges, k: int) -> LayerEdges:
     edges[:, 1] += dr
     edges[:, 3] += dr
     return LayerEdges(edges, np.ascontiguousarray(le.edge_offsets[: n * k + 1 : k]), tiles)
+
+
+def merge_tiles(tiles: np.ndarray, k: int) -> np.ndarray:
+    """The tiles (row0, col0, rows, cols) of entries k·i … k·i + k − 1 as one per i: the union of the non-empty
+    ones ((0, 0, 0, 0) where all are empty)."""
+    n = len(tiles) // k
+    t = tiles[: n * k].reshape(n, k, 4)
+    has = (t[:, :, 2] > 0) & (t[:, :, 3] > 0)
+    big = np.iinfo(np.int64).max
+    r0 = np.where(has, t[:, :, 0], big).min(axis=1)
+    c0 = np.where(has, t[:, :, 1], big).min(axis=1)
+    r1 = np.where(has, t[:, :, 0] + t[:, :, 2], -1).max(axis=1)
+    c1 = np.where(has, t[:, :, 1] + t[:, :, 3], -1).max(axis=1)
+    empty = ~has.any(axis=1)
+    return np.stack([np.where(empty, 0, r0), np.where(empty, 0, c0), np.where(empty, 0, r1 - r0),
+                     np.where(empty, 0, c1 - c0)], axis=1).astype(np.int64)

@@ -280,6 +280,7 @@ def iter_runs(
     max_batch_pieces: int = 1 << 20,
     edges: LayerEdges | None = None,
     z_samples: int = 1,
+    merged: LayerEdges | None = None,
 ) -> Iterator[Runs]:
     """Yield one :class:`Runs` per batch of consecutive layers (``layers``, default all, in order).
 
@@ -291,22 +292,33 @@ def iter_runs(
     z_samples : K > 1: ``result`` holds K sub-layers per layer (layers K·i … K·i + K − 1 are layer i's sub-planes,
         :func:`gpuslice.raster.coverage.z_sample_planes`); each layer's grey is that of its mean coverage over them
         (the K sub-layers' records go into one row sum, read through a K-fold gamma table: exact, no extra pass).
+    merged : instead of ``result``'s polygons, every layer's edges with its K sub-planes' already merged (its
+        tile the union of theirs, :func:`~gpuslice.raster.edges.merge_layer_groups`): the segment-buffer shortcut of
+        :mod:`gpuslice.raster.segment_edges`; ``result`` is then not read.
     """
     if backend not in BACKENDS:
         raise ParameterError(f"unknown runs backend '{backend}' (use {', '.join(BACKENDS)})")
     spec = spec or RasterSpec()
     k = int(z_samples)
-    if k > 1 and (layers is not None or result.n_layers % k):
+    if merged is not None:
+        if layers is not None or edges is not None:
+            raise ParameterError("merged edges are every layer's: no layer selection, no other edges")
+    elif k > 1 and (layers is not None or result.n_layers % k):
         raise ParameterError(f"z_samples={k} needs every layer's {k} sub-layers (and no layer selection)",
                              param="z_samples")
-    index = np.arange(result.n_layers // max(k, 1)) if layers is None else np.asarray(layers, dtype=np.int64)
+    n_layers = len(merged.tiles) if merged is not None else result.n_layers // max(k, 1)
+    index = np.arange(n_layers) if layers is None else np.asarray(layers, dtype=np.int64)
     lut = np.repeat(gamma_lut(spec.gamma), max(k, 1))  # lut[i] = gamma_lut[i // k]: see kernels/runs.cl
     if lut[0] != 0:  # pragma: no cover - gamma_lut maps no coverage to black for every gamma
         raise ParameterError("the gamma table must map coverage 0 to grey 0")
     kern = RunsKernel.of(device if device is not None else get_device()) if backend == "opencl" else None
     # the next chunk's edges are made on a thread while this one's batches run (numpy releases the GIL)
-    chunks = iter_layer_edges(result, spec, bounds, layers, edges, k, dtype=np.float32)
-    for pos, le in prefetch(chunks, depth=0 if edges is not None else 1):
+    if merged is not None:
+        chunks = iter([(0, merged)])
+    else:
+        chunks = prefetch(iter_layer_edges(result, spec, bounds, layers, edges, k, dtype=np.float32),
+                          depth=0 if edges is not None else 1)
+    for pos, le in chunks:
         if le.edges.dtype != np.float32:  # every backend computes on float32: convert once, not per batch
             le = LayerEdges(le.edges.astype(np.float32), le.edge_offsets, le.tiles)
         for batch in _batches(le, max_batch_pieces):

@@ -193,6 +193,7 @@ def nest_loops(loops: Loops, n_layers: int, fill_rule: str = "nonzero") -> Neste
         area=layer_area,
         unfilled_loops=np.bincount(layer[unfilled], minlength=n_layers).astype(np.int32),
         overlaps_resolved=np.zeros(n_layers, dtype=np.int32),
+        reoriented=np.bincount(layer[flip], minlength=n_layers).astype(np.int32),
     )
     # layers where loops cross: two loops whose boxes overlap partially and whose boundaries meet, or an unfilled
     # loop (a sign of misclassification) whose boundary meets one of the loops containing it

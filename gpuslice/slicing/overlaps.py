@@ -498,4 +498,5 @@ def resolve_overlaps(nested: Nested, points, pc, offsets, layer, closed, layers,
         area=area,
         unfilled_loops=unfilled,
         overlaps_resolved=resolved,
+        reoriented=nested.reoriented,
     )

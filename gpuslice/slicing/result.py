@@ -136,6 +136,10 @@ class SliceResult:
     area: np.ndarray
     repairs: dict[str, np.ndarray] = field(default_factory=dict)
     meta: dict[str, Any] = field(default_factory=dict)
+    #: (L,) bool, or None where unknown (a loaded result): the layer's polygons have exactly the edges of its
+    #: crossings' segments (nothing repaired, dropped, turned round or rebuilt); not saved
+    #: (:mod:`gpuslice.raster.segment_edges`)
+    segment_exact: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     # ---- sizes and per-layer signals -------------------------------------------------------------------
     @property

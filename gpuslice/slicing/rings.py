@@ -76,6 +76,8 @@ class Nested:
     area: np.ndarray
     unfilled_loops: np.ndarray
     overlaps_resolved: np.ndarray
+    #: (L,) loops per layer that nesting turned round (their winding disagreed with the fill: an inside-out shell)
+    reoriented: np.ndarray | None = None
 
 
 def _as_complex(points: np.ndarray) -> np.ndarray:

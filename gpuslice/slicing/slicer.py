@@ -180,6 +180,7 @@ def slice_mesh(
         parts.append((a, nested, loops.repairs))
         del loops
     result = _assemble(parts, sched, n_layers)
+    result.segment_exact = _segment_exact(parts, result, n_layers)
     if getattr(sched, "info", None):
         result.meta["adaptive"] = sched.info
     result.meta.update(
@@ -203,6 +204,20 @@ def slice_mesh(
         }
     )
     return result
+
+
+def _segment_exact(parts, result: SliceResult, n_layers: int) -> np.ndarray:
+    """(L,) bool: layers whose polygons are exactly their segments' edges: no repair of any kind counted and no
+    loop turned round by nesting (``Nested.reoriented``)."""
+    exact = np.ones(n_layers, bool)
+    for counts in result.repairs.values():
+        exact &= np.asarray(counts) == 0
+    for a, nd, _ in parts:
+        if nd.reoriented is None:
+            exact[a : a + nd.area.size] = False
+        else:
+            exact[a : a + nd.reoriented.size] &= nd.reoriented == 0
+    return exact
 
 
 def _assemble(parts, sched: Schedule, n_layers: int) -> SliceResult:

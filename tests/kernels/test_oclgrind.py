@@ -294,6 +294,20 @@ def _workload(pass_name: str) -> dict:
         _same([getattr(got_runs, f) for f in fields], [getattr(want_runs, f) for f in fields], f"runs {what}")
         for k in range(res.n_layers):
             assert np.array_equal(runs_to_mask(got_runs, k), bitmap[k]), f"runs against raster, {what} layer {k}"
+    # segment_edges.cl: the sphere's z sub-planes (4 a layer) from its segment buffer (made by the twin: Oclgrind
+    # 21.10's uninitialised-value pass reports the crossings kernels when they run again this late in the workload)
+    from gpuslice.raster.edges import z_sample_planes
+    from gpuslice.raster.segment_edges import SegmentEdgesKernel, segment_edges_numpy
+
+    zk, _ = z_sample_planes(results["sphere"], 4)
+    seg = crossings_numpy(sphere, zk)  # (uploaded by the driver)
+    got = SegmentEdgesKernel.of(dev)(seg, zk.size, 4, spec, (-10.0, -10.0, 10.0, 10.0))
+    want = segment_edges_numpy(seg, zk.size, 4, spec, (-10.0, -10.0, 10.0, 10.0))
+    _same((got.tiles, got.edge_offsets), (want.tiles, want.edge_offsets), "segment edges: tiles")
+    for g in range(len(got.tiles)):
+        a, b = got.edge_offsets[g], got.edge_offsets[g + 1]
+        x, y = got.edges[a:b], want.edges[a:b]
+        _same([x[np.lexsort(x.T)]], [y[np.lexsort(y.T)]], f"segment edges, layer {g}")  # (any order in a layer)
     # goo.cl, ctb.cl, photon.cl and png.cl: the GOO, CTB, PW0 and PNG images of the box's and the sphere's runs (as
     # the runs kernel types them), layer groups from the first entry and from one inside
     from gpuslice.raster.ctb import rle7_runs

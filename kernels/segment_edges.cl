@@ -1,0 +1,69 @@
+// The segment-buffer shortcut of --z-samples (gpuslice/raster/segment_edges.py, SegmentEdgesKernel): the oriented
+// segments of the crossings kernel (seg_layer, seg_points in mm, facet order) become the runs kernel's input, the
+// edges of each layer in pixels relative to its tile, without chaining or nesting.
+//
+// The pixel coordinates are those of the polygon path bit for bit (gpuslice/raster/edges.py, _to_pixels and
+// merge_layer_groups): u and v in double (correctly rounded operations, no fused multiply-add), minus the tile's
+// integer corner (exact in double), rounded once to float. A layer's tile is the pixel box of its
+// segments' start points (its loops' points), zero-length segments left out (a plane through a vertex: the point
+// of a loop of one point, which the polygon path drops); K consecutive sub-planes share their tiles' union.
+//   segment_bounds: one work-item per segment: floor(u), floor(v) of its start into the sub-plane's box (integer
+//       atomic min/max: order-free) and one count for its layer group (sub-plane / K);
+//   host: the tiles, the groups' first slots (prefix sum of the counts);
+//   segment_scatter: one work-item per segment: a slot in its group (an atomic cursor: the order inside a group is
+//       arbitrary, and the runs depend only on the set of edges) and its edge relative to the group's tile.
+// Built only where the device has doubles (cl_khr_fp64); elsewhere the driver reports the shortcut unavailable.
+#ifdef cl_khr_fp64
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#pragma OPENCL FP_CONTRACT OFF
+
+#ifndef LOCAL_SIZE
+#define LOCAL_SIZE 64
+#endif
+
+// u = (x * au.x + y * au.y) + au.z, v likewise with av: RasterSpec.to_pixels_xy's formula, which _to_pixels's shorter
+// one equals bit for bit (one coefficient is 0, and the sign of a zero product never reaches the sum)
+inline double2 seg_pixel(const float x, const float y, const double4 au, const double4 av) {
+    const double dx = (double)x, dy = (double)y;
+    return (double2)((dx * au.x + dy * au.y) + au.z, (dx * av.x + dy * av.y) + av.z);
+}
+
+// box[4 * s] = (min floor u, max floor u, min floor v, max floor v) of sub-plane s (filled with INT_MAX, INT_MIN,
+// INT_MAX, INT_MIN by the host); count[s / k] += 1 for every segment, zero-length ones included.
+__kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
+void segment_bounds(const int n, __global const int *seg_layer, __global const float4 *seg_points, const double4 au,
+                    const double4 av, const int k, __global int *box, __global int *count) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    const int s = seg_layer[i];
+    const float4 p = seg_points[i];
+    atomic_inc(count + s / k);
+    if (p.x == p.z && p.y == p.w) return;
+    const double2 uv = seg_pixel(p.x, p.y, au, av);
+    const int fu = (int)floor(uv.x), fv = (int)floor(uv.y);
+    atomic_min(box + 4 * s, fu);
+    atomic_max(box + 4 * s + 1, fu);
+    atomic_min(box + 4 * s + 2, fv);
+    atomic_max(box + 4 * s + 3, fv);
+}
+
+// edges[4 * (first[g] + cursor) ...] = (u0 - c0, v0 - r0, u1 - c0, v1 - r0) as floats, g = seg_layer / k, (r0, c0) = corner[g].
+__kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
+void segment_scatter(const int n, __global const int *seg_layer, __global const float4 *seg_points, const double4 au,
+                     const double4 av, const int k, __global const int *first, __global const int2 *corner,
+                     __global int *cursor, __global float *edges) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    const int g = seg_layer[i] / k;
+    const float4 p = seg_points[i];
+    const int2 rc = corner[g];
+    const double r0 = (double)rc.x, c0 = (double)rc.y;
+    const double2 s = seg_pixel(p.x, p.y, au, av), e = seg_pixel(p.z, p.w, au, av);
+    const int slot = first[g] + atomic_inc(cursor + g);
+    // vstore4, not `edges[slot] = (float4)(...)`: the same 16 bytes, without the store of `undef` clang 14 makes
+    // of the latter, which Oclgrind's uninitialised-value check reports (as in crossings.cl)
+    vstore4((float4)((float)(s.x - c0), (float)(s.y - r0), (float)(e.x - c0), (float)(e.y - r0)), (size_t)slot, edges);
+}
+
+#pragma OPENCL EXTENSION cl_khr_fp64 : disable
+#endif

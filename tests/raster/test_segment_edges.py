@@ -1,0 +1,157 @@
+"""The segment-buffer shortcut of ``--z-samples`` (gpuslice.raster.segment_edges): the sub-planes' runs from their
+segments equal the polygon path's byte for byte where it is taken, and it is not taken where the polygons are not
+the segments (open, inside-out, overlapping or zero-volume shells, another fill rule)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import read_catalog
+
+from gpuslice import mesh_from_triangles, slice_mesh
+from gpuslice.mesh import shapes
+from gpuslice.raster import RasterSpec
+from gpuslice.raster.edges import z_sample_planes
+from gpuslice.raster.runs import Runs, iter_runs
+from gpuslice.raster.segment_edges import SegmentEdgesKernel, segment_edges_numpy, shortcut_refusal
+from gpuslice.slicing.crossings import compute_crossings, crossings_numpy
+
+SPEC = RasterSpec(resolution=(1600, 1200), pixel=0.05)
+FIELDS = ("layer_offsets", "row", "x", "length", "grey")
+
+
+def _bounds(mesh):
+    b = mesh.bounds
+    return (b[0, 0], b[0, 1], b[1, 0], b[1, 1])
+
+
+def _both_paths(mesh, res, spec, k, device):
+    """(runs of the z sub-planes through slicing, through the segments on the device, through the numpy twin)."""
+    bounds = _bounds(mesh)
+    z, th = z_sample_planes(res, k)
+    sub = slice_mesh(mesh, z=z, layer_thickness=th, backend="opencl")
+    poly = Runs.concat(list(iter_runs(sub, spec, device=device, bounds=bounds, z_samples=k)), spec.shape)
+    seg = compute_crossings(mesh, z, device, read_back=False)
+    le = SegmentEdgesKernel.of(device)(seg, z.size, k, spec, bounds)
+    got = Runs.concat(list(iter_runs(None, spec, device=device, bounds=bounds, z_samples=k, merged=le)), spec.shape)
+    twin = segment_edges_numpy(seg.fetch(), z.size, k, spec, bounds)
+    return poly, got, le, twin
+
+
+def _same_runs(a: Runs, b: Runs) -> bool:
+    return all(np.array_equal(getattr(a, f), getattr(b, f)) for f in FIELDS)
+
+
+def _same_edges(a, b) -> None:
+    """Kernel and twin: the same tiles and layer offsets, the same edges in each layer (any order inside one)."""
+    assert np.array_equal(a.tiles, b.tiles) and np.array_equal(a.edge_offsets, b.edge_offsets)
+    for g in range(len(a.tiles)):
+        x, y = (e[a.edge_offsets[g] : a.edge_offsets[g + 1]] for e in (a.edges, b.edges))
+        assert np.array_equal(x[np.lexsort(x.T)], y[np.lexsort(y.T)]), g
+
+
+@pytest.mark.parametrize("gamma", [1.0, 0.0])
+@pytest.mark.parametrize("k", [2, 4])
+def test_solids_equal_the_polygon_path(device, gamma, k):
+    """A torus and a hollow box (a cavity wound inward): the shortcut is taken and gives the polygon path's runs."""
+    spec = RasterSpec(resolution=SPEC.resolution, pixel=SPEC.pixel, gamma=gamma)
+    for tri in (shapes.torus(15.0, 5.0, 40, 20), shapes.hollow_box(20.0, 10.0)):
+        mesh = mesh_from_triangles(tri)
+        res = slice_mesh(mesh, thickness=0.3, backend="opencl")
+        assert shortcut_refusal(mesh, res, "nonzero", spec, _bounds(mesh)) is None
+        poly, got, le, twin = _both_paths(mesh, res, spec, k, device)
+        assert poly.row.size > 1000 and _same_runs(got, poly)
+        _same_edges(le, twin)
+
+
+def test_a_vertex_on_a_sub_plane(device):
+    """A pyramid whose apex lies exactly on a sub-plane (a loop of one point there: zero-length segments, which the
+    tiles leave out; the polygon path drops the loop): still the polygon path's runs."""
+    k = 4
+    tri = shapes.cone(radius=12.0, height=1.0625, n=4)  # apex at 1.0 + 0.5 * 0.5 / k: a sub-plane of layer 2
+    mesh = mesh_from_triangles(tri)
+    res = slice_mesh(mesh, z=np.array([0.25, 0.75, 1.25]), layer_thickness=0.5, backend="opencl")
+    z, _ = z_sample_planes(res, k)
+    assert np.isin(np.float32(1.0625), z.astype(np.float32)) and mesh.height == pytest.approx(1.0625)
+    assert shortcut_refusal(mesh, res, "nonzero", SPEC, _bounds(mesh)) is None
+    poly, got, le, twin = _both_paths(mesh, res, SPEC, k, device)
+    assert _same_runs(got, poly)
+    _same_edges(le, twin)
+    seg = crossings_numpy(mesh, z)
+    zero = (seg.points[:, 0] == seg.points[:, 2]) & (seg.points[:, 1] == seg.points[:, 3])
+    assert zero.any()  # the apex's segments: the case is exercised
+
+
+def _refusal(tri, fill_rule="nonzero"):
+    mesh = mesh_from_triangles(tri)
+    res = slice_mesh(mesh, thickness=0.5, backend="opencl", fill_rule=fill_rule)
+    return shortcut_refusal(mesh, res, fill_rule, SPEC, _bounds(mesh))
+
+
+def test_not_taken_where_polygons_are_not_segments(device):
+    box = shapes.box(hi=(10.0, 10.0, 10.0))
+    assert _refusal(box) is None
+    assert "not closed" in _refusal(box[1:])  # an open box
+    assert "fill rule" in _refusal(box, "evenodd")
+    inside_out = box[:, ::-1]  # closed and consistent, wound inward: nesting turns every loop round
+    assert "not their segments" in _refusal(inside_out)
+    overlapping = np.concatenate([box, shapes.box((5.0, 5.0, 0.0), (15.0, 15.0, 10.0))])  # rebuilt by nesting
+    assert "not their segments" in _refusal(overlapping)
+    nested_same_way = np.concatenate([box, shapes.box((3.0, 3.0, 3.0), (6.0, 6.0, 6.0))])  # its loops: unfilled
+    assert "not their segments" in _refusal(nested_same_way)
+    pillow = np.array([[[20, 0, 1], [22, 0, 4], [21, 2, 8]], [[20, 0, 1], [21, 2, 8], [22, 0, 4]]], float)
+    assert "three vertices" in _refusal(np.concatenate([box, pillow]))  # a closed shell of two facets
+
+
+def test_the_job_takes_it_and_writes_the_same_file(tmp_path, device, monkeypatch):
+    """`gpuslice raster --z-samples 4` through the shortcut and with it refused: the same archive, byte for byte."""
+    import gpuslice.raster.segment_edges as se
+    from gpuslice.cli import main
+
+    stl = tmp_path / "torus.stl"
+    shapes.write_stl(shapes.torus(15.0, 5.0, 40, 20), stl)
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
+    args = ["raster", str(stl), "-t", "0.2", "--resolution", "1600x1200", "--pixel", "0.05", "--z-samples", "4",
+            "-q", "--no-progress"]
+    assert main([*args, "-o", str(tmp_path / "a.goo"), "--report", str(tmp_path / "a.json")]) == 0
+    monkeypatch.setattr(se, "shortcut_refusal", lambda *a: "refused by the test")
+    assert main([*args, "-o", str(tmp_path / "b.goo"), "--report", str(tmp_path / "b.json")]) == 0
+    assert (tmp_path / "a.goo").read_bytes() == (tmp_path / "b.goo").read_bytes()
+    import json
+
+    stats = [json.loads((tmp_path / f"{x}.json").read_text()) for x in "ab"]
+    assert stats[0]["z_samples_from"] == "segments"
+    assert stats[1]["z_samples_from"] == "polygons (refused by the test)"
+
+
+CATALOG = read_catalog()
+
+
+@pytest.mark.parametrize("name", sorted(CATALOG) or ["(no shared meshes)"])
+def test_shared_meshes(shared_meshes, device, name):
+    """Every shared mesh at 20 mm, 0.1 mm layers, 4 sub-planes: where the shortcut is taken its runs equal the
+    polygon path's; it is taken on every closed, consistently wound mesh whose layers are their segments, and on no
+    other."""
+    import trimesh
+
+    from gpuslice.errors import GpusliceError
+
+    m = trimesh.load(shared_meshes / f"{name}.stl", force="mesh")
+    try:
+        mesh = mesh_from_triangles(m.vertices[m.faces], fit=20.0)
+    except GpusliceError as exc:  # (the empty and all-degenerate test files: nothing to slice)
+        pytest.skip(f"{name}: nothing to slice ({exc})")
+    res = slice_mesh(mesh, thickness=0.1, backend="opencl")
+    refusal = shortcut_refusal(mesh, res, "nonzero", SPEC, _bounds(mesh))
+    sides = mesh.edge_sides()
+    closed = bool(np.all(sides.count == 2) and np.all(sides.forward == 1))
+    if not closed:
+        assert refusal == "the mesh is not closed and consistently wound"
+        return
+    if not np.all(res.segment_exact):
+        assert refusal is not None
+        return
+    assert refusal is None or "three vertices" in refusal
+    if refusal is None:
+        poly, got, _, _ = _both_paths(mesh, res, SPEC, 4, device)
+        assert _same_runs(got, poly)
