@@ -350,7 +350,8 @@ Z_SAMPLE_CHUNK = 128
 
 def _z_sampled_layers(job: Job, out: JobResult, spec, dev, bounds, k: int):
     """Runs of every layer averaged over ``k`` sub-planes of its slab (``--z-samples``), in order: the sub-planes of
-    :data:`Z_SAMPLE_CHUNK` layers at a time are sliced (timed as ``z_samples``) and rasterised, then let go."""
+    :data:`Z_SAMPLE_CHUNK` layers at a time are cut (timed as ``z_samples``: their segments straight to edges where
+    the segment-buffer shortcut holds, else sliced) and rasterised, then let go."""
     from .raster.edges import z_sample_planes
     from .raster.layers import RunLayer, iter_run_layers
     from .slicing.slicer import slice_mesh
@@ -358,21 +359,25 @@ def _z_sampled_layers(job: Job, out: JobResult, spec, dev, bounds, k: int):
     z, th = z_sample_planes(out.result, k)
     refusal, kern = _segment_shortcut(job, out, spec, dev, bounds)
     out.stats["z_samples_from"] = "segments" if refusal is None else f"polygons ({refusal})"
-    for a in range(0, out.result.n_layers, Z_SAMPLE_CHUNK):
-        b = min(a + Z_SAMPLE_CHUNK, out.result.n_layers)
-        t = time.perf_counter()
-        if kern is not None:  # the sub-planes' segments straight to the runs (raster/segment_edges.py)
-            from .slicing.crossings import compute_crossings
 
-            seg = compute_crossings(out.mesh, z[a * k : b * k], dev, read_back=False)
-            merged = kern(seg, (b - a) * k, k, spec, bounds)
-            del seg
-            out.timings["z_samples"] = out.timings.get("z_samples", 0.0) + time.perf_counter() - t
-            chunk = iter_run_layers(None, spec, device=dev, bounds=bounds, z_samples=k, merged=merged)
-        else:
+    def chunks():  # (first layer, its chunk's runs)
+        if kern is not None:  # the sub-planes' segments straight to the runs (raster/segment_edges.py)
+            from .raster.segment_edges import iter_sub_plane_edges, layers_through_vertices
+
+            out.stats["z_samples_polygon_layers"] = int(layers_through_vertices(out.mesh, z, k).sum())
+            cut = lambda sel: slice_mesh(out.mesh, job.params, z=z[sel], layer_thickness=th[sel])  # noqa: E731
+            for a, merged in iter_sub_plane_edges(out.mesh, z, k, spec, bounds, dev, cut, Z_SAMPLE_CHUNK,
+                                                  out.timings):
+                yield a, iter_run_layers(None, spec, device=dev, bounds=bounds, z_samples=k, merged=merged)
+            return
+        for a in range(0, out.result.n_layers, Z_SAMPLE_CHUNK):
+            b = min(a + Z_SAMPLE_CHUNK, out.result.n_layers)
+            t = time.perf_counter()
             sub = slice_mesh(out.mesh, job.params, z=z[a * k : b * k], layer_thickness=th[a * k : b * k])
             out.timings["z_samples"] = out.timings.get("z_samples", 0.0) + time.perf_counter() - t
-            chunk = iter_run_layers(sub, spec, device=dev, bounds=bounds, z_samples=k)
+            yield a, iter_run_layers(sub, spec, device=dev, bounds=bounds, z_samples=k)
+
+    for a, chunk in chunks():
         try:
             for item in chunk:
                 yield RunLayer(a + item.index, item.runs, item.j)

@@ -18,7 +18,7 @@ from ..slicing.result import SliceResult
 from .spec import RasterSpec
 
 __all__ = ["LayerEdges", "box_tiles", "check_fits", "check_points_fit", "iter_layer_edges", "layer_edges",
-           "merge_layer_groups", "merge_tiles", "result_bounds", "z_sample_planes"]
+           "merge_layer_groups", "merge_tiles", "result_bounds", "splice_layers", "z_sample_planes"]
 
 
 @dataclass
@@ -226,3 +226,24 @@ def merge_tiles(tiles: np.ndarray, k: int) -> np.ndarray:
     empty = ~has.any(axis=1)
     return np.stack([np.where(empty, 0, r0), np.where(empty, 0, c0), np.where(empty, 0, r1 - r0),
                      np.where(empty, 0, c1 - c0)], axis=1).astype(np.int64)
+
+
+def splice_layers(base: LayerEdges, at: np.ndarray, other: LayerEdges, other_at: np.ndarray) -> LayerEdges:
+    """``base`` with its entries ``at`` (increasing) replaced by the entries ``other_at`` of ``other`` (edges and
+    tiles); the rest of ``base`` is copied in slices (a few layers replaced among many)."""
+    at, other_at = np.asarray(at, np.int64), np.asarray(other_at, np.int64)
+    if at.size == 0:
+        return base
+    bo, oo = base.edge_offsets, other.edge_offsets
+    parts, counts, start = [], np.diff(bo), 0
+    for i, j in zip(at.tolist(), other_at.tolist(), strict=True):  # (one step per replaced layer)
+        parts += [base.edges[bo[start] : bo[i]], other.edges[oo[j] : oo[j + 1]]]
+        start = i + 1
+    parts.append(base.edges[bo[start] : bo[-1]])
+    counts[at] = np.diff(oo)[other_at]
+    tiles = base.tiles.copy()
+    tiles[at] = other.tiles[other_at]
+    offsets = np.zeros(len(base.tiles) + 1, np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    edges = np.concatenate(parts).astype(base.edges.dtype, copy=False)
+    return LayerEdges(edges, offsets, tiles)

@@ -4,26 +4,33 @@ The runs (:mod:`gpuslice.raster.runs`) depend only on the set of a layer's edges
 area contributions of the pieces that cross it, in any order. A layer's polygons (chained and nested) have exactly
 its segments' edges when nothing was repaired, dropped, turned round or rebuilt on the way: every segment's end is
 its successor's start (the same mesh edge cut by the same plane gives the same float32 point,
-``kernels/crossings.cl``), a zero-length segment (a plane through a vertex) contributes nothing, and a loop of one
-point (the only degenerate loop of a closed, consistently wound mesh without duplicated facets) has only zero-length
-segments, which the tiles leave out. Then the pixel edges here equal :func:`gpuslice.raster.edges.layer_edges`'s
-bit for bit (the same float64 mapping, rounded once), and the runs are identical.
+``kernels/crossings.cl``). Then the pixel edges here equal :func:`gpuslice.raster.edges.layer_edges`'s bit for bit
+(the same float64 mapping, rounded once, and the same tile: the pixel box of the loops' points), and the runs are
+identical. A plane through no mesh vertex cuts no zero-length segment, and on a closed, consistently wound mesh
+without two facets on the same three vertices every loop it cuts has at least three distinct points (two facets
+sharing two edges would share all three vertices): nothing for chaining to drop. A plane through a vertex can cut
+loops that touch there or degenerate (a ridge edge lying on the plane, both its facets below it, is a loop of two
+points that nesting drops, and its points would widen the tile): the layers with such a sub-plane are cut the
+polygon way (:func:`layers_through_vertices`; 81 of the armadillo job's 1,900 layers, 13 of nefertiti's 1,600),
+spliced into their chunk (:func:`gpuslice.raster.edges.splice_layers`).
 
-**Where it is taken** (:func:`shortcut_refusal` returns None): the sub-planes of ``--z-samples`` (three to
+**Where it is taken** (:func:`shortcut_refusal` returns None): the sub-planes of ``--z-samples`` (one to
 sixty-three more planes per layer, the cost of that option), when
 
 * the fill rule is ``nonzero`` (the runs' ``|winding sum|`` is its coverage);
 * the mesh is closed and consistently wound (every edge used by two facets, once in each direction), with no
-  two facets on the same three vertices (a zero-volume shell, whose sections are loops of two points);
+  two facets on the same three vertices (a zero-volume shell of two facets, whose sections are loops of two points);
 * every layer of the job's own slice is *segment-exact* (:attr:`SliceResult.segment_exact`: chaining repaired
   nothing, nesting dropped, turned round and rebuilt nothing), which overlapping or inside-out shells, and
   self-intersecting facets that the layers cut, are not;
 * the device has doubles (``cl_khr_fp64``).
 
-What this does not prove: a self-intersection, or a shell, that lies wholly between two layer planes (thinner than
-a layer) is met only by sub-planes, whose greys are then the plain winding sum where its loops overlap (the union
-elsewhere). Elsewhere the masks are those of the polygon path, byte for byte (``tests/raster/test_segment_edges.py``
-on every closed, consistently wound shared mesh).
+What this does not prove: a self-intersection or a shell that lies wholly between two layer planes (thinner than a
+layer), or a zero-volume shell of more than two facets whose loops the layers' planes happen to leave alone, is met
+only by sub-planes, whose greys there are then the plain winding sum of their segments (nesting might have rebuilt,
+dropped or turned loops round). Elsewhere the masks are those of the polygon path, byte for byte
+(``tests/raster/test_segment_edges.py``: the closed, consistently wound shared meshes, a ridge and an apex on a
+sub-plane, mirrored and portrait displays, several chunks).
 
 Device: ``kernels/segment_edges.cl`` (:class:`SegmentEdgesKernel`) on the segments the crossings kernel left there;
 numpy twin: :func:`segment_edges_numpy` (the reference in tests).
@@ -31,14 +38,17 @@ numpy twin: :func:`segment_edges_numpy` (the reference in tests).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
+
 import numpy as np
 
 from ..device import KernelDriver
 from ..slicing.crossings import DeviceSegments, Segments
-from .edges import LayerEdges, box_tiles, merge_tiles
+from .edges import LayerEdges, box_tiles, iter_layer_edges, merge_tiles, splice_layers
 from .spec import RasterSpec
 
-__all__ = ["shortcut_refusal", "segment_edges_numpy", "SegmentEdgesKernel"]
+__all__ = ["shortcut_refusal", "layers_through_vertices", "iter_sub_plane_edges", "segment_edges_numpy",
+           "SegmentEdgesKernel"]
 
 _BIG = np.iinfo(np.int32).max
 
@@ -70,6 +80,48 @@ def shortcut_refusal(mesh, result, fill_rule: str, spec: RasterSpec, bounds) -> 
     if _affine(spec, bounds) is None:
         return "the display's mapping is not finite"
     return None
+
+
+def layers_through_vertices(mesh, z: np.ndarray, k: int) -> np.ndarray:
+    """(L,) bool: the layers one of whose ``k`` sub-planes ``z`` (mm, as float32: as the crossings cut them) passes
+    through a mesh vertex. There loops may touch or degenerate (a ridge edge lying on the plane cuts a loop of two
+    points, which nesting drops): those layers' sub-planes are cut the polygon way (module docstring)."""
+    hit = np.isin(np.asarray(z, np.float32), np.asarray(mesh.vertices[:, 2], np.float32))
+    return hit.reshape(-1, k).any(axis=1)
+
+
+def iter_sub_plane_edges(mesh, z: np.ndarray, k: int, spec: RasterSpec, bounds, device,
+                         slice_planes: Callable[[np.ndarray], object], chunk: int,
+                         timings: dict[str, float] | None = None) -> Iterator[tuple[int, LayerEdges]]:
+    """(first layer, the merged edges of layers first … first + chunk − 1) for every chunk of layers, each layer's
+    ``k`` sub-planes ``z`` (mm) from their segments on ``device``, except the layers with a sub-plane through a
+    vertex (:func:`layers_through_vertices`), whose sub-planes are cut by ``slice_planes(indices into z)`` (a
+    :class:`~gpuslice.slicing.result.SliceResult`), at most ``chunk`` layers at a time, and spliced in. ``timings``:
+    seconds added up under ``z_samples``. Memory: one chunk's segments and edges, one block's polygons."""
+    import time
+
+    from ..slicing.crossings import compute_crossings
+
+    kern = SegmentEdgesKernel.of(device)
+    on_vertex = np.flatnonzero(layers_through_vertices(mesh, z, k))
+    block, block_edges = np.zeros(0, np.int64), None
+    n_layers = len(z) // k
+    for a in range(0, n_layers, chunk):
+        b = min(a + chunk, n_layers)
+        t = time.perf_counter()
+        seg = compute_crossings(mesh, z[a * k : b * k], device, read_back=False)
+        merged = kern(seg, (b - a) * k, k, spec, bounds)
+        del seg
+        need = on_vertex[(on_vertex >= a) & (on_vertex < b)]
+        if need.size and not np.isin(need, block).all():
+            block = on_vertex[on_vertex >= a][: min(chunk, 256)]  # (<= EDGE_CHUNK layers: one chunk of edges)
+            sub = slice_planes((block[:, None] * k + np.arange(k)).reshape(-1))
+            ((_, block_edges),) = iter_layer_edges(sub, spec, bounds, k=k, dtype=np.float32)
+        if need.size:
+            merged = splice_layers(merged, need - a, block_edges, np.searchsorted(block, need))
+        if timings is not None:
+            timings["z_samples"] = timings.get("z_samples", 0.0) + time.perf_counter() - t
+        yield a, merged
 
 
 def _group_tiles(box: np.ndarray, k: int, spec: RasterSpec) -> np.ndarray:
@@ -134,6 +186,10 @@ class SegmentEdgesKernel(KernelDriver):
         import pyopencl as cl
 
         q = self.device.queue
+        if k < 1 or n_planes % k:
+            from ..errors import ParameterError
+
+            raise ParameterError(f"{n_planes} planes are not layers of {k} sub-planes", param="z_samples")
         if isinstance(seg, Segments):
             seg = DeviceSegments(len(seg), self._put("seg_layer", np.ascontiguousarray(seg.layer, np.int32)), None,
                                  self._put("seg_points", np.ascontiguousarray(seg.points, np.float32)), None)
