@@ -362,12 +362,13 @@ def _z_sampled_layers(job: Job, out: JobResult, spec, dev, bounds, k: int):
 
     def chunks():  # (first layer, its chunk's runs)
         if kern is not None:  # the sub-planes' segments straight to the runs (raster/segment_edges.py)
-            from .raster.segment_edges import iter_sub_plane_edges, layers_through_vertices
+            from .raster.segment_edges import iter_sub_plane_edges
 
-            out.stats["z_samples_polygon_layers"] = int(layers_through_vertices(out.mesh, z, k).sum())
+            out.stats["z_samples_polygon_layers"] = 0
             cut = lambda sel: slice_mesh(out.mesh, job.params, z=z[sel], layer_thickness=th[sel])  # noqa: E731
-            for a, merged in iter_sub_plane_edges(out.mesh, z, k, spec, bounds, dev, cut, Z_SAMPLE_CHUNK,
-                                                  out.timings):
+            for a, merged, cut_layers in iter_sub_plane_edges(out.mesh, z, k, spec, bounds, dev, cut,
+                                                              Z_SAMPLE_CHUNK, out.timings):
+                out.stats["z_samples_polygon_layers"] += int(cut_layers.size)
                 yield a, iter_run_layers(None, spec, device=dev, bounds=bounds, z_samples=k, merged=merged)
             return
         for a in range(0, out.result.n_layers, Z_SAMPLE_CHUNK):

@@ -28,16 +28,25 @@ inline double2 seg_pixel(const float x, const float y, const double4 au, const d
     return (double2)((dx * au.x + dy * au.y) + au.z, (dx * av.x + dy * av.y) + av.z);
 }
 
+// A segment shorter than 2^-20 of its largest coordinate (at least 1 mm; 8 float32 ulps there), in float32 as the
+// numpy twin computes it: where rounding can make points coincide or loops touch (a plane a few ulps from a vertex),
+// which chaining and nesting then repair; its layer is cut the polygon way (segment_edges.py).
+#define SEG_SHORT 9.5367431640625e-7f
+
 // box[4 * s] = (min floor u, max floor u, min floor v, max floor v) of sub-plane s (filled with INT_MAX, INT_MIN,
-// INT_MAX, INT_MIN by the host); count[s / k] += 1 for every segment, zero-length ones included.
+// INT_MAX, INT_MIN by the host); count[s / k] += 1 for every segment, zero-length ones included; short[s / k] = 1
+// where a segment is short (above).
 __kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
 void segment_bounds(const int n, __global const int *seg_layer, __global const float4 *seg_points, const double4 au,
-                    const double4 av, const int k, __global int *box, __global int *count) {
+                    const double4 av, const int k, __global int *box, __global int *count, __global int *short_) {
     const int i = get_global_id(0);
     if (i >= n) return;
     const int s = seg_layer[i];
     const float4 p = seg_points[i];
     atomic_inc(count + s / k);
+    const float dx = p.z - p.x, dy = p.w - p.y;
+    const float m = fmax(fmax(fmax(fabs(p.x), fabs(p.y)), fmax(fabs(p.z), fabs(p.w))), 1.0f) * SEG_SHORT;
+    if (dx * dx + dy * dy <= m * m) atomic_max(short_ + s / k, 1);
     if (p.x == p.z && p.y == p.w) return;
     const double2 uv = seg_pixel(p.x, p.y, au, av);
     const int fu = (int)floor(uv.x), fv = (int)floor(uv.y);

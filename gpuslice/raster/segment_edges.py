@@ -6,13 +6,22 @@ its segments' edges when nothing was repaired, dropped, turned round or rebuilt 
 its successor's start (the same mesh edge cut by the same plane gives the same float32 point,
 ``kernels/crossings.cl``). Then the pixel edges here equal :func:`gpuslice.raster.edges.layer_edges`'s bit for bit
 (the same float64 mapping, rounded once, and the same tile: the pixel box of the loops' points), and the runs are
-identical. A plane through no mesh vertex cuts no zero-length segment, and on a closed, consistently wound mesh
-without two facets on the same three vertices every loop it cuts has at least three distinct points (two facets
-sharing two edges would share all three vertices): nothing for chaining to drop. A plane through a vertex can cut
-loops that touch there or degenerate (a ridge edge lying on the plane, both its facets below it, is a loop of two
-points that nesting drops, and its points would widen the tile): the layers with such a sub-plane are cut the
-polygon way (:func:`layers_through_vertices`; 81 of the armadillo job's 1,900 layers, 13 of nefertiti's 1,600),
-spliced into their chunk (:func:`gpuslice.raster.edges.splice_layers`).
+identical. In exact arithmetic, a plane through no mesh vertex of a closed, consistently wound mesh without two
+facets on the same three vertices cuts loops of at least three distinct points (two facets sharing two edges would
+share all three vertices): nothing for chaining to drop. Two things break that, and their layers are cut the polygon
+way (sliced apart, a chunk's at a time, and spliced in: :func:`gpuslice.raster.edges.splice_layers`):
+
+* a sub-plane through a vertex (:func:`layers_through_vertices`): loops may touch there or degenerate (a ridge edge
+  lying on the plane, both its facets below it, is a loop of two points that nesting drops, and its points would
+  widen the tile);
+* a segment shorter than :data:`SHORT` of its coordinates, 8 float32 ulps (:func:`short_segments`, flagged by the
+  kernel): a plane a few ulps from a vertex, where the crossings' float32 rounding can make points coincide or loops
+  cross, which chaining and nesting then repair (``scripts/fuzz_z_samples.py`` found such layers at 0 and 1 ulp).
+  Rounding moves a point by at most about an ulp, so loops it makes touch or cross come within a few ulps of each
+  other, and then the loops' own segments near that vertex are that short.
+
+Those of a few chunks are sliced together (one call per 256 of them: a call costs ~20 ms whatever its size). On the
+armadillo job 317 of 1,900 layers go the polygon way (81 through a vertex), 71 of nefertiti's 1,600.
 
 **Where it is taken** (:func:`shortcut_refusal` returns None): the sub-planes of ``--z-samples`` (one to
 sixty-three more planes per layer, the cost of that option), when
@@ -47,10 +56,13 @@ from ..slicing.crossings import DeviceSegments, Segments
 from .edges import LayerEdges, box_tiles, iter_layer_edges, merge_tiles, splice_layers
 from .spec import RasterSpec
 
-__all__ = ["shortcut_refusal", "layers_through_vertices", "iter_sub_plane_edges", "segment_edges_numpy",
-           "SegmentEdgesKernel"]
+__all__ = ["shortcut_refusal", "layers_through_vertices", "short_segments", "iter_sub_plane_edges",
+           "segment_edges_numpy", "SegmentEdgesKernel"]
 
 _BIG = np.iinfo(np.int32).max
+#: a segment shorter than this fraction of its largest coordinate (at least 1 mm) marks its layer for the polygon
+#: way: float32 rounding near a vertex can make points coincide there (``kernels/segment_edges.cl``, SEG_SHORT)
+SHORT = np.float32(2.0**-20)
 
 
 def _affine(spec: RasterSpec, bounds) -> np.ndarray | None:
@@ -92,36 +104,53 @@ def layers_through_vertices(mesh, z: np.ndarray, k: int) -> np.ndarray:
 
 def iter_sub_plane_edges(mesh, z: np.ndarray, k: int, spec: RasterSpec, bounds, device,
                          slice_planes: Callable[[np.ndarray], object], chunk: int,
-                         timings: dict[str, float] | None = None) -> Iterator[tuple[int, LayerEdges]]:
-    """(first layer, the merged edges of layers first … first + chunk − 1) for every chunk of layers, each layer's
-    ``k`` sub-planes ``z`` (mm) from their segments on ``device``, except the layers with a sub-plane through a
-    vertex (:func:`layers_through_vertices`), whose sub-planes are cut by ``slice_planes(indices into z)`` (a
-    :class:`~gpuslice.slicing.result.SliceResult`), at most ``chunk`` layers at a time, and spliced in. ``timings``:
-    seconds added up under ``z_samples``. Memory: one chunk's segments and edges, one block's polygons."""
+                         timings: dict[str, float] | None = None, group: int = 4
+                         ) -> Iterator[tuple[int, LayerEdges, np.ndarray]]:
+    """(first layer, the merged edges of layers first … first + chunk − 1, the layers among them cut the polygon
+    way) for every chunk of layers, each layer's ``k`` sub-planes ``z`` (mm) from their segments on ``device``,
+    except the layers with a sub-plane through a vertex (:func:`layers_through_vertices`) or a short segment
+    (:func:`short_segments`), whose sub-planes are cut by ``slice_planes(indices into z)`` (a
+    :class:`~gpuslice.slicing.result.SliceResult`), those of ``group`` chunks at once (at most 256 layers a call), and
+    spliced in. ``timings``: seconds added up under ``z_samples``. Memory: one chunk's segments, ``group`` chunks'
+    edges, one block's polygons."""
     import time
 
     from ..slicing.crossings import compute_crossings
 
     kern = SegmentEdgesKernel.of(device)
-    on_vertex = np.flatnonzero(layers_through_vertices(mesh, z, k))
-    block, block_edges = np.zeros(0, np.int64), None
     n_layers = len(z) // k
-    for a in range(0, n_layers, chunk):
-        b = min(a + chunk, n_layers)
+    on_vertex = layers_through_vertices(mesh, z, k)
+    chunk = min(chunk, 256)
+    starts = list(range(0, n_layers, chunk))
+    for g in range(0, len(starts), group):  # `group` chunks at a time: their polygon layers sliced in one go
         t = time.perf_counter()
-        seg = compute_crossings(mesh, z[a * k : b * k], device, read_back=False)
-        merged = kern(seg, (b - a) * k, k, spec, bounds)
-        del seg
-        need = on_vertex[(on_vertex >= a) & (on_vertex < b)]
-        if need.size and not np.isin(need, block).all():
-            block = on_vertex[on_vertex >= a][: min(chunk, 256)]  # (<= EDGE_CHUNK layers: one chunk of edges)
+        done = []
+        for a in starts[g : g + group]:
+            b = min(a + chunk, n_layers)
+            seg = compute_crossings(mesh, z[a * k : b * k], device, read_back=False)
+            merged, short = kern(seg, (b - a) * k, k, spec, bounds)
+            del seg
+            done.append((a, merged, a + np.flatnonzero(short | on_vertex[a:b])))
+        cut = np.concatenate([d[2] for d in done])
+        for i in range(0, cut.size, 256):  # (blocks of at most EDGE_CHUNK layers: one chunk of polygon edges each)
+            block = cut[i : i + 256]
             sub = slice_planes((block[:, None] * k + np.arange(k)).reshape(-1))
             ((_, block_edges),) = iter_layer_edges(sub, spec, bounds, k=k, dtype=np.float32)
-        if need.size:
-            merged = splice_layers(merged, need - a, block_edges, np.searchsorted(block, need))
+            for j, (a, merged, need) in enumerate(done):
+                mine = need[(need >= block[0]) & (need <= block[-1])]
+                done[j] = (a, splice_layers(merged, mine - a, block_edges, np.searchsorted(block, mine)), need)
         if timings is not None:
             timings["z_samples"] = timings.get("z_samples", 0.0) + time.perf_counter() - t
-        yield a, merged
+        yield from done
+
+
+def short_segments(p: np.ndarray) -> np.ndarray:
+    """(S,) bool: segments ``p`` ((S, 4) float32 x0, y0, x1, y1 mm) shorter than :data:`SHORT` of their largest
+    coordinate (at least 1 mm), in float32 as the kernel computes it."""
+    p = np.asarray(p, np.float32)
+    dx, dy = p[:, 2] - p[:, 0], p[:, 3] - p[:, 1]
+    m = np.maximum(np.abs(p).max(axis=1, initial=np.float32(0)), np.float32(1)) * SHORT
+    return dx * dx + dy * dy <= m * m
 
 
 def _group_tiles(box: np.ndarray, k: int, spec: RasterSpec) -> np.ndarray:
@@ -134,9 +163,11 @@ def _group_tiles(box: np.ndarray, k: int, spec: RasterSpec) -> np.ndarray:
     return merge_tiles(sub, k)
 
 
-def segment_edges_numpy(seg: Segments, n_planes: int, k: int, spec: RasterSpec, bounds) -> LayerEdges:
+def segment_edges_numpy(seg: Segments, n_planes: int, k: int, spec: RasterSpec,
+                        bounds) -> tuple[LayerEdges, np.ndarray]:
     """The numpy twin of :class:`SegmentEdgesKernel`: the edges of ``seg`` (cut at ``n_planes`` planes, ``k`` per
-    layer) as every layer's, its sub-planes merged, float32, grouped by layer (in segment order within a layer)."""
+    layer) as every layer's, its sub-planes merged, float32, grouped by layer (in segment order within a layer), and
+    (L,) bool: the layers with a short segment (:func:`short_segments`)."""
     layer = np.asarray(seg.layer, np.int64)
     p = np.asarray(seg.points, np.float32)
     u0, v0 = spec.to_pixels_xy(p[:, 0], p[:, 1], bounds)  # (the kernel's formula; see kernels/segment_edges.cl)
@@ -157,7 +188,9 @@ def segment_edges_numpy(seg: Segments, n_planes: int, k: int, spec: RasterSpec, 
     g = group[order]
     c0, r0 = tiles[g, 1].astype(np.float64), tiles[g, 0].astype(np.float64)
     edges = np.stack([u0[order] - c0, v0[order] - r0, u1[order] - c0, v1[order] - r0], axis=1).astype(np.float32)
-    return LayerEdges(edges, offsets, tiles)
+    short = np.zeros(len(tiles), bool)
+    short[group[short_segments(p)]] = True
+    return LayerEdges(edges, offsets, tiles), short
 
 
 class SegmentEdgesKernel(KernelDriver):
@@ -174,15 +207,44 @@ class SegmentEdgesKernel(KernelDriver):
         except (AttributeError, cl.Error):  # built without doubles: no cl_khr_fp64 on this device
             self._bounds = self._scatter = None
 
+    @staticmethod
+    def _affine_args(spec: RasterSpec, bounds):
+        """The display's mapping as the kernels' two double4 arguments (u's row, v's row)."""
+        import pyopencl as cl
+
+        m = np.zeros((2, 4), np.float64)
+        m[:, :3] = _affine(spec, bounds)
+        return tuple(m[j].view(cl.cltypes.double4)[0] for j in (0, 1))
+
+    def _bounds_pass(self, seg: DeviceSegments, n_planes: int, k: int, au, av):
+        """segment_bounds: (box (P, 4) int32, count (L,) int32, short (L,) int32) of the planes and layers."""
+        import pyopencl as cl
+
+        q, n, groups = self.device.queue, seg.n, n_planes // k
+        box = np.empty((n_planes, 4), np.int32)
+        box[:, 0::2], box[:, 1::2] = _BIG, -_BIG - 1
+        b_box = self._put("box", box)
+        b_count = self._fill("count", 4 * max(groups, 1), np.int32(0))
+        b_short = self._fill("short", 4 * max(groups, 1), np.int32(0))
+        count, short = np.zeros(groups, np.int32), np.zeros(groups, np.int32)
+        if n:
+            self._bounds(q, *self._grid(n), np.int32(n), seg.layer, seg.points, au, av, np.int32(k), b_box, b_count,
+                         b_short)
+            cl.enqueue_copy(q, box, b_box, is_blocking=False)
+            cl.enqueue_copy(q, short, b_short, is_blocking=False)
+            cl.enqueue_copy(q, count, b_count, is_blocking=True)
+        return box, count, short
+
     @property
     def available(self) -> bool:
         """Whether the device built the kernels (it has doubles)."""
         return self._bounds is not None
 
     def __call__(self, seg: DeviceSegments | Segments, n_planes: int, k: int, spec: RasterSpec,
-                 bounds) -> LayerEdges:
+                 bounds) -> tuple[LayerEdges, np.ndarray]:
         """The edges of ``seg`` (left on the device by the crossings kernel, or on the host: uploaded) cut at
-        ``n_planes`` planes, ``k`` per layer; ``bounds`` (xmin, ymin, xmax, ymax) mm as the archive centres it."""
+        ``n_planes`` planes, ``k`` per layer, and the layers with a short segment, as :func:`segment_edges_numpy`;
+        ``bounds`` (xmin, ymin, xmax, ymax) mm as the archive centres it."""
         import pyopencl as cl
 
         q = self.device.queue
@@ -193,20 +255,10 @@ class SegmentEdgesKernel(KernelDriver):
         if isinstance(seg, Segments):
             seg = DeviceSegments(len(seg), self._put("seg_layer", np.ascontiguousarray(seg.layer, np.int32)), None,
                                  self._put("seg_points", np.ascontiguousarray(seg.points, np.float32)), None)
-        m = np.zeros((2, 4), np.float64)
-        m[:, :3] = _affine(spec, bounds)
-        au, av = (m[j].view(cl.cltypes.double4)[0] for j in (0, 1))
+        au, av = self._affine_args(spec, bounds)
+        box, count, short = self._bounds_pass(seg, n_planes, k, au, av)
         n, groups = seg.n, n_planes // k
-        box = np.empty((n_planes, 4), np.int32)
-        box[:, 0::2], box[:, 1::2] = _BIG, -_BIG - 1
-        b_box = self._put("box", box)
-        b_count = self._fill("count", 4 * max(groups, 1), np.int32(0))
         grid = self._grid(max(n, 1))
-        count = np.zeros(groups, np.int32)
-        if n:
-            self._bounds(q, *grid, np.int32(n), seg.layer, seg.points, au, av, np.int32(k), b_box, b_count)
-            cl.enqueue_copy(q, box, b_box, is_blocking=False)
-            cl.enqueue_copy(q, count, b_count, is_blocking=True)
         tiles = _group_tiles(box.astype(np.int64), k, spec)
         offsets = np.zeros(groups + 1, np.int64)
         np.cumsum(count, out=offsets[1:])
@@ -219,4 +271,4 @@ class SegmentEdgesKernel(KernelDriver):
             self._scatter(q, *grid, np.int32(n), seg.layer, seg.points, au, av, np.int32(k), first, corner, cursor,
                           out)
             cl.enqueue_copy(q, edges, out, is_blocking=True)
-        return LayerEdges(edges, offsets, tiles)
+        return LayerEdges(edges, offsets, tiles), short.astype(bool)

@@ -44,13 +44,14 @@ def _both_paths(mesh, res, spec, k, device, chunk=128, bounds=None):
         return slice_mesh(mesh, z=z[sel], layer_thickness=th[sel], backend="opencl")
 
     parts = []
-    for a, le in iter_sub_plane_edges(mesh, z, k, spec, bounds, device, cut, chunk):
+    for a, le, _ in iter_sub_plane_edges(mesh, z, k, spec, bounds, device, cut, chunk):
         for r in iter_runs(None, spec, device=device, bounds=bounds, z_samples=k, merged=le):
             parts.append(Runs(r.layers + a, r.layer_offsets, r.row, r.x, r.length, r.grey, r.shape))
     got = Runs.concat(parts, spec.shape)
     seg = compute_crossings(mesh, z, device, read_back=False)
-    raw = SegmentEdgesKernel.of(device)(seg, z.size, k, spec, bounds)
-    twin = segment_edges_numpy(seg.fetch(), z.size, k, spec, bounds)
+    raw, short = SegmentEdgesKernel.of(device)(seg, z.size, k, spec, bounds)
+    twin, twin_short = segment_edges_numpy(seg.fetch(), z.size, k, spec, bounds)
+    assert np.array_equal(short, twin_short)
     return poly, got, raw, twin
 
 
