@@ -252,3 +252,53 @@ def test_splice_layers():
             assert np.array_equal(got.edges[got.edge_offsets[i] : got.edge_offsets[i + 1]], want)
             assert np.array_equal(got.tiles[i], le.tiles[j])
         assert got.edge_offsets[-1] == len(got.edges)
+
+
+def test_a_sliver_one_ulp_under_a_ridge(device):
+    """A case scripts/fuzz_z_samples.py found (seed 1, case 1911): a wedge whose ridge lies one float32 ulp above a
+    sub-plane. That sub-plane cuts a sliver narrower than float32 can hold: its crossings round onto each other,
+    nesting drops the loop as unfilled and its points would widen the tile. The kernel flags the layer's short
+    segments, the layer goes the polygon way, and the runs equal the polygon path's (from the raw segments they do
+    not)."""
+    f = np.float32
+    a, b, c = [f(1.5729523), f(-9.3100605), f(0.11500001)], [f(5.223868), f(-11.811739), f(0.11500001)], [
+        f(3.726411), f(-9.339488), f(0)]
+    d, e = [f(3.6428647), f(-11.856278), f(0)], [f(2.1195378), f(-10.666934), f(0)]
+    tri = np.array([[a, b, c], [d, b, a], [d, c, b], [a, c, e], [e, d, a], [c, d, e]], np.float32)
+    mesh = mesh_from_triangles(tri)
+    spec = RasterSpec(resolution=(506, 382), pixel=0.0962530779526021, portrait=True, gamma=1.0)
+    bounds = (-17.46512099449965, -17.46512099449965, 17.46512099449965, 17.46512099449965)
+    res = slice_mesh(mesh, thickness=0.02, backend="opencl")
+    assert shortcut_refusal(mesh, res, "nonzero", spec, bounds) is None
+    z, _ = z_sample_planes(res, 2)
+    assert not layers_through_vertices(mesh, z, 2).any()
+    poly, got, raw, twin = _both_paths(mesh, res, spec, 2, device, chunk=6, bounds=bounds)
+    assert _same_runs(got, poly)
+    _same_edges(raw, twin)
+    from_raw = Runs.concat(list(iter_runs(None, spec, device=device, bounds=bounds, z_samples=2, merged=raw)),
+                           spec.shape)
+    assert not _same_runs(from_raw, poly)  # what the guard is for
+
+
+@pytest.mark.parametrize("ulps", [1, 2, 3])
+def test_a_ridge_a_few_ulps_off_a_sub_plane(device, ulps):
+    """The ridge a few float32 ulps above the sub-plane (through no vertex): its sliver's segments are shorter than
+    :data:`SHORT` (the kernel and the twin flag the layer), the layer goes the polygon way, and the job's runs equal
+    the polygon path's at every placement tried."""
+    from gpuslice.raster.segment_edges import short_segments
+
+    k, bounds = 4, (-10.0, -10.0, 10.0, 10.0)
+    h = np.float32(1.3125)
+    for _ in range(abs(ulps)):
+        h = np.nextafter(h, np.float32(np.sign(ulps) * np.inf))
+    for dx, dy in np.random.default_rng(1).uniform(-3.0, 3.0, (6, 2)):
+        mesh = mesh_from_triangles(_ridge_wedge(float(h), dx, dy))
+        res = slice_mesh(mesh, z=np.array([0.25, 0.75, 1.25]), layer_thickness=0.5, backend="opencl")
+        assert shortcut_refusal(mesh, res, "nonzero", SPEC, bounds) is None
+        z, _ = z_sample_planes(res, k)
+        assert not layers_through_vertices(mesh, z, k).any()
+        seg = crossings_numpy(mesh, z)
+        assert short_segments(seg.points)[seg.layer // k == 2].any()  # the sliver layer is flagged
+        poly, got, raw, twin = _both_paths(mesh, res, SPEC, k, device, bounds=bounds)
+        assert _same_runs(got, poly)
+        _same_edges(raw, twin)
