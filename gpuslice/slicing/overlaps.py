@@ -487,16 +487,6 @@ def resolve_overlaps(nested: Nested, points, pc, offsets, layer, closed, layers,
         area[lay] += kept_area[lay]
         resolved[lay] = 1
         unfilled[lay] = kept_unfilled[lay]
-    return Nested(
-        points=out_points,
-        loop_offsets=new_offsets,
-        layer_offsets=layer_offsets,
-        loop_layer=all_layer[order],
-        loop_is_hole=is_hole,
-        loop_parent=parents[order].astype(np.int32),
-        loop_closed=closed_all,
-        area=area,
-        unfilled_loops=unfilled,
-        overlaps_resolved=resolved,
-        reoriented=nested.reoriented,
-    )
+    return Nested(points=out_points, loop_offsets=new_offsets, layer_offsets=layer_offsets, loop_layer=all_layer[order],
+                  loop_is_hole=is_hole, loop_parent=parents[order].astype(np.int32), loop_closed=closed_all, area=area,
+                  unfilled_loops=unfilled, overlaps_resolved=resolved, reoriented=nested.reoriented)

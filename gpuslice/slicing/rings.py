@@ -77,7 +77,7 @@ class Nested:
     unfilled_loops: np.ndarray
     overlaps_resolved: np.ndarray
     #: (L,) loops per layer that nesting turned round (their winding disagreed with the fill: an inside-out shell)
-    reoriented: np.ndarray | None = None
+    reoriented: np.ndarray
 
 
 def _as_complex(points: np.ndarray) -> np.ndarray:

@@ -213,10 +213,7 @@ def _segment_exact(parts, result: SliceResult, n_layers: int) -> np.ndarray:
     for counts in result.repairs.values():
         exact &= np.asarray(counts) == 0
     for a, nd, _ in parts:
-        if nd.reoriented is None:
-            exact[a : a + nd.area.size] = False
-        else:
-            exact[a : a + nd.reoriented.size] &= nd.reoriented == 0
+        exact[a : a + nd.reoriented.size] &= nd.reoriented == 0
     return exact
 
 
