@@ -56,7 +56,6 @@ UVtools): some firmware misbehaves when it is set, so it is off by default.
 from __future__ import annotations
 
 import datetime as _dt
-import io
 import os
 import struct
 from collections.abc import Callable, Iterable
@@ -222,9 +221,8 @@ def rgb15_rle(rgb: np.ndarray) -> bytes:
 
 
 def _preview_images(thumb: _Thumb) -> list[np.ndarray]:
-    from PIL import Image
 
-    return [np.asarray(Image.open(io.BytesIO(thumb.png(size))).convert("RGB")) for size in PREVIEW_SIZES]
+    return [np.asarray(thumb.image(size)) for size in PREVIEW_SIZES]
 
 
 def _light_off(table: dict[str, np.ndarray], version: int) -> np.ndarray:

@@ -40,7 +40,6 @@ at offset 0, since its size is fixed. The file is written under a temporary name
 from __future__ import annotations
 
 import datetime as _dt
-import io
 import os
 import struct
 from collections.abc import Iterable
@@ -276,9 +275,7 @@ def _preview_step(spec) -> int:
 def _previews(thumb, spec) -> tuple[bytes, ...]:
     """The previews (:data:`PREVIEWS`) as RGB565: SL1's top view (:class:`gpuslice.raster.sl1._Thumb`, a height map
     of the sampled pixels, whose rows it stretches by the pixels' aspect ratio on a display of non-square pixels)."""
-    from PIL import Image
-
-    return tuple(rgb565(np.asarray(Image.open(io.BytesIO(thumb.png(size))).convert("RGB"))) for size in PREVIEWS)
+    return tuple(rgb565(np.asarray(thumb.image(size))) for size in PREVIEWS)
 
 
 def write_goo(layers: Iterable[Tile | RunLayer], target) -> dict[str, Any]:

@@ -109,12 +109,16 @@ def _sample_runs(runs: Runs, a: int, b: int, step: int, threshold: int):
 def _sampled_intervals(runs: Runs, a: int, b: int, step: int, threshold: int):
     """(run index, sampled row, first, end) of the runs ``a:b`` that cover at least one sampled pixel: the sampled
     columns ``first <= c < end`` (units of ``step``); a row's intervals are disjoint and sorted."""
-    row, x = runs.row[a:b].astype(np.int64), runs.x[a:b].astype(np.int64)
-    keep = np.flatnonzero((row % step == 0) & (runs.grey[a:b] >= threshold))
-    first = -(-x[keep] // step)  # the first sampled column of each run, in units of step
-    end = (x[keep] + runs.length[a:b][keep] - 1) // step + 1
+    row = runs.row[a:b]
+    # the sampled rows by a table, not a remainder per run; only the runs kept are widened to int64
+    sampled = np.zeros(max(int(runs.shape[0]), int(row.max()) + 1 if row.size else 0), bool)
+    sampled[::step] = True
+    keep = np.flatnonzero(sampled[row] & (runs.grey[a:b] >= threshold))
+    x = runs.x[a:b][keep].astype(np.int64)
+    first = -(-x // step)  # the first sampled column of each run, in units of step
+    end = (x + runs.length[a:b][keep] - 1) // step + 1
     ok = end > first
-    return a + keep[ok], row[keep[ok]] // step, first[ok], end[ok]
+    return a + keep[ok], row[keep[ok]].astype(np.int64) // step, first[ok], end[ok]
 
 
 class HeightMap:

@@ -172,6 +172,15 @@ class _Thumb(HeightMap):
         self.aspect = spec.px / spec.py if spec.portrait else spec.py / spec.px
 
     def png(self, size: tuple[int, int]) -> bytes:
+        """The top view fitted into ``size`` (width, height) pixels, as a PNG file's bytes (:meth:`image`)."""
+        buf = io.BytesIO()
+        self.image(size).save(buf, format="PNG")
+        return buf.getvalue()
+
+    def image(self, size: tuple[int, int]):
+        """The top view as an RGB ``PIL.Image`` of ``size`` (width, height): the part cropped with a margin,
+        scaled to fit with its aspect kept, on a dark background (the formats with raw previews take its pixels,
+        the PNG-based ones :meth:`png`)."""
         from PIL import Image
 
         src = self.img
@@ -191,9 +200,7 @@ class _Thumb(HeightMap):
         part = Image.fromarray(rgb, "RGB").resize((sw, sh), Image.BILINEAR)
         canvas = Image.new("RGB", size, (40, 40, 40))
         canvas.paste(part, ((tw - sw) // 2, (th - sh) // 2))
-        buf = io.BytesIO()
-        canvas.save(buf, format="PNG")
-        return buf.getvalue()
+        return canvas
 
 
 THUMBNAILS = ((400, 400), (800, 480))
