@@ -7,6 +7,7 @@ so a writer never asks which it got.
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -129,28 +130,49 @@ class HeightMap:
     Runs are taken a whole batch at a time (when its first layer comes), and only the sampled pixels a layer covers
     and the next layer of its batch does not are written: the highest layer covering a pixel is one of those (the
     layer above it does not cover it), every other layer written there is lower, so the maximum is the same as over
-    every covered pixel of every layer, at the cost of the part's sides instead of its volume."""
+    every covered pixel of every layer, at the cost of the part's sides instead of its volume.
+
+    A batch of runs is added on a thread of the map's own (one, so the batches' maxima never race), off the
+    writer's thread that feeds the encoders; :attr:`img` waits for the batches given so far."""
 
     def __init__(self, shape: tuple[int, int], n_layers: int, step: int) -> None:
         rows, cols = shape
         self.step = int(step)
         self.n = max(n_layers - 1, 1)
-        self.img = np.zeros((-(-rows // self.step), -(-cols // self.step)), np.uint8)
+        self._img = np.zeros((-(-rows // self.step), -(-cols // self.step)), np.uint8)
         self._batch: Runs | None = None
+        self._pool: ThreadPoolExecutor | None = None
+        self._pending: list[Future] = []
+
+    @property
+    def img(self) -> np.ndarray:
+        """The map, (rows, cols) uint8 of the sampled pixels, once every batch given so far is in (an error of one
+        is raised here)."""
+        pending, self._pending = self._pending, []
+        for f in pending:
+            f.result()
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
+        return self._img
 
     def add(self, item: Tile | RunLayer) -> None:
         """Raise the map where the layer (a tile, or runs: then every layer of its batch) covers a sampled pixel."""
-        flat = self.img.reshape(-1)
+        flat = self._img.reshape(-1)
         if isinstance(item, RunLayer):
             if item.runs is not self._batch:
                 self._batch = item.runs
                 # the batch's layers as the result's indices: a caller may number them from elsewhere (the z-sampled
                 # layers come a chunk at a time, each numbered from 0), by a constant shift
-                self._add_runs(item.runs, item.index - int(item.runs.layers[item.j]))
+                if self._pool is None:
+                    self._pool = ThreadPoolExecutor(1, thread_name_prefix="gpuslice-heightmap")
+                self._pending = [f for f in self._pending if not f.done() or f.exception() is not None]
+                self._pending.append(self._pool.submit(self._add_runs, item.runs,
+                                                       item.index - int(item.runs.layers[item.j])))
             return
         r, c = sample(item, self.step)
         if r.size:  # the sampled pixels of one layer are distinct: a plain fancy-indexed maximum
-            cells = r * self.img.shape[1] + c
+            cells = r * self._img.shape[1] + c
             flat[cells] = np.maximum(flat[cells], np.uint8(1 + (254 * item.index) // self.n))
 
     def _add_runs(self, runs: Runs, shift: int) -> None:
@@ -158,7 +180,7 @@ class HeightMap:
         if not idx.size:
             return
         k = np.searchsorted(runs.layer_offsets, idx, side="right") - 1  # each interval's layer in the batch
-        rows, width = self.img.shape
+        rows, width = self._img.shape
         group = k * rows + r  # (layer in the batch, sampled row)
         if len(runs.layers) > 1 and np.all(np.diff(runs.layers) > 0):
             # A \ B per group, with A = the layer's intervals and B = the next layer's (moved to this layer's group):
@@ -176,7 +198,7 @@ class HeightMap:
             group, first, end = g[seg], col[seg], col[seg + 1]
         owner, cols = expand_ranges(first, end - first)
         level = (1 + (254 * (runs.layers.astype(np.int64) + shift)) // self.n).astype(np.uint8)
-        np.maximum.at(self.img.reshape(-1), (group % rows)[owner] * width + cols, level[group // rows][owner])
+        np.maximum.at(self._img.reshape(-1), (group % rows)[owner] * width + cols, level[group // rows][owner])
 
 
 def pixel_runs(item: Tile | RunLayer, cols: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
