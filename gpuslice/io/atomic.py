@@ -53,6 +53,12 @@ def _fsync_dir(path: Path) -> None:
             os.close(fd)
 
 
+#: the buffer (bytes) of a file that a resin archive writer fills layer by layer: the writer's thread also feeds
+#: the encoder threads, and every system call makes it wait for the GIL again behind them (with the default 8 KiB
+#: buffer, one wait per layer: the armadillo 12K GOO job ran 1.10x longer)
+WRITE_BUFFER = 1 << 22
+
+
 @contextlib.contextmanager
 def atomic_path(path: PathLike, *, fsync: bool = True) -> Iterator[Path]:
     """Context manager giving a temporary path that replaces ``path`` when the block succeeds.

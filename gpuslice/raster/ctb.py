@@ -65,7 +65,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ParameterError
-from ..io.atomic import atomic_path
+from ..io.atomic import WRITE_BUFFER, atomic_path
 from .coverage import Tile
 from .layers import RunLayer, batch_image_segments, batch_pixel_runs, pixel_runs, run_groups
 from .png import encode_all
@@ -306,7 +306,7 @@ def write_ctb(
     thumb = _Thumb(spec, n)
     ex_floats = _ex_columns(table, version)
 
-    with atomic_path(p) as tmp, open(tmp, "wb") as f:
+    with atomic_path(p) as tmp, open(tmp, "wb", buffering=WRITE_BUFFER) as f:
         f.seek(at["layers"])
         pos = at["layers"]
 

@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ParameterError
-from ..io.atomic import atomic_path
+from ..io.atomic import WRITE_BUFFER, atomic_path
 from .coverage import Tile
 from .layers import RunLayer, batch_image_segments, batch_pixel_runs, image_segments, pixel_runs, run_groups
 from .png import encode_all
@@ -306,7 +306,7 @@ def write_goo(layers: Iterable[Tile | RunLayer], target) -> dict[str, Any]:
             return encode_batch(group[0].runs, group[0].j, group[-1].j + 1, cols, n_pixels, device=device)
         return [encode(item) for item in group]
 
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+    with atomic_path(path) as tmp, open(tmp, "wb", buffering=WRITE_BUFFER) as f:
         f.seek(HEADER_SIZE)  # the header (with the previews) goes in last
 
         def sink(k: int, data: bytes) -> None:

@@ -50,7 +50,7 @@ import numpy as np
 
 from ..errors import ParameterError
 from ..formats.numbers import point_bounds
-from ..io.atomic import atomic_path
+from ..io.atomic import WRITE_BUFFER, atomic_path
 from .coverage import Tile
 from .layers import RunLayer, encode_png, pixel_runs, run_groups
 from .png import PngEncoder, encode_all
@@ -179,7 +179,8 @@ def write_nanodlp(
     enc = PngEncoder(cols, rows, level, deflater)
     thumb = _Thumb(spec, n)
     boxes: list[tuple[int, int, int, int]] = []
-    with atomic_path(p) as tmp, zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, allowZip64=True) as z:
+    with atomic_path(p) as tmp, open(tmp, "wb", buffering=WRITE_BUFFER) as fh, \
+            zipfile.ZipFile(fh, "w", zipfile.ZIP_DEFLATED, allowZip64=True) as z:
         zstamp = _zip_time(now)
 
         def entry(member: str) -> zipfile.ZipInfo:

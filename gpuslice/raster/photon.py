@@ -62,7 +62,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ParameterError
-from ..io.atomic import atomic_path
+from ..io.atomic import WRITE_BUFFER, atomic_path
 from .coverage import Tile
 from .layers import HeightMap, RunLayer, batch_image_segments, batch_pixel_runs, pixel_runs, run_groups
 from .png import encode_all
@@ -443,7 +443,7 @@ def write_photon(layers: Iterable[Tile | RunLayer], target, *, machine: Machine,
         return [(d, int(n), bool(m), None if b[0] < 0 else tuple(int(v) for v in b))
                 for d, n, m, b in zip(data, lit, mid, box, strict=True)]
 
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+    with atomic_path(path) as tmp, open(tmp, "wb", buffering=WRITE_BUFFER) as f:
         f.seek(images)
 
         def sink(k: int, item) -> None:

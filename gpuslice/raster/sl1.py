@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ParameterError
-from ..io.atomic import atomic_path
+from ..io.atomic import WRITE_BUFFER, atomic_path
 from .coverage import Tile
 from .layers import HeightMap, RunLayer, encode_png, run_groups
 from .png import PngEncoder, encode_all
@@ -258,7 +258,8 @@ def write_sl1(
         raise ParameterError(f"{p}: bad job name '{info.job_dir}'")
     enc = PngEncoder(*spec.png_size, level, deflater)
     thumb = _Thumb(spec, n_layers)
-    with atomic_path(p) as tmp, zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, allowZip64=True) as z:
+    with atomic_path(p) as tmp, open(tmp, "wb", buffering=WRITE_BUFFER) as fh, \
+            zipfile.ZipFile(fh, "w", zipfile.ZIP_DEFLATED, allowZip64=True) as z:
         stamp = _zip_time(now)  # every entry carries the same date: with a given ``now`` the bytes are reproducible
 
         def entry(name: str, kind: int = zipfile.ZIP_DEFLATED) -> zipfile.ZipInfo:

@@ -38,7 +38,7 @@ import numpy as np
 
 from ..errors import ParameterError
 from ..formats.numbers import format_fixed
-from ..io.atomic import atomic_path
+from ..io.atomic import WRITE_BUFFER, atomic_path
 from ..ragged import expand_ranges
 from .coverage import Tile
 from .edges import result_bounds
@@ -216,7 +216,8 @@ def write_sl1svg(
     stamp = _zip_time(now)
     info.extra = {"sla_archive_format": "SL1SVG", "sla_output_precision": float(precision), **info.extra}
     svg_bytes = 0
-    with atomic_path(p) as tmp, zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, allowZip64=True) as z:
+    with atomic_path(p) as tmp, open(tmp, "wb", buffering=WRITE_BUFFER) as fh, \
+            zipfile.ZipFile(fh, "w", zipfile.ZIP_DEFLATED, allowZip64=True) as z:
 
         def put(name: str, data: bytes) -> None:
             z.writestr(zipfile.ZipInfo(name, stamp), data, zipfile.ZIP_DEFLATED, ZIP_LEVEL)
