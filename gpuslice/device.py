@@ -21,7 +21,7 @@ import hashlib
 import os
 import threading
 from dataclasses import dataclass
-from functools import cache
+from functools import cache, cached_property
 from importlib import resources
 from pathlib import Path
 
@@ -53,6 +53,15 @@ class Device:
         import pyopencl as cl
 
         return bool(self.device.type & cl.device_type.GPU)
+
+    @cached_property
+    def sync_transfers(self) -> bool:
+        """True on a CPU device (PoCL): there a non-blocking transfer enqueued behind a running kernel waits for the
+        kernel inside the driver while PyOpenCL holds the GIL (measured: every other Python thread stops), whereas a
+        blocking transfer or ``finish`` waits with the GIL released. The drivers then upload blocking
+        (:meth:`KernelDriver._put`) and wait for the queue before non-blocking reads (:meth:`KernelDriver._settle`);
+        on a GPU transfers stay asynchronous."""
+        return not self.is_gpu
 
     @property
     def local_size(self) -> int:
@@ -112,13 +121,21 @@ class KernelDriver:
         return self._buffers[name][0]
 
     def _put(self, name: str, array: np.ndarray):
-        """Upload ``array`` (asynchronously) into the buffer ``name``."""
+        """Upload ``array`` into the buffer ``name``: asynchronously on a GPU, blocking on a CPU device
+        (:attr:`Device.sync_transfers`: after the queue's commands, with the GIL released)."""
         import pyopencl as cl
 
         buf = self._buffer(name, max(array.nbytes, 4))
         if array.nbytes:
-            cl.enqueue_copy(self.device.queue, buf, np.ascontiguousarray(array), is_blocking=False)
+            cl.enqueue_copy(self.device.queue, buf, np.ascontiguousarray(array),
+                            is_blocking=self.device.sync_transfers)
         return buf
+
+    def _settle(self, queue=None) -> None:
+        """On a CPU device (:attr:`Device.sync_transfers`), wait for ``queue``'s commands (default: the device's
+        queue) with the GIL released, before non-blocking reads that would otherwise wait holding it."""
+        if self.device.sync_transfers:
+            (self.device.queue if queue is None else queue).finish()
 
     def _fill(self, name: str, nbytes: int, value):
         """The buffer ``name`` with its first ``nbytes`` bytes set to the repeated scalar ``value``."""

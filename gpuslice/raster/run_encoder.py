@@ -44,6 +44,7 @@ class RunKernels(KernelDriver):
         self._local = threading.local()
         #: groups left to the twin
         self.fallbacks = 0
+        self._blanks: dict[int, bytes] = {}  # RunImageEncoder.blank's bytes by image size
 
     def _queue(self):
         import pyopencl as cl
@@ -144,7 +145,9 @@ class RunImageEncoder(RunKernels, ABC):
             return None
         b_cum, _, first, before, after, nonempty = counted
         grid, local = self._grid(m)
-        blank = self.blank(int(n_pixels))
+        blank = self._blanks.get(int(n_pixels))
+        if blank is None:  # (the same for every group of a job: made once; two threads may both make it)
+            blank = self._blanks[int(n_pixels)] = self.blank(int(n_pixels))
         size = self.HEAD + self.TAIL + np.where(nonempty, after - before, len(blank))
         start = np.zeros(n_img + 1, np.int64)
         np.cumsum(size, out=start[1:])
@@ -156,6 +159,7 @@ class RunImageEncoder(RunKernels, ABC):
         b_extra = [cl.Buffer(ctx, mf.WRITE_ONLY | mf.USE_HOST_PTR, hostbuf=aligned_empty(m, dt)) for dt in self.EXTRA]
         with self._lock:
             self._write(q, grid, local, *head, b_cum, b_base, b_out, *b_extra)
+        self._settle(q)
         img = cl.enqueue_map_buffer(q, b_out, cl.map_flags.READ | cl.map_flags.WRITE, 0, (total,), np.uint8,
                                     is_blocking=False)[0]
         extra = [cl.enqueue_map_buffer(q, buf, cl.map_flags.READ, 0, (m,), dt, is_blocking=False)[0]

@@ -156,6 +156,7 @@ class RunsKernel(KernelDriver):
         self._prep(q, ge, le_, np.int32(n_edges), np.int32(self.ROWS_PER_UNIT), np.int32(self.CAP_EXTRA), b_edges,
                    b_et, b_tiles, b_whole, b_diff)
         whole, diff = self._host("whole", n_edges, np.uint8), self._host("cap_diff", n_rows, np.int32)
+        self._settle()
         cl.enqueue_copy(q, whole, b_whole, is_blocking=False)
         cl.enqueue_copy(q, diff, b_diff, is_blocking=True)
         row_off = self._host("row_off", n_rows + 1, np.int64)
@@ -172,16 +173,20 @@ class RunsKernel(KernelDriver):
         off32 = self._host("row_off32", n_rows + 1, np.int32)
         off32[:] = row_off
         b_off = self._put("row_off", off32)
+        b_units = None
+        if split.size:  # edges of many rows: cut into bands of rows
+            units = _units(e[split], t[edge_k[split], 2], self.ROWS_PER_UNIT)
+            units[:, 0] = split[units[:, 0]]
+            # uploaded while the queue is idle: on PoCL a non-blocking copy enqueued behind a running kernel waits
+            # for it, holding the GIL (the encoder threads and the writer stop meanwhile; ~70 ms of the armadillo job)
+            b_units = self._put("units", units)
         b_pcs = self._buffer("pcs", 8 * max(int(row_off[-1]), 2))
         b_cnt = self._fill("row_count", 4 * n_rows, np.int32(0))
         self._edges(q, ge, le_, np.int32(n_edges), b_whole, b_edges, b_et, b_tiles, b_cnt, b_off, b_pcs)
         self._mark("pieces: whole edges")
-        if split.size:  # edges of many rows: cut into bands of rows
-            units = _units(e[split], t[edge_k[split], 2], self.ROWS_PER_UNIT)
-            units[:, 0] = split[units[:, 0]]
+        if b_units is not None:
             gu, lu = self._grid(len(units))
-            self._pieces(q, gu, lu, np.int32(len(units)), self._put("units", units), b_edges, b_et, b_tiles, b_cnt,
-                         b_off, b_pcs)
+            self._pieces(q, gu, lu, np.int32(len(units)), b_units, b_edges, b_et, b_tiles, b_cnt, b_off, b_pcs)
         self._mark("pieces: cut edges")
         b_recs = self._buffer("recs", 4 * max(int(row_off[-1]), 1))  # one int (column << 8 | grey) a slot
         b_m, b_runs = self._buffer("row_m", 4 * n_rows), self._buffer("row_runs", 4 * n_rows)
@@ -236,6 +241,7 @@ class RunsKernel(KernelDriver):
         q = self.device.queue
         cnt = np.empty(len(row_off) - 1, np.int32)
         pcs = np.empty((int(row_off[-1]) // 2, 4), np.int32)
+        self._settle()
         cl.enqueue_copy(q, cnt, b_cnt, is_blocking=False)
         cl.enqueue_copy(q, pcs, b_pcs, is_blocking=True)
         owner, idx = expand_ranges(row_off[long_rows] // 2, cnt[long_rows])

@@ -99,6 +99,7 @@ class ChainKernels(KernelDriver):
                    d_visited, d_order, d_flag, np.int32(gather), d_points, d_out, d_zero, d_conflict)
         order = np.empty(n, dtype=np.int32)
         flag = np.empty(n, dtype=np.uint8)
+        self._settle()
         cl.enqueue_copy(q, order, d_order, is_blocking=False)
         if not gather:
             cl.enqueue_copy(q, flag, d_flag, is_blocking=True)
@@ -167,6 +168,7 @@ class ChainKernels(KernelDriver):
             lcount = layer_counts
         else:
             lcount = np.empty(n_layers, dtype=np.int32)
+            self._settle()
             cl.enqueue_copy(q, conflict, d_conflict, is_blocking=False)
             cl.enqueue_copy(q, lcount, d_lcount, is_blocking=True)
             if conflict[0]:
@@ -179,6 +181,7 @@ class ChainKernels(KernelDriver):
         d_perm = self._buffer("perm", 4 * n)
         self._link(q, *grid, dseg.layer, d_end, np.int32(n), d_starter, d_loff, d_fill, d_next, d_perm, d_conflict)
         # (kept: a pyopencl transfer event waits for its transfer when dropped)
+        self._settle()
         read_conflict = cl.enqueue_copy(q, conflict, d_conflict, is_blocking=False)
         # (every chain closed, so the walk reads no predecessor flags: the list stands in for them)
         order, flag, starts, zero = self._run_walk(d_next, d_perm, d_perm, d_loff, n, n_layers, True, dseg.points,
