@@ -149,11 +149,13 @@ class HeightMap:
         """The map, (rows, cols) uint8 of the sampled pixels, once every batch given so far is in (an error of one
         is raised here)."""
         pending, self._pending = self._pending, []
-        for f in pending:
-            f.result()
-        if self._pool is not None:
-            self._pool.shutdown()
-            self._pool = None
+        try:
+            for f in pending:
+                f.result()
+        finally:  # the thread ends here, also after an error
+            if self._pool is not None:
+                self._pool.shutdown()
+                self._pool = None
         return self._img
 
     def add(self, item: Tile | RunLayer) -> None:

@@ -3,6 +3,9 @@ covers and the next does not, against the plain maximum over every layer's mask.
 
 from __future__ import annotations
 
+import dataclasses
+import threading
+
 import numpy as np
 import pytest
 
@@ -84,6 +87,22 @@ def test_height_map_uses_the_items_index_not_the_batchs_numbering(device, hollow
         cov = m[::4, ::4] >= 128
         ref[cov] = np.maximum(ref[cov], np.uint8(1 + (254 * (i + shift)) // (n_total - 1)))
     assert np.array_equal(hm.img, ref)
+
+
+def test_height_map_raises_a_batchs_error_when_read_and_ends_its_thread(device, hollow):
+    """A batch is added on the map's own thread: an error there is raised where the map is read (the writer's
+    previews), not lost; reading it ends the thread."""
+    spec = RasterSpec(resolution=(1200, 700), pixel=0.05)
+    hm = HeightMap(spec.shape, hollow.n_layers, 4)
+    runs = next(iter(iter_runs(hollow, spec, device=device)))
+    hm.add(RunLayer(int(runs.layers[0]), runs, 0))
+    assert runs.n_runs > 2
+    broken = dataclasses.replace(runs, grey=runs.grey[:2])  # arrays that disagree: numpy refuses to combine them
+    hm.add(RunLayer(int(runs.layers[0]), broken, 0))
+    with pytest.raises(ValueError):
+        hm.img  # noqa: B018
+    assert not [t for t in threading.enumerate() if t.name.startswith("gpuslice-heightmap") and t.is_alive()]
+    assert hm.img.shape == (-(-spec.shape[0] // 4), -(-spec.shape[1] // 4))  # read again: the error was given once
 
 
 def test_run_groups_keep_consecutive_entries_of_one_batch():

@@ -78,3 +78,35 @@ def test_kernels_load_from_the_binary_cache_as_built_from_source(device, tmp_pat
     monkeypatch.setenv("GPUSLICE_CACHE_DIR", str(blocker / "sub"))  # cannot be made
     assert sorted(k.function_name for k in build(device, device.local_size).all_kernels()) == names
     assert len(loaded) == n + 1 and loaded[-1] is None
+
+
+def test_asynchronous_transfers_give_the_same_slices_and_runs(device, monkeypatch):
+    """On a CPU device the drivers transfer synchronously (``Device.sync_transfers``: PoCL holds the GIL in a
+    non-blocking transfer behind a kernel); a GPU keeps them asynchronous. Both orders give the same contours, mesh
+    topology and runs: the asynchronous path, a GPU's, is run here on the CPU device too."""
+    from gpuslice.mesh.mesh import load_mesh
+    from gpuslice.raster import RasterSpec
+    from gpuslice.raster.runs import iter_runs
+
+    tris = np.concatenate([shapes.torus(9.0, 3.0, 48, 24), shapes.hollow_box(12.0, 5.0) + [25.0, 0.0, 0.0]])
+
+    def run():
+        mesh = load_mesh(mesh_from_triangles(tris), device=device)  # welded on the device
+        res = slice_mesh(mesh, thickness=0.25, device=device)
+        spec = RasterSpec(resolution=(900, 500), pixel=0.05)
+        runs = [(r.layers, r.row, r.x, r.length, r.grey) for r in iter_runs(res, spec, device=device,
+                                                                            max_batch_pieces=5_000)]
+        return res, runs
+
+    assert device.sync_transfers == (not device.is_gpu)
+    monkeypatch.setitem(device.__dict__, "sync_transfers", True)
+    a, runs_a = run()
+    monkeypatch.setitem(device.__dict__, "sync_transfers", False)
+    b, runs_b = run()
+    assert a.n_layers > 40 and len(runs_a) > 2  # several batches of runs
+    np.testing.assert_array_equal(a.points, b.points)
+    np.testing.assert_array_equal(a.loop_offsets, b.loop_offsets)
+    assert len(runs_a) == len(runs_b)
+    for x, y in zip(runs_a, runs_b, strict=True):
+        for u, v in zip(x, y, strict=True):
+            np.testing.assert_array_equal(u, v)
