@@ -21,7 +21,7 @@ import hashlib
 import os
 import threading
 from dataclasses import dataclass
-from functools import cache, cached_property
+from functools import cache
 from importlib import resources
 from pathlib import Path
 
@@ -54,15 +54,6 @@ class Device:
 
         return bool(self.device.type & cl.device_type.GPU)
 
-    @cached_property
-    def sync_transfers(self) -> bool:
-        """True on a CPU device (PoCL): there a non-blocking transfer enqueued behind a running kernel waits for the
-        kernel inside the driver while PyOpenCL holds the GIL (measured: every other Python thread stops), whereas a
-        blocking transfer or ``finish`` waits with the GIL released. The drivers then upload blocking
-        (:meth:`KernelDriver._put`) and wait for the queue before non-blocking reads (:meth:`KernelDriver._settle`);
-        on a GPU transfers stay asynchronous."""
-        return not self.is_gpu
-
     @property
     def local_size(self) -> int:
         """The work-group size used by every kernel: 64 (a multiple of the warp/wavefront, good for PoCL too)."""
@@ -78,6 +69,13 @@ class Device:
             raise DeviceError(f"{filename}: no such kernel file")
         return _build(self, self.local_size)
 
+
+#: How the drivers transfer: blocking, unless they keep the transfer's event and wait on it. PyOpenCL's event of a
+#: non-blocking ``enqueue_copy`` waits for its transfer when it is dropped, and waits holding the GIL: every other
+#: Python thread of the process stops until the queue has reached the transfer (behind its kernels, and on PoCL
+#: behind other queues' kernels too). A blocking transfer, ``Event.wait`` and ``finish`` wait with the GIL released
+#: (``python scripts/probe_transfers.py``; BENCHMARKS, "The GIL").
+TRANSFERS = "blocking"
 
 _DRIVERS_LOCK = threading.RLock()  # (a driver made inside another one's construction)
 
@@ -121,21 +119,13 @@ class KernelDriver:
         return self._buffers[name][0]
 
     def _put(self, name: str, array: np.ndarray):
-        """Upload ``array`` into the buffer ``name``: asynchronously on a GPU, blocking on a CPU device
-        (:attr:`Device.sync_transfers`: after the queue's commands, with the GIL released)."""
+        """Upload ``array`` into the buffer ``name`` (blocking: see :data:`TRANSFERS`)."""
         import pyopencl as cl
 
         buf = self._buffer(name, max(array.nbytes, 4))
         if array.nbytes:
-            cl.enqueue_copy(self.device.queue, buf, np.ascontiguousarray(array),
-                            is_blocking=self.device.sync_transfers)
+            cl.enqueue_copy(self.device.queue, buf, np.ascontiguousarray(array), is_blocking=True)
         return buf
-
-    def _settle(self, queue=None) -> None:
-        """On a CPU device (:attr:`Device.sync_transfers`), wait for ``queue``'s commands (default: the device's
-        queue) with the GIL released, before non-blocking reads that would otherwise wait holding it."""
-        if self.device.sync_transfers:
-            (self.device.queue if queue is None else queue).finish()
 
     def _fill(self, name: str, nbytes: int, value):
         """The buffer ``name`` with its first ``nbytes`` bytes set to the repeated scalar ``value``."""

@@ -1,14 +1,16 @@
-"""Probe: does a PyOpenCL transfer enqueued behind a running kernel wait for it, and with the GIL held?
+"""Probe: which PyOpenCL transfer calls wait for a running kernel (of their queue or of another), and which hold
+the GIL meanwhile.
 
-The reason for :attr:`gpuslice.device.Device.sync_transfers` (docs/BENCHMARKS.md, "The GIL"). A kernel that spins
-for a while is enqueued on the device's queue, then one transfer (or ``finish``); meanwhile a Python thread counts
-as fast as it can. A call that waits for the kernel with the GIL released lets the counter run at its free rate; one
-that waits holding the GIL stops it (every other Python thread of a process stops the same way).
+The reason for :data:`gpuslice.device.TRANSFERS` (docs/BENCHMARKS.md, "The GIL"). A kernel that spins for a while is
+enqueued, then one call is timed while a Python thread counts as fast as it can: a wait with the GIL released lets
+the counter run at its free rate, a wait with the GIL held stops it (as it stops every other Python thread of a
+process). A non-blocking ``enqueue_copy`` is timed in two steps: the call, then dropping its event (PyOpenCL's
+transfer event waits for its transfer in its destructor) or ``wait()`` on it.
 
-    python scripts/probe_transfers.py [--device pocl] [--spin 100000] [--repeat 2]
+    python scripts/probe_transfers.py [--device pocl] [--spin 100000] [--repeat 1]
 
-Prints, per transfer kind, the call's wall time (the kernel takes about the ``finish`` line's time) and the counter's
-rate during the call, in millions of increments per second.
+Prints a Markdown table: the kernel's queue, the call, its wall time (ms) and the counter's rate meanwhile (millions
+of increments per second).
 """
 
 from __future__ import annotations
@@ -52,31 +54,51 @@ __kernel void spin(__global float *a, int n) {
             ticks[0] += 1
 
     mf = cl.mem_flags
+
+    def dropped(call):  # the non-blocking call, then its event dropped: two timed steps
+        return [("call", call), ("event dropped", lambda ev: None)]
+
+    def waited(call):
+        return [("call", call), ("event.wait()", lambda ev: ev.wait())]
+
+    write = lambda: cl.enqueue_copy(q, b, host, is_blocking=False)  # noqa: E731
+    read = lambda: cl.enqueue_copy(q, host, b, is_blocking=False)  # noqa: E731
     kinds = {
-        "finish": lambda: q.finish(),
-        "write, non-blocking": lambda: cl.enqueue_copy(q, b, host, is_blocking=False),
-        "write, blocking": lambda: cl.enqueue_copy(q, b, host, is_blocking=True),
-        "read, non-blocking": lambda: cl.enqueue_copy(q, host, b, is_blocking=False),
-        "read, blocking": lambda: cl.enqueue_copy(q, host, b, is_blocking=True),
-        "new buffer, COPY_HOST_PTR": lambda: cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=host),
-        "fill": lambda: cl.enqueue_fill_buffer(q, b, np.int32(0), 0, host.nbytes),
+        "finish": [("call", lambda: q.finish())],
+        "write, non-blocking": dropped(write),
+        "write, non-blocking, kept": waited(write),
+        "write, blocking": [("call", lambda: cl.enqueue_copy(q, b, host, is_blocking=True))],
+        "read, non-blocking": dropped(read),
+        "read, non-blocking, kept": waited(read),
+        "read, blocking": [("call", lambda: cl.enqueue_copy(q, host, b, is_blocking=True))],
+        "new buffer, COPY_HOST_PTR": [("call", lambda: cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=host))],
+        "fill": [("call", lambda: cl.enqueue_fill_buffer(q, b, np.int32(0), 0, host.nbytes))],
     }
+    other = cl.CommandQueue(ctx, dev.device)  # the kernel on another queue: the call's own queue is idle
     th = threading.Thread(target=counter, daemon=True)
     th.start()
     try:
         print(f"device: {dev.name}")
-        print("| call | wall ms | counter during the call, M/s |")
-        print("|---|---:|---:|")
+        print("| kernel on | call | step | wall ms | counter meanwhile, M/s |")
+        print("|---|---|---|---:|---:|")
         for _ in range(args.repeat):
-            for label, call in kinds.items():
-                q.finish()
-                spin(q, (4096,), (64,), a, np.int32(args.spin))
-                time.sleep(0.001)
-                t, k = time.perf_counter(), ticks[0]
-                call()
-                dt, dk = time.perf_counter() - t, ticks[0] - k
-                q.finish()
-                print(f"| {label} | {1e3 * dt:.1f} | {dk / max(dt, 1e-9) / 1e6:.2f} |")
+            for where, kq in (("its queue", q), ("another queue", other)):
+                for label, steps in kinds.items():
+                    q.finish()
+                    spin(kq, (4096,), (64,), a, np.int32(args.spin))
+                    kq.flush()
+                    time.sleep(0.002)
+                    value = None
+                    for step, fn in steps:
+                        t, k = time.perf_counter(), ticks[0]
+                        value = fn() if step == "call" else fn(value)
+                        if step == "event dropped":
+                            del value
+                            value = None
+                        dt, dk = time.perf_counter() - t, ticks[0] - k
+                        print(f"| {where} | {label} | {step} | {1e3 * dt:.1f} | {dk / max(dt, 1e-9) / 1e6:.2f} |")
+                    kq.finish()
+                    q.finish()
     finally:
         stop.set()
         th.join()

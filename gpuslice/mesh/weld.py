@@ -250,8 +250,7 @@ class WeldKernel(KernelDriver):
         n_ids, d_ids, d_first = self._number("corners", self._put("corners", corners), n, zero)
         vid = np.empty(n, dtype=np.int32)
         first = np.empty(n_ids, dtype=np.int64)
-        self._settle()
-        cl.enqueue_copy(q, vid, d_ids, is_blocking=False)
+        cl.enqueue_copy(q, vid, d_ids, is_blocking=True)
         cl.enqueue_copy(q, first, d_first, is_blocking=True)
         if corners.nbytes > _KEEP_BYTES // 4:  # not kept through the edge pass (peak memory)
             del self._buffers["corners"]
@@ -280,12 +279,11 @@ class WeldKernel(KernelDriver):
         face_edges = np.empty((n // 3, 3), dtype=np.int32)
         edge_vertices = np.empty((n_ids, 2), dtype=np.int32)
         sides = EdgeSides(*(np.empty(n_ids, np.int32) for _ in range(4)))
-        self._settle()
-        cl.enqueue_copy(q, face_edges, d_ids, is_blocking=False)
-        cl.enqueue_copy(q, edge_vertices, d_ev, is_blocking=False)
-        cl.enqueue_copy(q, sides.count, self.buffer("side_count"), is_blocking=False)
-        cl.enqueue_copy(q, sides.first, self.buffer("first_side"), is_blocking=False)
-        cl.enqueue_copy(q, sides.forward, self.buffer("forward"), is_blocking=False)
+        cl.enqueue_copy(q, face_edges, d_ids, is_blocking=True)
+        cl.enqueue_copy(q, edge_vertices, d_ev, is_blocking=True)
+        cl.enqueue_copy(q, sides.count, self.buffer("side_count"), is_blocking=True)
+        cl.enqueue_copy(q, sides.first, self.buffer("first_side"), is_blocking=True)
+        cl.enqueue_copy(q, sides.forward, self.buffer("forward"), is_blocking=True)
         cl.enqueue_copy(q, sides.last, self.buffer("last_side"), is_blocking=True)
         return face_edges, edge_vertices, sides
 

@@ -133,7 +133,11 @@ class HeightMap:
     every covered pixel of every layer, at the cost of the part's sides instead of its volume.
 
     A batch of runs is added on a thread of the map's own (one, so the batches' maxima never race), off the
-    writer's thread that feeds the encoders; :attr:`img` waits for the batches given so far."""
+    writer's thread that feeds the encoders, at most :data:`PENDING` batches behind it (their memory is held until
+    then); :attr:`img` waits for the batches given so far. Tiles are added on the caller's thread, after them."""
+
+    #: batches of runs waiting for the map's thread before :meth:`add` waits for the oldest
+    PENDING = 2
 
     def __init__(self, shape: tuple[int, int], n_layers: int, step: int) -> None:
         rows, cols = shape
@@ -148,6 +152,11 @@ class HeightMap:
     def img(self) -> np.ndarray:
         """The map, (rows, cols) uint8 of the sampled pixels, once every batch given so far is in (an error of one
         is raised here)."""
+        self._drain()
+        return self._img
+
+    def _drain(self) -> None:
+        """Wait for the batches given so far and end the map's thread (raising a batch's error)."""
         pending, self._pending = self._pending, []
         try:
             for f in pending:
@@ -156,7 +165,6 @@ class HeightMap:
             if self._pool is not None:
                 self._pool.shutdown()
                 self._pool = None
-        return self._img
 
     def add(self, item: Tile | RunLayer) -> None:
         """Raise the map where the layer (a tile, or runs: then every layer of its batch) covers a sampled pixel."""
@@ -167,11 +175,15 @@ class HeightMap:
                 # the batch's layers as the result's indices: a caller may number them from elsewhere (the z-sampled
                 # layers come a chunk at a time, each numbered from 0), by a constant shift
                 if self._pool is None:
-                    self._pool = ThreadPoolExecutor(1, thread_name_prefix="gpuslice-heightmap")
+                    self._pool = ThreadPoolExecutor(1, thread_name_prefix=f"gpuslice-heightmap-{id(self):x}")
                 self._pending = [f for f in self._pending if not f.done() or f.exception() is not None]
+                if len(self._pending) >= self.PENDING:
+                    self._pending[0].result()  # (raises a batch's error here; it stays pending for img)
                 self._pending.append(self._pool.submit(self._add_runs, item.runs,
                                                        item.index - int(item.runs.layers[item.j])))
             return
+        if self._pending:  # (never with one writer's layers, all tiles or all runs: the map is not shared)
+            self._drain()
         r, c = sample(item, self.step)
         if r.size:  # the sampled pixels of one layer are distinct: a plain fancy-indexed maximum
             cells = r * self._img.shape[1] + c

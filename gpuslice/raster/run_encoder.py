@@ -159,7 +159,6 @@ class RunImageEncoder(RunKernels, ABC):
         b_extra = [cl.Buffer(ctx, mf.WRITE_ONLY | mf.USE_HOST_PTR, hostbuf=aligned_empty(m, dt)) for dt in self.EXTRA]
         with self._lock:
             self._write(q, grid, local, *head, b_cum, b_base, b_out, *b_extra)
-        self._settle(q)
         img = cl.enqueue_map_buffer(q, b_out, cl.map_flags.READ | cl.map_flags.WRITE, 0, (total,), np.uint8,
                                     is_blocking=False)[0]
         extra = [cl.enqueue_map_buffer(q, buf, cl.map_flags.READ, 0, (m,), dt, is_blocking=False)[0]

@@ -230,9 +230,8 @@ class SegmentEdgesKernel(KernelDriver):
         if n:
             self._bounds(q, *self._grid(n), np.int32(n), seg.layer, seg.points, au, av, np.int32(k), b_box, b_count,
                          b_short)
-            self._settle()
-            cl.enqueue_copy(q, box, b_box, is_blocking=False)
-            cl.enqueue_copy(q, short, b_short, is_blocking=False)
+            cl.enqueue_copy(q, box, b_box, is_blocking=True)
+            cl.enqueue_copy(q, short, b_short, is_blocking=True)
             cl.enqueue_copy(q, count, b_count, is_blocking=True)
         return box, count, short
 

@@ -164,10 +164,9 @@ class AdaptiveKernel(KernelDriver):
         if not read_back:
             return None
         out = tuple(np.empty(n_f, np.float32) for _ in range(3))
-        self._settle()
         for host, dev in zip(out, (d_lo, d_hi, d_nz), strict=True):
             if n_f:
-                cl.enqueue_copy(q, host, dev, is_blocking=False)
+                cl.enqueue_copy(q, host, dev, is_blocking=True)
         q.finish()
         return out
 

@@ -61,9 +61,8 @@ class DeviceSegments:
         q = self.kernel.device.queue
         seg = Segments(np.empty(self.n, np.int32), np.empty((self.n, 2), np.int32), np.empty((self.n, 4), np.float32))
         if self.n:
-            self.kernel._settle()
-            cl.enqueue_copy(q, seg.layer, self.layer, is_blocking=False)
-            cl.enqueue_copy(q, seg.edges, self.edges, is_blocking=False)
+            cl.enqueue_copy(q, seg.layer, self.layer, is_blocking=True)
+            cl.enqueue_copy(q, seg.edges, self.edges, is_blocking=True)
             cl.enqueue_copy(q, seg.points, self.points, is_blocking=True)
         return seg
 

@@ -99,15 +99,14 @@ class ChainKernels(KernelDriver):
                    d_visited, d_order, d_flag, np.int32(gather), d_points, d_out, d_zero, d_conflict)
         order = np.empty(n, dtype=np.int32)
         flag = np.empty(n, dtype=np.uint8)
-        self._settle()
-        cl.enqueue_copy(q, order, d_order, is_blocking=False)
+        cl.enqueue_copy(q, order, d_order, is_blocking=True)
         if not gather:
             cl.enqueue_copy(q, flag, d_flag, is_blocking=True)
             return order, flag
         starts = np.empty(n, dtype=np.complex64)
         zero = np.empty(n, dtype=np.uint8)
-        cl.enqueue_copy(q, flag, d_flag, is_blocking=False)
-        cl.enqueue_copy(q, zero, d_zero, is_blocking=False)
+        cl.enqueue_copy(q, flag, d_flag, is_blocking=True)
+        cl.enqueue_copy(q, zero, d_zero, is_blocking=True)
         cl.enqueue_copy(q, starts, d_out, is_blocking=True)
         return order, flag, starts, zero.view(bool)
 
@@ -168,8 +167,7 @@ class ChainKernels(KernelDriver):
             lcount = layer_counts
         else:
             lcount = np.empty(n_layers, dtype=np.int32)
-            self._settle()
-            cl.enqueue_copy(q, conflict, d_conflict, is_blocking=False)
+            cl.enqueue_copy(q, conflict, d_conflict, is_blocking=True)
             cl.enqueue_copy(q, lcount, d_lcount, is_blocking=True)
             if conflict[0]:
                 return None
@@ -181,7 +179,6 @@ class ChainKernels(KernelDriver):
         d_perm = self._buffer("perm", 4 * n)
         self._link(q, *grid, dseg.layer, d_end, np.int32(n), d_starter, d_loff, d_fill, d_next, d_perm, d_conflict)
         # (kept: a pyopencl transfer event waits for its transfer when dropped)
-        self._settle()
         read_conflict = cl.enqueue_copy(q, conflict, d_conflict, is_blocking=False)
         # (every chain closed, so the walk reads no predecessor flags: the list stands in for them)
         order, flag, starts, zero = self._run_walk(d_next, d_perm, d_perm, d_loff, n, n_layers, True, dseg.points,

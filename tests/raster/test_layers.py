@@ -101,7 +101,8 @@ def test_height_map_raises_a_batchs_error_when_read_and_ends_its_thread(device, 
     hm.add(RunLayer(int(runs.layers[0]), broken, 0))
     with pytest.raises(ValueError):
         hm.img  # noqa: B018
-    assert not [t for t in threading.enumerate() if t.name.startswith("gpuslice-heightmap") and t.is_alive()]
+    mine = f"gpuslice-heightmap-{id(hm):x}"
+    assert not [t for t in threading.enumerate() if t.name.startswith(mine) and t.is_alive()]
     assert hm.img.shape == (-(-spec.shape[0] // 4), -(-spec.shape[1] // 4))  # read again: the error was given once
 
 
