@@ -70,12 +70,13 @@ class Device:
         return _build(self, self.local_size)
 
 
-#: How the drivers transfer: blocking, unless they keep the transfer's event and wait on it. PyOpenCL's event of a
-#: non-blocking ``enqueue_copy`` waits for its transfer when it is dropped, and waits holding the GIL: every other
+#: How the drivers transfer: never by dropping a non-blocking transfer's event before it is done. PyOpenCL's event of
+#: a non-blocking ``enqueue_copy`` waits for its transfer when it is dropped, and waits holding the GIL: every other
 #: Python thread of the process stops until the queue has reached the transfer (behind its kernels, and on PoCL
-#: behind other queues' kernels too). A blocking transfer, ``Event.wait`` and ``finish`` wait with the GIL released
-#: (``python scripts/probe_transfers.py``; BENCHMARKS, "The GIL").
-TRANSFERS = "blocking"
+#: behind other queues' kernels too), whereas ``Event.wait``, ``finish`` and a blocking transfer wait with the GIL
+#: released (``python scripts/probe_transfers.py``; BENCHMARKS, "The GIL"). Uploads keep their events until done
+#: (:meth:`KernelDriver._put`), reads wait for all of theirs at once (:meth:`KernelDriver._read`).
+TRANSFERS = "events kept until done"
 
 _DRIVERS_LOCK = threading.RLock()  # (a driver made inside another one's construction)
 
@@ -89,6 +90,7 @@ class KernelDriver:
     def __init__(self, device: Device) -> None:
         self.device = device
         self._buffers: dict[str, tuple[object, int]] = {}
+        self._events: list = []  # uploads' transfer events, held until done (TRANSFERS)
 
     @classmethod
     def of(cls, device: Device):
@@ -119,13 +121,38 @@ class KernelDriver:
         return self._buffers[name][0]
 
     def _put(self, name: str, array: np.ndarray):
-        """Upload ``array`` into the buffer ``name`` (blocking: see :data:`TRANSFERS`)."""
+        """Upload ``array`` into the buffer ``name``, asynchronously (its event held until done: :data:`TRANSFERS`;
+        the array must not change before the queue has passed the upload, e.g. a later :meth:`_read`)."""
         import pyopencl as cl
 
         buf = self._buffer(name, max(array.nbytes, 4))
         if array.nbytes:
-            cl.enqueue_copy(self.device.queue, buf, np.ascontiguousarray(array), is_blocking=True)
+            event = cl.enqueue_copy(self.device.queue, buf, np.ascontiguousarray(array), is_blocking=False)
+            self._keep(event)
         return buf
+
+    def _keep(self, event) -> None:
+        """Hold a non-blocking transfer's ``event`` until it is done (dropped before, it would wait holding the GIL);
+        the done ones are let go here."""
+        import pyopencl as cl
+
+        done = cl.command_execution_status.COMPLETE
+        self._events = [e for e in self._events if e.command_execution_status != done]
+        self._events.append(event)
+
+    def _read(self, *pairs, queue=None) -> None:
+        """Copy each ``(host array, device buffer)`` of ``pairs`` to the host, returning when all are done: one wait
+        for ``queue`` (default: the device's), with the GIL released (:data:`TRANSFERS`)."""
+        import pyopencl as cl
+
+        q = self.device.queue if queue is None else queue
+        events = []
+        for host, buf in pairs:
+            event = cl.enqueue_copy(q, host, buf, is_blocking=False)
+            events.append(event)
+        q.finish()  # (every event above is done: dropping them costs nothing)
+        if q is self.device.queue:
+            self._events.clear()
 
     def _fill(self, name: str, nbytes: int, value):
         """The buffer ``name`` with its first ``nbytes`` bytes set to the repeated scalar ``value``."""

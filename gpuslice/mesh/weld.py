@@ -239,19 +239,16 @@ class WeldKernel(KernelDriver):
     def weld(self, corners: np.ndarray, *, signed_zero: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """``(vid, first)`` of (N, 3) float32 corners: the same arrays as :func:`weld_numpy` (``signed_zero=False``:
         -0.0 welds with 0.0, read so by the kernel: no normalised copy of the corners is needed)."""
-        import pyopencl as cl
 
         corners = np.ascontiguousarray(corners, dtype=np.float32).reshape(-1, 3)
         n = corners.shape[0]
         if n == 0:
             return np.zeros(0, np.int32), np.zeros(0, np.int64)
-        q = self.device.queue
         zero = 0 if signed_zero else int(_NEGATIVE_ZERO)
         n_ids, d_ids, d_first = self._number("corners", self._put("corners", corners), n, zero)
         vid = np.empty(n, dtype=np.int32)
         first = np.empty(n_ids, dtype=np.int64)
-        cl.enqueue_copy(q, vid, d_ids, is_blocking=True)
-        cl.enqueue_copy(q, first, d_first, is_blocking=True)
+        self._read((vid, d_ids), (first, d_first))
         if corners.nbytes > _KEEP_BYTES // 4:  # not kept through the edge pass (peak memory)
             del self._buffers["corners"]
         return vid, first
@@ -263,7 +260,6 @@ class WeldKernel(KernelDriver):
         The ids are only used as keys; ``n_vertices`` (optional) is checked: every id must lie in [0, n_vertices)
         (``check=False``: trusted, e.g. the weld's own ids; it then only spreads the hash table's first probes).
         """
-        import pyopencl as cl
 
         faces = np.ascontiguousarray(faces, dtype=np.int32).reshape(-1, 3)
         n = faces.size
@@ -274,17 +270,13 @@ class WeldKernel(KernelDriver):
             if n_vertices is not None and (lo < 0 or hi >= n_vertices):
                 raise ValueError(f"face vertex ids outside [0, {n_vertices})")
             n_vertices = max(hi + 1, 1) if n_vertices is None else n_vertices
-        q = self.device.queue
         n_ids, d_ids, d_ev = self._number("sides", self._put("faces", faces), n, n_vertices)
         face_edges = np.empty((n // 3, 3), dtype=np.int32)
         edge_vertices = np.empty((n_ids, 2), dtype=np.int32)
         sides = EdgeSides(*(np.empty(n_ids, np.int32) for _ in range(4)))
-        cl.enqueue_copy(q, face_edges, d_ids, is_blocking=True)
-        cl.enqueue_copy(q, edge_vertices, d_ev, is_blocking=True)
-        cl.enqueue_copy(q, sides.count, self.buffer("side_count"), is_blocking=True)
-        cl.enqueue_copy(q, sides.first, self.buffer("first_side"), is_blocking=True)
-        cl.enqueue_copy(q, sides.forward, self.buffer("forward"), is_blocking=True)
-        cl.enqueue_copy(q, sides.last, self.buffer("last_side"), is_blocking=True)
+        self._read((face_edges, d_ids), (edge_vertices, d_ev), (sides.count, self.buffer("side_count")),
+                   (sides.first, self.buffer("first_side")), (sides.forward, self.buffer("forward")),
+                   (sides.last, self.buffer("last_side")))
         return face_edges, edge_vertices, sides
 
     def edge_ids(self, faces: np.ndarray, n_vertices: int | None = None) -> tuple[np.ndarray, np.ndarray]:

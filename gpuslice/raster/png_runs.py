@@ -101,10 +101,7 @@ class PngRunsEncoder(RunKernels):
         with self._lock:
             self._write(q, grid, local, *head, b_cum, b_base, self._hdr, np.int32(self._hdr_bits), b_out, *b_ad)
         ad = [np.empty(m, np.uint32), np.empty(m, np.uint32)]
-        cl.enqueue_copy(q, words, b_out, is_blocking=True)
-        for arr, buf in zip(ad, b_ad, strict=True):
-            cl.enqueue_copy(q, arr, buf, is_blocking=True)
-        q.finish()
+        self._read((words, b_out), *zip(ad, b_ad, strict=True), queue=q)
         ne = np.flatnonzero(nonempty)
         sum_a, sum_b = np.zeros(n_img, np.int64), np.zeros(n_img, np.int64)
         if ne.size:

@@ -218,7 +218,6 @@ class SegmentEdgesKernel(KernelDriver):
 
     def _bounds_pass(self, seg: DeviceSegments, n_planes: int, k: int, au, av):
         """segment_bounds: (box (P, 4) int32, count (L,) int32, short (L,) int32) of the planes and layers."""
-        import pyopencl as cl
 
         q, n, groups = self.device.queue, seg.n, n_planes // k
         box = np.empty((n_planes, 4), np.int32)
@@ -230,9 +229,7 @@ class SegmentEdgesKernel(KernelDriver):
         if n:
             self._bounds(q, *self._grid(n), np.int32(n), seg.layer, seg.points, au, av, np.int32(k), b_box, b_count,
                          b_short)
-            cl.enqueue_copy(q, box, b_box, is_blocking=True)
-            cl.enqueue_copy(q, short, b_short, is_blocking=True)
-            cl.enqueue_copy(q, count, b_count, is_blocking=True)
+            self._read((box, b_box), (short, b_short), (count, b_count), queue=q)
         return box, count, short
 
     @property

@@ -151,7 +151,6 @@ class AdaptiveKernel(KernelDriver):
 
     def facets(self, mesh: Mesh, *, read_back: bool = True):
         """Per facet (zmin, zmax, |n_z|) float32; left on the device (buffers ``zmin``, ``zmax``, ``nz``) too."""
-        import pyopencl as cl
 
         q = self.device.queue
         n_f = mesh.n_faces
@@ -164,10 +163,8 @@ class AdaptiveKernel(KernelDriver):
         if not read_back:
             return None
         out = tuple(np.empty(n_f, np.float32) for _ in range(3))
-        for host, dev in zip(out, (d_lo, d_hi, d_nz), strict=True):
-            if n_f:
-                cl.enqueue_copy(q, host, dev, is_blocking=True)
-        q.finish()
+        if n_f:
+            self._read(*zip(out, (d_lo, d_hi, d_nz), strict=True), queue=q)
         return out
 
     def slab_max(self, mesh: Mesh, edges: np.ndarray) -> np.ndarray:

@@ -56,14 +56,11 @@ class DeviceSegments:
         return out
 
     def fetch(self) -> Segments:
-        import pyopencl as cl
 
         q = self.kernel.device.queue
         seg = Segments(np.empty(self.n, np.int32), np.empty((self.n, 2), np.int32), np.empty((self.n, 4), np.float32))
         if self.n:
-            cl.enqueue_copy(q, seg.layer, self.layer, is_blocking=True)
-            cl.enqueue_copy(q, seg.edges, self.edges, is_blocking=True)
-            cl.enqueue_copy(q, seg.points, self.points, is_blocking=True)
+            self.kernel._read((seg.layer, self.layer), (seg.edges, self.edges), (seg.points, self.points), queue=q)
         return seg
 
 

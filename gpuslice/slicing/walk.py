@@ -81,7 +81,6 @@ class ChainKernels(KernelDriver):
         also the start point of the segment at each position, (n,) complex64, and its zero-length flag, (n,) bool;
         the points stay on the device in the buffer ``loop_points`` (for :meth:`simple_loops`). Nothing is walked
         where the device int ``d_conflict`` is set."""
-        import pyopencl as cl
 
         if n == 0:
             empty = np.zeros(0, np.int32), np.zeros(0, np.uint8)
@@ -99,15 +98,12 @@ class ChainKernels(KernelDriver):
                    d_visited, d_order, d_flag, np.int32(gather), d_points, d_out, d_zero, d_conflict)
         order = np.empty(n, dtype=np.int32)
         flag = np.empty(n, dtype=np.uint8)
-        cl.enqueue_copy(q, order, d_order, is_blocking=True)
         if not gather:
-            cl.enqueue_copy(q, flag, d_flag, is_blocking=True)
+            self._read((order, d_order), (flag, d_flag), queue=q)
             return order, flag
         starts = np.empty(n, dtype=np.complex64)
         zero = np.empty(n, dtype=np.uint8)
-        cl.enqueue_copy(q, flag, d_flag, is_blocking=True)
-        cl.enqueue_copy(q, zero, d_zero, is_blocking=True)
-        cl.enqueue_copy(q, starts, d_out, is_blocking=True)
+        self._read((order, d_order), (flag, d_flag), (zero, d_zero), (starts, d_out), queue=q)
         return order, flag, starts, zero.view(bool)
 
     def walk(self, nxt: np.ndarray, layer: np.ndarray, n_layers: int):
@@ -167,8 +163,7 @@ class ChainKernels(KernelDriver):
             lcount = layer_counts
         else:
             lcount = np.empty(n_layers, dtype=np.int32)
-            cl.enqueue_copy(q, conflict, d_conflict, is_blocking=True)
-            cl.enqueue_copy(q, lcount, d_lcount, is_blocking=True)
+            self._read((conflict, d_conflict), (lcount, d_lcount), queue=q)
             if conflict[0]:
                 return None
         layer_off = np.zeros(n_layers + 1, dtype=np.int64)
