@@ -82,12 +82,11 @@ class RunKernels(KernelDriver):
         grid, local = self._grid(m)
         with self._lock:
             self._sizes(q, grid, local, *head, b_width, b_flags)
-        cl.enqueue_copy(q, flags, b_flags, is_blocking=True)
+        cum = np.empty(m, np.int32)
+        self._read((flags, b_flags), (cum, b_width), queue=q)  # (one wait: cum is not used when flagged)
         if flags[0]:
             self.fallbacks += 1
             return None
-        cum = np.empty(m, np.int32)
-        cl.enqueue_copy(q, cum, b_width, is_blocking=True)
         np.cumsum(cum, out=cum)  # inclusive, in place (the callers bound the sum below 2^31)
         b_cum = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=cum)
         first, end = img_off[:-1].astype(np.int64), img_off[1:].astype(np.int64)
