@@ -187,6 +187,9 @@ def release_scratch(device: Device | None = None) -> None:
     for (_, dev_id), drv in list(KernelDriver._instances.items()):
         if device is None or dev_id == id(device):
             drv._buffers.clear()
+            if drv._events:  # (the uploads' events hold their host arrays: let them go, once done)
+                drv.device.queue.finish()
+                drv._events.clear()
     gc.collect()
     try:
         import ctypes
