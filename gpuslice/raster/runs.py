@@ -175,8 +175,8 @@ class RunsKernel(KernelDriver):
         if split.size:  # edges of many rows: cut into bands of rows
             units = _units(e[split], t[edge_k[split], 2], self.ROWS_PER_UNIT)
             units[:, 0] = split[units[:, 0]]
-            # uploaded while the queue is idle: on PoCL a non-blocking copy enqueued behind a running kernel waits
-            # for it, holding the GIL (the encoder threads and the writer stop meanwhile; ~70 ms of the armadillo job)
+            # cut and uploaded before the edges kernel is enqueued: the upload does not queue behind it (when its
+            # event was dropped, that wait held the GIL: ~70 ms of the armadillo job; device.TRANSFERS)
             b_units = self._put("units", units)
         b_pcs = self._buffer("pcs", 8 * max(int(row_off[-1]), 2))
         b_cnt = self._fill("row_count", 4 * n_rows, np.int32(0))
