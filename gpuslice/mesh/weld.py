@@ -239,7 +239,6 @@ class WeldKernel(KernelDriver):
     def weld(self, corners: np.ndarray, *, signed_zero: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """``(vid, first)`` of (N, 3) float32 corners: the same arrays as :func:`weld_numpy` (``signed_zero=False``:
         -0.0 welds with 0.0, read so by the kernel: no normalised copy of the corners is needed)."""
-
         corners = np.ascontiguousarray(corners, dtype=np.float32).reshape(-1, 3)
         n = corners.shape[0]
         if n == 0:
@@ -260,7 +259,6 @@ class WeldKernel(KernelDriver):
         The ids are only used as keys; ``n_vertices`` (optional) is checked: every id must lie in [0, n_vertices)
         (``check=False``: trusted, e.g. the weld's own ids; it then only spreads the hash table's first probes).
         """
-
         faces = np.ascontiguousarray(faces, dtype=np.int32).reshape(-1, 3)
         n = faces.size
         if n == 0:

@@ -156,7 +156,7 @@ class RunsKernel(KernelDriver):
         self._prep(q, ge, le_, np.int32(n_edges), np.int32(self.ROWS_PER_UNIT), np.int32(self.CAP_EXTRA), b_edges,
                    b_et, b_tiles, b_whole, b_diff)
         whole, diff = self._host("whole", n_edges, np.uint8), self._host("cap_diff", n_rows, np.int32)
-        self._read((whole, b_whole), (diff, b_diff), queue=q)
+        self._read((whole, b_whole), (diff, b_diff))
         row_off = self._host("row_off", n_rows + 1, np.int64)
         row_off[0], cap = 0, row_off[1:]
         cap[:] = diff
@@ -234,11 +234,9 @@ class RunsKernel(KernelDriver):
 
     def _host_rows(self, long_rows: np.ndarray, row_off: np.ndarray, b_cnt, b_pcs, t: np.ndarray, lut: np.ndarray):
         """The runs (g, x tile-local, length, grey) of the rows ``long_rows`` from their pieces on the device."""
-
-        q = self.device.queue
         cnt = np.empty(len(row_off) - 1, np.int32)
         pcs = np.empty((int(row_off[-1]) // 2, 4), np.int32)
-        self._read((cnt, b_cnt), (pcs, b_pcs), queue=q)
+        self._read((cnt, b_cnt), (pcs, b_pcs))
         owner, idx = expand_ranges(row_off[long_rows] // 2, cnt[long_rows])
         g = long_rows[owner]
         f = pcs[idx].view(np.float32)

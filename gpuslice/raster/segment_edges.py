@@ -218,7 +218,6 @@ class SegmentEdgesKernel(KernelDriver):
 
     def _bounds_pass(self, seg: DeviceSegments, n_planes: int, k: int, au, av):
         """segment_bounds: (box (P, 4) int32, count (L,) int32, short (L,) int32) of the planes and layers."""
-
         q, n, groups = self.device.queue, seg.n, n_planes // k
         box = np.empty((n_planes, 4), np.int32)
         box[:, 0::2], box[:, 1::2] = _BIG, -_BIG - 1
@@ -229,7 +228,7 @@ class SegmentEdgesKernel(KernelDriver):
         if n:
             self._bounds(q, *self._grid(n), np.int32(n), seg.layer, seg.points, au, av, np.int32(k), b_box, b_count,
                          b_short)
-            self._read((box, b_box), (short, b_short), (count, b_count), queue=q)
+            self._read((box, b_box), (short, b_short), (count, b_count))
         return box, count, short
 
     @property

@@ -151,7 +151,6 @@ class AdaptiveKernel(KernelDriver):
 
     def facets(self, mesh: Mesh, *, read_back: bool = True):
         """Per facet (zmin, zmax, |n_z|) float32; left on the device (buffers ``zmin``, ``zmax``, ``nz``) too."""
-
         q = self.device.queue
         n_f = mesh.n_faces
         d_v = self._put("verts", mesh.vertices)
@@ -164,7 +163,7 @@ class AdaptiveKernel(KernelDriver):
             return None
         out = tuple(np.empty(n_f, np.float32) for _ in range(3))
         if n_f:
-            self._read(*zip(out, (d_lo, d_hi, d_nz), strict=True), queue=q)
+            self._read(*zip(out, (d_lo, d_hi, d_nz), strict=True))
         return out
 
     def slab_max(self, mesh: Mesh, edges: np.ndarray) -> np.ndarray:

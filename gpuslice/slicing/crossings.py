@@ -56,11 +56,9 @@ class DeviceSegments:
         return out
 
     def fetch(self) -> Segments:
-
-        q = self.kernel.device.queue
         seg = Segments(np.empty(self.n, np.int32), np.empty((self.n, 2), np.int32), np.empty((self.n, 4), np.float32))
         if self.n:
-            self.kernel._read((seg.layer, self.layer), (seg.edges, self.edges), (seg.points, self.points), queue=q)
+            self.kernel._read((seg.layer, self.layer), (seg.edges, self.edges), (seg.points, self.points))
         return seg
 
 

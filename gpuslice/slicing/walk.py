@@ -81,7 +81,6 @@ class ChainKernels(KernelDriver):
         also the start point of the segment at each position, (n,) complex64, and its zero-length flag, (n,) bool;
         the points stay on the device in the buffer ``loop_points`` (for :meth:`simple_loops`). Nothing is walked
         where the device int ``d_conflict`` is set."""
-
         if n == 0:
             empty = np.zeros(0, np.int32), np.zeros(0, np.uint8)
             return (*empty, np.zeros(0, np.complex64), np.zeros(0, bool)) if gather else empty
@@ -99,11 +98,11 @@ class ChainKernels(KernelDriver):
         order = np.empty(n, dtype=np.int32)
         flag = np.empty(n, dtype=np.uint8)
         if not gather:
-            self._read((order, d_order), (flag, d_flag), queue=q)
+            self._read((order, d_order), (flag, d_flag))
             return order, flag
         starts = np.empty(n, dtype=np.complex64)
         zero = np.empty(n, dtype=np.uint8)
-        self._read((order, d_order), (flag, d_flag), (zero, d_zero), (starts, d_out), queue=q)
+        self._read((order, d_order), (flag, d_flag), (zero, d_zero), (starts, d_out))
         return order, flag, starts, zero.view(bool)
 
     def walk(self, nxt: np.ndarray, layer: np.ndarray, n_layers: int):
@@ -163,7 +162,7 @@ class ChainKernels(KernelDriver):
             lcount = layer_counts
         else:
             lcount = np.empty(n_layers, dtype=np.int32)
-            self._read((conflict, d_conflict), (lcount, d_lcount), queue=q)
+            self._read((conflict, d_conflict), (lcount, d_lcount))
             if conflict[0]:
                 return None
         layer_off = np.zeros(n_layers + 1, dtype=np.int64)
