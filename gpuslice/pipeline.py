@@ -91,7 +91,8 @@ class Job:
         file (default: ``source``).
     data : the file's bytes, when they travel instead of a path (batch over Dask); ``source`` still names it.
     placement, params : :class:`~gpuslice.mesh.mesh.Placement` and :class:`~gpuslice.slicing.params.SliceParams`.
-    contours : a contour file to write (format by suffix, :mod:`gpuslice.formats`), or None.
+    contours : a contour file to write (format by suffix, :mod:`gpuslice.formats`), or None; ``contours_format``:
+        a format name that overrides the suffix (``slice --format``).
     resin, view : a :class:`ResinOutput` / :class:`ViewOutput`, or None.
     checks : a :class:`CheckOutput` (the pre-print checks), or None.
     mesh_check : count the mesh's defects into ``meta["repairs"]`` (:func:`gpuslice.mesh.defects.mesh_repairs`).
@@ -108,6 +109,7 @@ class Job:
     placement: Placement = Placement()
     params: SliceParams = SliceParams()
     contours: str | None = None
+    contours_format: str | None = None
     resin: ResinOutput | None = None
     view: ViewOutput | None = None
     checks: CheckOutput | None = None
@@ -206,7 +208,7 @@ def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | Non
         from .formats import export
 
         t = time.perf_counter()
-        export(result, job.contours)
+        export(result, job.contours, job.contours_format)
         timings["write"] = time.perf_counter() - t
     if job.cusp and mesh is not None:  # the schedule's cusp heights, for the report (not in the written file)
         from .bench.quality import cusp_summary
@@ -324,7 +326,7 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
     png_by_numpy = RESIN_FORMATS[r.format].png and _png_processes()  # (GPUSLICE_PNG_PROCESSES=1)
     target = ResinTarget(Path(r.path.rstrip("/\\") or "."), r.spec, r.options, out.result, name, now,
                          r.options.workers, tick, settings, bounds=bounds,
-                         device=dev if backend == "opencl" and not png_by_numpy else None)
+                         device=dev if backend == "opencl" and not png_by_numpy else None, format=r.format)
     try:
         out.stats.update(RESIN_FORMATS[r.format].load()(layers, target))
     finally:  # a writer that failed: its layers' producer threads stop now

@@ -32,6 +32,12 @@ def _outputs_help() -> str:
     return resin_usage()
 
 
+def _format_names() -> list[str]:
+    from ..raster.outputs import resin_format_names
+
+    return resin_format_names()
+
+
 class _Bar:
     """A rich progress bar on stderr, made at the first layer (when the layer count is known)."""
 
@@ -62,6 +68,8 @@ class _Bar:
 @click.argument("model", type=click.Path(dir_okay=True, path_type=str))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=str),
               help=f"Where to write: {_outputs_help()}.")
+@click.option("--format", "fmt_name", type=click.Choice(_format_names()), default=None,
+              help="The output format, whatever -o's suffix (default: -o's suffix picks it; `png`: a PNG stack).")
 @with_options(slicing_options(overrides=DEFAULTS))
 @with_options(click_options(ResinOptions, only=("printer",)))
 @with_options(click_options(RasterSpec, defaults=False))  # None unless given: they override the preset
@@ -72,11 +80,12 @@ class _Bar:
 @click.option("--check", is_flag=True, help="Run the pre-print checks on the printer's pixels (as `gpuslice check "
               "--printer`) and print them before writing.")
 @click.option("-q", "--quiet", is_flag=True, help="No summary on stdout.")
-def raster(model: str, output: str, progress: bool | None, report: str | None, check: bool, quiet: bool,
-           **kw) -> None:
+def raster(model: str, output: str, fmt_name: str | None, progress: bool | None, report: str | None, check: bool,
+           quiet: bool, **kw) -> None:
     """Slice MODEL and write its layers for a resin printer: the output's suffix picks the format (-o part.goo,
-    part.ctb, part.pwmx, part.sl1, part.sl1s, part.sl1_svg, part.nanodlp, or a PNG stack -o dir/; `gpuslice printers`
-    lists the presets, --printer NAME sets the display, print settings and the formats it reads).
+    part.ctb, part.pwmx, part.sl1, part.sl1s, part.sl1_svg, part.nanodlp, or a PNG stack -o dir/; --format
+    overrides it; `gpuslice printers` lists the presets, --printer NAME sets the display, print settings and the
+    formats it reads).
 
     The model is centred on the display (--keep-xy keeps its XY); column j has its centre at x = (j + 0.5)*pixel
     and row 0 is the +y edge (landscape). Greys are pixel coverage with PrusaSlicer's gamma.
@@ -86,7 +95,7 @@ def raster(model: str, output: str, progress: bool | None, report: str | None, c
     from ..raster.outputs import resin_format_for
 
     t_start = time.perf_counter()
-    fmt = resin_format_for(output)
+    fmt = resin_format_for(output, fmt_name)
     parent = Path(output.rstrip("/\\") or ".").resolve().parent
     if not parent.is_dir():
         fail(f"{output}: directory {parent} does not exist")

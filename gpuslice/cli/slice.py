@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from .options import slicing_options, slicing_values, with_options
+from .options import fail, slicing_options, slicing_values, with_options
 
 __all__ = ["slice_cmd", "build_report", "adaptive_lines"]
 
@@ -15,6 +15,12 @@ def _formats_help() -> str:
     from ..formats import suffixes
 
     return ", ".join(suffixes())
+
+
+def _format_names() -> list[str]:
+    from ..formats import CONTOUR_FORMATS
+
+    return list(CONTOUR_FORMATS)
 
 
 def adaptive_lines(meta: dict) -> list[str]:
@@ -55,18 +61,23 @@ def build_report(result) -> dict:
 @with_options(slicing_options())
 @click.option("-o", "--output", type=click.Path(path_type=str), default=None,
               help=f"Write the layers; the suffix picks the format ({_formats_help()}).")
+@click.option("--format", "fmt_name", type=click.Choice(_format_names()), default=None,
+              help="The output format, whatever -o's suffix (default: -o's suffix picks it).")
 @click.option("--report", type=click.Path(path_type=str), default=None, help="Write the run report as JSON.")
 @click.option("-q", "--quiet", is_flag=True, help="No summary on stdout.")
-def slice_cmd(model: str, output: str | None, report: str | None, quiet: bool, **kw) -> None:
+def slice_cmd(model: str, output: str | None, fmt_name: str | None, report: str | None, quiet: bool, **kw) -> None:
     """Slice MODEL into layers of closed, nested contours."""
     from ..formats import format_for
     from ..io.report import write_report
     from ..pipeline import Job, run_job
 
     if output is not None:
-        format_for(output)  # an unknown suffix fails before any work
+        format_for(output, fmt_name)  # an unknown suffix fails before any work
+    elif fmt_name is not None:
+        fail(f"--format {fmt_name} needs -o, the file to write")
     params, placement = slicing_values(kw)
-    done = run_job(Job(source=model, placement=placement, params=params, contours=output, cusp=report is not None))
+    done = run_job(Job(source=model, placement=placement, params=params, contours=output, contours_format=fmt_name,
+                       cusp=report is not None))
     meta = done.result.meta
     if report is not None:
         write_report(build_report(done.result), report)

@@ -82,9 +82,14 @@ def _choices() -> str:
     return ", ".join(s[:-1]) + " or " + s[-1] if len(s) > 1 else s[0]
 
 
-def format_for(path: str | os.PathLike) -> ContourFormat:
-    """The format of ``path`` by its suffix (any case); :class:`ParameterError` naming ``path`` otherwise."""
+def format_for(path: str | os.PathLike, name: str | None = None) -> ContourFormat:
+    """The format of ``path`` by its suffix (any case), or the one named ``name`` (``slice --format``: whatever the
+    suffix); :class:`ParameterError` naming ``path`` otherwise."""
     p = Path(os.fspath(path))
+    if name is not None:
+        if name not in CONTOUR_FORMATS:
+            raise ParameterError(f"{p}: unknown output format '{name}' (use {', '.join(CONTOUR_FORMATS)})")
+        return CONTOUR_FORMATS[name]
     kind = p.suffix.lower()
     for f in CONTOUR_FORMATS.values():
         if kind in f.suffixes:
@@ -92,8 +97,9 @@ def format_for(path: str | os.PathLike) -> ContourFormat:
     raise ParameterError(f"{p}: unknown output format '{p.suffix}' (use {_choices()})")
 
 
-def export(result: SliceResult, path: str | os.PathLike, **options: Any) -> None:
-    """Write ``result`` in the format named by the suffix of ``path`` (case-insensitive), atomically.
+def export(result: SliceResult, path: str | os.PathLike, fmt: str | None = None, **options: Any) -> None:
+    """Write ``result`` in the format named by the suffix of ``path`` (case-insensitive), or by ``fmt`` (a
+    :data:`CONTOUR_FORMATS` name, whatever the suffix), atomically.
 
     ``options`` are passed on to the writer (e.g. ``decimals`` for ``.svg``/``.cli``; ``.npz`` takes none).
 
@@ -103,7 +109,7 @@ def export(result: SliceResult, path: str | os.PathLike, **options: Any) -> None
         Unknown suffix, or options the writer does not take.
     """
     p = Path(os.fspath(path))
-    fmt = format_for(p)
+    fmt = format_for(p, fmt)
     unknown = sorted(set(options) - set(fmt.options()))
     if unknown:
         if not fmt.options():

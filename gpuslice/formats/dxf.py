@@ -5,6 +5,7 @@ fixed metadata: no creation date, constant GUIDs)."""
 from __future__ import annotations
 
 import os
+from collections import OrderedDict
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -82,6 +83,10 @@ def write_dxf(result: SliceResult, path: PathLike, *, version: str = "R2010") ->
                 if b - a < 2:
                     continue
                 msp.add_lwpolyline(points[a:b].astype(np.float64), format="xy", close=closed[r], dxfattribs=attribs)
+        # the CLASSES section: ezdxf adds a class for each entity type in use when saving, iterating a set (an order
+        # that changes with Python's hash seed, so the bytes changed from run to run); added here first, sorted
+        doc.classes.add_required_classes(doc.dxfversion)
+        doc.classes.classes = OrderedDict(sorted(doc.classes.classes.items()))
         with atomic_path(path) as tmp:
             doc.saveas(tmp)
     finally:

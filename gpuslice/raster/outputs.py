@@ -55,6 +55,8 @@ class ResinTarget:
     bounds: tuple[float, float, float, float] | None = None
     #: the OpenCL device the layers' runs were made on: writers with encoding kernels use it (None: numpy)
     device: object | None = None
+    #: the registry name of the output (``raster --format``); None: the one ``path``'s suffix names
+    format: str | None = None
 
     @property
     def deflater(self) -> str:
@@ -137,12 +139,22 @@ def resin_usage() -> str:
     return _usage()
 
 
-def resin_format_for(path: str | os.PathLike) -> ResinFormat:
+def resin_format_for(path: str | os.PathLike, name: str | None = None) -> ResinFormat:
     """The resin output that ``path`` names: a registered suffix (any case), or a folder (``DIR/`` or an existing
-    directory) for the folder output; :class:`ParameterError` naming ``path`` otherwise."""
+    directory) for the folder output; :class:`ParameterError` naming ``path`` otherwise. ``name``: a registry name
+    that overrides the suffix (``raster --format``): any path then, except that a one-file format refuses a path
+    naming a folder."""
     text = os.fspath(path)
     p = Path(text)
-    if text.endswith(("/", "\\")) or p.is_dir():
+    names_folder = text.endswith(("/", "\\")) or p.is_dir()
+    if name is not None:
+        fmt = RESIN_FORMATS.get(name)
+        if fmt is None:
+            raise ParameterError(f"unknown resin format '{name}' (use {', '.join(RESIN_FORMATS)})")
+        if names_folder and not fmt.folder:
+            raise ParameterError(f"{text}: names a folder, but a {fmt.title} is one file (e.g. part{fmt.suffix})")
+        return fmt
+    if names_folder:
         for f in RESIN_FORMATS.values():
             if f.folder:
                 return f
@@ -150,7 +162,7 @@ def resin_format_for(path: str | os.PathLike) -> ResinFormat:
     for f in RESIN_FORMATS.values():
         if kind and kind in f.suffixes:
             return f
-    raise ParameterError(f"{text}: unknown output format '{p.suffix}' (use {_usage()})")
+    raise ParameterError(f"{text}: unknown output format '{p.suffix}' (use {_usage()} or --format)")
 
 
 def source_date() -> dt.datetime | None:

@@ -473,10 +473,12 @@ def write_photon(layers: Iterable[Tile | RunLayer], target, *, machine: Machine,
 
 
 def write_target(layers: Iterable[Tile | RunLayer], target) -> dict[str, Any]:
-    """The registry's writer (:mod:`gpuslice.raster.outputs`): the suffix of ``target.path`` picks the machine
-    (:data:`MACHINES`); a printer preset overrides its name, Z travel and (native format here) version."""
+    """The registry's writer (:mod:`gpuslice.raster.outputs`): the format's name (``target.format``, the registry's
+    name of each suffix), else the suffix of ``target.path``, picks the machine (:data:`MACHINES`); a printer preset
+    overrides its name, Z travel and (native format here) version."""
     path = Path(os.fspath(target.path))
-    suffix = path.suffix.lower().lstrip(".")
+    fmt = getattr(target, "format", None)
+    suffix = fmt if fmt is not None else path.suffix.lower().lstrip(".")
     if suffix not in MACHINES:
         raise ParameterError(f"{path}: not a Photon Workshop suffix (use .{', .'.join(MACHINES)})")
     machine = MACHINES[suffix]

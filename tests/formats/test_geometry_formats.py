@@ -258,3 +258,38 @@ def test_cli_writes_the_new_formats_through_the_registry(tmp_path, capsys):
         assert main(["slice", str(stl), "-t", "0.5", "-o", str(out), "-q"]) == 0
         check(res, out)
     assert json.loads((tmp_path / "t.geojson").read_text())["features"][0]["properties"]["layer"] == 0
+
+
+def test_dxf_bytes_do_not_depend_on_the_hash_seed(tmp_path):
+    """ezdxf registers the CLASSES of the entity types in use from a set: the writer fixes their order, so the same
+    result gives the same bytes in any process (seeds 0 and 4 gave two orders before)."""
+    pytest.importorskip("ezdxf")
+    import os
+    import subprocess
+
+    saved = tmp_path / "hand.npz"
+    export(_hand_result(), saved)
+    code = ("import sys; from gpuslice.formats import export; from gpuslice.slicing.result import SliceResult; "
+            "export(SliceResult.load(sys.argv[1]), sys.argv[2])")
+    outs = []
+    for seed in ("0", "4", "7", "10"):
+        out = tmp_path / f"s{seed}.dxf"
+        subprocess.run([sys.executable, "-c", code, str(saved), str(out)], check=True, capture_output=True,
+                       timeout=120, env={**os.environ, "PYTHONHASHSEED": seed})
+        outs.append(out.read_bytes())
+    assert all(o == outs[0] for o in outs)
+    _check_dxf(_hand_result(), tmp_path / "s0.dxf")
+
+
+def test_slice_format_overrides_the_suffix(tmp_path, capsys):
+    stl = tmp_path / "torus.stl"
+    assert main(["shape", "torus", "-o", str(stl)]) == 0
+    for name in ("svg", "geojson", "npz"):
+        by_suffix, by_name = tmp_path / f"t.{name}", tmp_path / f"t_{name}.out"
+        assert main(["slice", str(stl), "-t", "0.5", "-q", "-o", str(by_suffix)]) == 0
+        assert main(["slice", str(stl), "-t", "0.5", "-q", "-o", str(by_name), "--format", name]) == 0
+        assert by_name.read_bytes() == by_suffix.read_bytes(), name
+    capsys.readouterr()
+    assert main(["slice", str(stl), "-t", "0.5", "--format", "svg"]) == 2  # nothing to write it to
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--format svg needs -o" in err

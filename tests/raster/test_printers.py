@@ -224,3 +224,42 @@ def test_raster_with_a_user_preset_file(tmp_path, capsys):
     assert main(["raster", str(stl), "-t", "5", "--printer", "creality-halot-one", *FAST, "-q",
                  "-o", f"{stack}/"]) == 0
     assert len(list(stack.iterdir())) == 4
+
+
+def test_format_overrides_the_suffix(tmp_path, monkeypatch):
+    """`raster --format NAME` writes that format whatever -o's suffix: the bytes the suffix would have made."""
+    from photon_reader import read_photon
+
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
+    stl = _cube_stl(tmp_path)
+    run = ["raster", str(stl), "-t", "2", *FAST, "-q"]
+    assert main([*run, "--printer", "elegoo-saturn-3-ultra", "-o", str(tmp_path / "a.goo")]) == 0
+    assert main([*run, "--printer", "elegoo-saturn-3-ultra", "--format", "goo", "-o", str(tmp_path / "a.bin")]) == 0
+    assert (tmp_path / "a.bin").read_bytes() == (tmp_path / "a.goo").read_bytes()
+    # a Photon Workshop file's machine comes from the format's name, not from the suffix
+    assert main([*run, "--format", "pwmx", "-o", str(tmp_path / "b.dat")]) == 0
+    assert main([*run, "-o", str(tmp_path / "b.pwmx")]) == 0
+    assert (tmp_path / "b.dat").read_bytes() == (tmp_path / "b.pwmx").read_bytes()
+    assert read_photon(tmp_path / "b.dat").machine["name"] == "Anycubic Photon Mono X"
+    # a PNG stack into a folder named without the trailing slash: what `-o DIR/` writes
+    assert main([*run, "--format", "png", "-o", str(tmp_path / "stack")]) == 0
+    assert main([*run, "-o", f"{tmp_path / 'stack2'}/"]) == 0
+    pngs = sorted(p.name for p in (tmp_path / "stack").iterdir())
+    assert pngs and pngs == sorted(p.name for p in (tmp_path / "stack2").iterdir())
+    assert all((tmp_path / "stack" / n).read_bytes() == (tmp_path / "stack2" / n).read_bytes() for n in pngs)
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--format", "goo", "-o", "{tmp}/out/"], "out/: names a folder, but a GOO file is one file"),
+    (["--format", "pwmx", "--printer", "elegoo-saturn-3-ultra", "-o", "{tmp}/x.dat"],
+     "printer elegoo-saturn-3-ultra reads goo, ctb, not pwmx"),
+    (["--format", "png", "-o", "{tmp}/cube.stl"], "cube.stl: exists and is not a directory"),
+])
+def test_format_refusals_write_nothing(tmp_path, capsys, args, message):
+    stl = _cube_stl(tmp_path)
+    before = sorted(p.name for p in tmp_path.iterdir())
+    args = [a.format(tmp=tmp_path) for a in args]
+    assert main(["raster", str(stl), "-t", "2", *FAST, "-q", *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and message in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
