@@ -35,7 +35,12 @@ def _batch_options(kw: dict, raster_opt: tuple[str, ...]):
     from ..batch.options import raster_option_fields
     from ..errors import ParameterError
 
-    params, placement = slicing_values(kw)
+    overrides = None
+    if kw["raster"] is not None and _default("thickness"):  # resin layers: `raster`'s own default thickness
+        from .raster import DEFAULTS as RASTER_DEFAULTS
+
+        kw["thickness"], overrides = None, RASTER_DEFAULTS
+    params, placement = slicing_values(kw, overrides)
     try:
         return build(BatchOptions, kw, params=params, placement=placement,
                      raster_options=_raster_options(raster_opt) if kw["raster"] is not None else ())
@@ -47,6 +52,14 @@ def _batch_options(kw: dict, raster_opt: tuple[str, ...]):
         for name in resin:
             text = text.replace(name, f"--raster-opt {name}", 1)
         raise ParameterError(text, param=tuple(p for p in exc.params if p not in resin)) from None
+
+
+def _default(name: str) -> bool:
+    """Whether the running command's option ``name`` was left at its default (not given)."""
+    from click.core import ParameterSource
+
+    ctx = click.get_current_context(silent=True)
+    return ctx is None or ctx.get_parameter_source(name) in (ParameterSource.DEFAULT, None)
 
 
 class _Progress:
@@ -113,7 +126,8 @@ def batch(inputs, out_dir, pattern, raster_opt, workers, threads, scheduler, tra
           **kw) -> None:
     """Slice every model in INPUTS (folders, searched recursively; list files of paths, .txt/.list; model files)
     with the same options (those of `slice`, adaptive layers included) into OUT, on local workers or a Dask
-    cluster. Models whose output exists are skipped."""
+    cluster. Models whose output exists are skipped. With --raster, layers are 0.05 mm unless -t is given (as
+    `gpuslice raster`), and each model's resin file is the one `raster` writes with the same options."""
     from ..batch import BatchRunner, discover, format_summary
     from ..io.report import write_report
 

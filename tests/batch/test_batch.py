@@ -418,3 +418,27 @@ def test_cli_raster_option_errors_name_raster_opt(tmp_path, capsys):
         assert main(args) == 2
         err = capsys.readouterr().err.strip()
         assert want in err and len(err.splitlines()) == 1, err
+
+
+def test_cli_raster_batch_writes_what_raster_writes(tmp_path, monkeypatch):
+    """`batch --raster goo --raster-opt printer=…` without -t gives each model the file `gpuslice raster --printer …
+    -o part.goo` writes: the same layer height (raster's 0.05 mm, not slice's 0.1), the same bytes; -t still wins."""
+    from gpuslice.cli import main
+
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
+    models = tmp_path / "m"
+    models.mkdir()
+    shapes.write_stl(shapes.box(), models / "cube.stl")
+    fast = ["--backend", "numpy", "--fit", "4"]
+    printer = "elegoo-saturn-3-ultra"
+    assert main(["raster", str(models / "cube.stl"), *fast, "--printer", printer, "--raster-backend", "numpy",
+                 "--no-progress", "-q", "-o", str(tmp_path / "cube.goo")]) == 0
+    opts = ["--raster-opt", f"printer={printer}", "--raster-opt", "raster_backend=numpy", "-j", "0", "-q"]
+    assert main(["batch", str(models), *fast, "--raster", "goo", *opts, "-o", str(tmp_path / "a")]) == 0
+    assert (tmp_path / "a" / "cube.goo").read_bytes() == (tmp_path / "cube.goo").read_bytes()
+    assert main(["batch", str(models), *fast, "-t", "0.1", "--raster", "goo", *opts, "-o", str(tmp_path / "b")]) == 0
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "raster"))
+    from goo_reader import read_goo
+
+    layers = [read_goo(tmp_path / d / "cube.goo").header["total_layers"] for d in "ab"]
+    assert layers == [80, 40]  # a 4 mm cube at 0.05 and at 0.1 mm
