@@ -61,8 +61,12 @@ inline int runs_rint(const float x) {
 // (the carry); "the next" only where < w. Tiles are < 32768 columns wide (the host checks).
 // Up to RUNS_UNIT_ROWS pieces are made first, then their atomics run back to back, then their stores: each atomic
 // is a locked read-modify-write of a row counter that is seldom in cache, and interleaved with the 16-byte stores
-// each one waited for the stores before it (pieces ~13% faster on the armadillo job; BENCHMARKS, eighth session).
+// each one waited for the stores before it (on PoCL the pieces pass takes ~0.8x the time: BENCHMARKS, "Runs
+// pieces", eighth session). Any value gives the same pieces (1: the interleaved order); the private arrays take
+// 24 bytes a row, which a GPU keeps in its per-thread memory: not yet measured on one.
+#ifndef RUNS_UNIT_ROWS
 #define RUNS_UNIT_ROWS 32
+#endif
 inline void runs_rows_of(const float4 e, const int4 t, const int r0, const int r1, __global int *cnt,
                          __global const int *off, __global int4 *pcs) {
     const float u0 = e.x, v0 = e.y, u1 = e.z, v1 = e.w;

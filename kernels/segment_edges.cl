@@ -46,8 +46,9 @@ void segment_bounds(const int n, __global const int *seg_layer, __global const f
     atomic_inc(count + s / k);
     const float dx = p.z - p.x, dy = p.w - p.y;
     // |x| and max by selects, floor by truncation: PoCL's CPU device calls fabs, fmax and floor out of line (this
-    // pass took ~1.6x as long with them; runs.cl says the same). Equal here: the max is at least 1 (the sign of a
-    // zero never counts), and the pixel coordinates of a model on the display are far below 2^31
+    // pass took ~1.6x as long with them: BENCHMARKS, "Runs pieces", eighth session; runs.cl says the same). Equal
+    // here: the max is at least 1 (the sign of a zero never counts), and the pixel coordinates of a model on the
+    // display are far below 2^31
     const float ax = p.x < 0.0f ? -p.x : p.x, ay = p.y < 0.0f ? -p.y : p.y;
     const float az = p.z < 0.0f ? -p.z : p.z, aw = p.w < 0.0f ? -p.w : p.w;
     const float m0 = ax > ay ? ax : ay, m1 = az > aw ? az : aw, m2 = m0 > m1 ? m0 : m1;

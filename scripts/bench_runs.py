@@ -14,7 +14,13 @@ with the numpy twin (``--skip-numpy``); once, for reference, the old bitmap path
 ``iter_tiles(backend="opencl-bitmap")`` with every tile consumed, its own ``layer_edges`` included (``--skip-old``,
 it takes ~20 s). Prints layers/s, the run count and the process's peak RSS after each stage, and the load average.
 
-Usage: ``python scripts/bench_runs.py [--repeat 3] [--gammas 0,1] [--skip-numpy] [--skip-old]``
+``--stage-repeat N``: the stage-split run N times, each stage's minimum and median (the kernels' own cost on a noisy
+machine: the minimum moves little from run to run, the whole-process medians move 10-15 %). ``--z-samples K``: the
+runs of the first 512 layers averaged over K sub-planes each (their K*512 planes sliced, each layer's sub-planes'
+edges merged: what ``raster --z-samples K`` rasterises) instead of the plain layers.
+
+Usage: ``python scripts/bench_runs.py [--repeat 3] [--gammas 0,1] [--skip-numpy] [--skip-old] [--stage-repeat N]
+[--z-samples K]``
 """
 
 from __future__ import annotations
@@ -55,6 +61,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--gammas", default="0,1")
     ap.add_argument("--skip-numpy", action="store_true")
     ap.add_argument("--skip-old", "--skip-raster", action="store_true", help="skip the old bitmap path (~20 s)")
+    ap.add_argument("--stage-repeat", type=int, default=1, help="stage-split runs (min and median of each stage)")
+    ap.add_argument("--z-samples", type=int, default=1, help="K sub-planes per layer, the first 512 layers")
     args = ap.parse_args(argv)
     if not MESH.is_file():
         print(f"{MESH} not found", file=sys.stderr)
@@ -78,7 +86,15 @@ def main(argv: list[str] | None = None) -> int:
     print(f"armadillo Loop x1: {mesh.n_faces} facets, {ext[0]:.1f} x {ext[1]:.1f} x {ext[2]:.1f} mm, "
           f"{res.n_layers} layers, {res.points.shape[0]} points; slice {t_slice:.2f} s (cold); device {dev.name}")
     print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())} on {os.cpu_count()} CPUs")
-    n = res.n_layers
+    src, k = res, args.z_samples
+    if k > 1:  # the first 512 layers' K sub-planes, sliced (the polygon path of --z-samples)
+        from gpuslice.raster.edges import result_bounds, z_sample_planes
+
+        bounds = result_bounds(res)
+        z, th = z_sample_planes(res, k)
+        src = slice_mesh(mesh, thickness=0.05, backend="opencl", z=z[: 512 * k], layer_thickness=th[: 512 * k])
+        print(f"--z-samples {k}: the first 512 layers, {src.n_layers} sub-planes")
+    n = src.n_layers // k
     kern = RunsKernel.of(dev)
 
     def row(name, wall, cpu, extra=""):
@@ -89,29 +105,45 @@ def main(argv: list[str] | None = None) -> int:
         spec = RasterSpec(resolution=(11520, 5120), pixel=0.019, gamma=gamma)
         print(f"\n### gamma {gamma:g}, 11520x5120 @ 0.019 mm")
         print("| stage | wall (median) | CPU (median) | rate | peak RSS | notes |\n|---|---|---|---|---|---|")
-        wall, cpu, le = timed(lambda spec=spec: layer_edges(res, spec, dtype=np.float32), args.repeat)
+        if k > 1:
+            from gpuslice.raster.edges import merge_layer_groups
+
+            wall, cpu, le = timed(lambda spec=spec: merge_layer_groups(
+                layer_edges(src, spec, bounds, dtype=np.float32), k), args.repeat)
+        else:
+            wall, cpu, le = timed(lambda spec=spec: layer_edges(res, spec, dtype=np.float32), args.repeat)
         row("layer_edges (float32)", wall, cpu, f"{le.edges.shape[0]} edges")
 
         def runs(backend, le=le, spec=spec):
             count = 0
-            for r in iter_runs(res, spec, backend=backend, device=dev, edges=le):
+            given = dict(merged=le, z_samples=k) if k > 1 else {} if le is None else dict(edges=le)
+            for r in iter_runs(None if k > 1 else res, spec, backend=backend, device=dev, **given):
                 count += r.n_runs
             return count
 
         wall, cpu, count = timed(lambda: runs("opencl"), args.repeat)
         row("runs, OpenCL (given the edges)", wall, cpu, f"{count} runs")
-        wall, cpu, count = timed(lambda: runs("opencl", None), args.repeat)
-        row("layer_edges + runs, OpenCL, as the writers call them", wall, cpu, f"{count} runs")
-        kern.timings, long0, fb0 = {}, kern.long_rows, kern.fallbacks
-        runs("opencl")
-        split = ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in kern.timings.items())
-        print(f"| stages (queue drained after each) | {sum(kern.timings.values()) * 1000:.0f} ms | | | | {split}; "
-              f"{kern.long_rows - long0} long rows on the host, {kern.fallbacks - fb0} batches redone |")
+        if k == 1:
+            wall, cpu, count = timed(lambda: runs("opencl", None), args.repeat)
+            row("layer_edges + runs, OpenCL, as the writers call them", wall, cpu, f"{count} runs")
+        long0, fb0, stages = kern.long_rows, kern.fallbacks, {}
+        for _ in range(max(args.stage_repeat, 1)):
+            kern.timings = {}
+            runs("opencl")
+            for name, v in kern.timings.items():
+                stages.setdefault(name, []).append(v)
         kern.timings = None
+        med = {name: statistics.median(v) for name, v in stages.items()}
+        split = ", ".join(f"{name} {v * 1000:.0f} ms" for name, v in med.items())
+        if args.stage_repeat > 1:
+            split += "; minima: " + ", ".join(f"{name} {min(v) * 1000:.1f}" for name, v in stages.items())
+        print(f"| stages (queue drained after each; median of {max(args.stage_repeat, 1)}) | "
+              f"{sum(med.values()) * 1000:.0f} ms | | | | {split}; {kern.long_rows - long0} long rows on the host, "
+              f"{kern.fallbacks - fb0} batches redone |")
         if not args.skip_numpy:
             wall, cpu, count = timed(lambda: runs("numpy"), args.repeat)
             row("runs, numpy twin (given the edges)", wall, cpu, f"{count} runs")
-        if not args.skip_old:
+        if not args.skip_old and k == 1:
             def raster(spec=spec):
                 px = 0
                 for tile in iter_tiles(res, spec, backend="opencl-bitmap", device=dev):

@@ -55,11 +55,11 @@ def _batch_options(kw: dict, raster_opt: tuple[str, ...]):
 
 
 def _default(name: str) -> bool:
-    """Whether the running command's option ``name`` was left at its default (not given)."""
+    """Whether the running command's option ``name`` was left at its default (False outside a command)."""
     from click.core import ParameterSource
 
     ctx = click.get_current_context(silent=True)
-    return ctx is None or ctx.get_parameter_source(name) in (ParameterSource.DEFAULT, None)
+    return ctx is not None and ctx.get_parameter_source(name) == ParameterSource.DEFAULT
 
 
 class _Progress:

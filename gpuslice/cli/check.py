@@ -15,7 +15,7 @@ from ..errors import ParameterError
 from ..options import flag_of
 from ..raster.settings import PrintSettings
 from ..raster.spec import ResinOptions
-from .options import build, click_options, slicing_options, slicing_values, values, with_options
+from .options import build, click_options, refuse_model_as_output, slicing_options, slicing_values, values, with_options
 
 __all__ = ["check", "print_report"]
 
@@ -110,6 +110,7 @@ def check(model: str, json_path: str | None, quiet: bool, **kw) -> None:
     resin. Exits 0 even when it finds defects."""
     from ..pipeline import CheckOutput, Job, run_job
 
+    refuse_model_as_output(model, json_path)
     params, placement = slicing_values(kw, DEFAULTS)
     options = build(ResinOptions, kw)
     spec = options.spec() if options.printer is not None else None

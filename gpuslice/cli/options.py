@@ -17,7 +17,7 @@ from ..errors import ParameterError
 from ..options import OptionInfo, options_of
 
 __all__ = ["click_options", "with_options", "build", "values", "flag_for", "cli_message", "fail", "EXIT_USAGE",
-           "option_classes", "slicing_options", "slicing_values"]
+           "option_classes", "slicing_options", "slicing_values", "refuse_model_as_output"]
 
 EXIT_USAGE = 2
 
@@ -26,6 +26,22 @@ def fail(message: str, code: int = EXIT_USAGE) -> None:
     """Print ``gpuslice: error: <message>`` on stderr and exit with ``code`` (2: user error)."""
     click.echo(f"gpuslice: error: {message}", err=True)
     raise SystemExit(code)
+
+
+def refuse_model_as_output(model: str, *outputs: str | None) -> None:
+    """A one-line error when an output path is the model file itself (``-o part.stl --format goo`` would replace the
+    model it reads); None outputs are skipped."""
+    import os
+
+    for out in outputs:
+        if out is None:
+            continue
+        try:
+            same = os.path.samefile(model, out.rstrip("/\\") or ".")
+        except OSError:  # either does not exist (yet): not the same file
+            same = False
+        if same:
+            fail(f"{out}: is the model {model} itself; name another output")
 
 
 def _click_option(info: OptionInfo, defaults: bool, default: Any) -> Callable:

@@ -12,7 +12,16 @@ import click
 
 from ..raster.settings import PrintSettings, format_duration, print_time_s, resin_ml
 from ..raster.spec import RasterSpec, ResinOptions
-from .options import build, click_options, fail, slicing_options, slicing_values, values, with_options
+from .options import (
+    build,
+    click_options,
+    fail,
+    refuse_model_as_output,
+    slicing_options,
+    slicing_values,
+    values,
+    with_options,
+)
 
 __all__ = ["raster"]
 
@@ -96,6 +105,7 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
 
     t_start = time.perf_counter()
     fmt = resin_format_for(output, fmt_name)
+    refuse_model_as_output(model, output, report)
     parent = Path(output.rstrip("/\\") or ".").resolve().parent
     if not parent.is_dir():
         fail(f"{output}: directory {parent} does not exist")

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from .options import fail, slicing_options, slicing_values, with_options
+from .options import fail, refuse_model_as_output, slicing_options, slicing_values, with_options
 
 __all__ = ["slice_cmd", "build_report", "adaptive_lines"]
 
@@ -73,8 +73,11 @@ def slice_cmd(model: str, output: str | None, fmt_name: str | None, report: str 
 
     if output is not None:
         format_for(output, fmt_name)  # an unknown suffix fails before any work
+        if Path(output).is_dir():
+            fail(f"{output}: is a folder; name the file to write")
     elif fmt_name is not None:
         fail(f"--format {fmt_name} needs -o, the file to write")
+    refuse_model_as_output(model, output, report)
     params, placement = slicing_values(kw)
     done = run_job(Job(source=model, placement=placement, params=params, contours=output, contours_format=fmt_name,
                        cusp=report is not None))

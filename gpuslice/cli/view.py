@@ -11,7 +11,7 @@ import click
 from ..mesh.mesh import Placement
 from ..options import options_of
 from ..slicing.params import SliceParams
-from .options import fail, slicing_options, slicing_values, with_options
+from .options import fail, refuse_model_as_output, slicing_options, slicing_values, with_options
 
 __all__ = ["view"]
 
@@ -45,6 +45,7 @@ def view(source: str, output: str | None, raster: bool, printer: str, mask_every
         output = src.with_suffix(".html").name
     if Path(output).suffix.lower() not in (".html", ".htm"):
         fail(f"{output}: the viewer is an HTML page (use a .html name)")
+    refuse_model_as_output(source, output)
     if src.suffix.lower() == ".npz":
         flags = {i.name: i.flags[0] for cls in (SliceParams, Placement) for i in options_of(cls) if i.flags}
         given = [flags[k] for k, v in kw.items() if v is not None and k in flags]

@@ -162,7 +162,7 @@ def resin_format_for(path: str | os.PathLike, name: str | None = None) -> ResinF
     for f in RESIN_FORMATS.values():
         if kind and kind in f.suffixes:
             return f
-    raise ParameterError(f"{text}: unknown output format '{p.suffix}' (use {_usage()} or --format)")
+    raise ParameterError(f"{text}: unknown output format '{p.suffix}' (use {_usage()}, or --format NAME)")
 
 
 def source_date() -> dt.datetime | None:

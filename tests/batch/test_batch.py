@@ -437,7 +437,7 @@ def test_cli_raster_batch_writes_what_raster_writes(tmp_path, monkeypatch):
     assert main(["batch", str(models), *fast, "--raster", "goo", *opts, "-o", str(tmp_path / "a")]) == 0
     assert (tmp_path / "a" / "cube.goo").read_bytes() == (tmp_path / "cube.goo").read_bytes()
     assert main(["batch", str(models), *fast, "-t", "0.1", "--raster", "goo", *opts, "-o", str(tmp_path / "b")]) == 0
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "raster"))
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "raster"))
     from goo_reader import read_goo
 
     layers = [read_goo(tmp_path / d / "cube.goo").header["total_layers"] for d in "ab"]

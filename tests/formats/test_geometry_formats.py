@@ -274,8 +274,9 @@ def test_dxf_bytes_do_not_depend_on_the_hash_seed(tmp_path):
     outs = []
     for seed in ("0", "4", "7", "10"):
         out = tmp_path / f"s{seed}.dxf"
-        subprocess.run([sys.executable, "-c", code, str(saved), str(out)], check=True, capture_output=True,
-                       timeout=120, env={**os.environ, "PYTHONHASHSEED": seed})
+        proc = subprocess.run([sys.executable, "-c", code, str(saved), str(out)], capture_output=True, text=True,
+                              timeout=120, env={**os.environ, "PYTHONHASHSEED": seed})
+        assert proc.returncode == 0, proc.stderr[-2000:]
         outs.append(out.read_bytes())
     assert all(o == outs[0] for o in outs)
     _check_dxf(_hand_result(), tmp_path / "s0.dxf")

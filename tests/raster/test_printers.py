@@ -253,13 +253,27 @@ def test_format_overrides_the_suffix(tmp_path, monkeypatch):
     (["--format", "goo", "-o", "{tmp}/out/"], "out/: names a folder, but a GOO file is one file"),
     (["--format", "pwmx", "--printer", "elegoo-saturn-3-ultra", "-o", "{tmp}/x.dat"],
      "printer elegoo-saturn-3-ultra reads goo, ctb, not pwmx"),
-    (["--format", "png", "-o", "{tmp}/cube.stl"], "cube.stl: exists and is not a directory"),
+    (["--format", "png", "-o", "{tmp}/notes.txt"], "notes.txt: exists and is not a directory"),
 ])
 def test_format_refusals_write_nothing(tmp_path, capsys, args, message):
     stl = _cube_stl(tmp_path)
+    (tmp_path / "notes.txt").write_text("a file of the user's\n")
     before = sorted(p.name for p in tmp_path.iterdir())
     args = [a.format(tmp=tmp_path) for a in args]
     assert main(["raster", str(stl), "-t", "2", *FAST, "-q", *args]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and message in err, err
     assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_an_output_that_is_the_model_is_refused(tmp_path, capsys):
+    """`--format` accepts any name, so `-o model.stl --format goo` would replace the model: refused, model intact."""
+    stl = _cube_stl(tmp_path)
+    before = stl.read_bytes()
+    for args in (["raster", str(stl), "-t", "2", *FAST, "--format", "goo", "-o", str(stl)],
+                 ["slice", str(stl), "-t", "2", "--backend", "numpy", "--format", "svg", "-o", str(stl)],
+                 ["check", str(stl), "-t", "2", "--backend", "numpy", "--json", str(stl)]):
+        assert main(args) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "is the model" in err, err
+    assert stl.read_bytes() == before

@@ -334,6 +334,32 @@ def test_edges_cut_into_row_bands_and_overlapping_pieces(device):
     assert_runs_equal(want, kern.run(le, range(4), gamma_lut(1.0), SMALL.shape))
 
 
+@pytest.mark.parametrize("rows_per_unit", [100, 1000])
+def test_edges_longer_than_a_work_items_private_pieces(device, rows_per_unit):
+    """Work units of up to 100 or 1000 rows of an edge (the default is 32): a work-item makes an edge's pieces 32 rows
+    at a time (kernels/runs.cl, RUNS_UNIT_ROWS), its x carried from chunk to chunk; tall polygons whose edges span
+    up to ~300 rows, starting anywhere in a pixel: runs == the numpy twin, gamma 1 and 0."""
+    rng = np.random.default_rng(11)
+    layers = []
+    for _ in range(3):
+        n = int(rng.integers(5, 12))
+        ang = np.sort(rng.uniform(0, 2 * np.pi, n))
+        pts = np.array([32.0, 160.0]) + np.c_[np.cos(ang) * rng.uniform(5.0, 30.0, n), np.sin(ang) * 150.0]
+        layers.append([(pts, False, -1, True)])
+    res = make_result(layers)
+    spec = RasterSpec(resolution=(64, 320), pixel=1.0, keep_xy=True)
+    le = layer_edges(res, spec)
+    assert (np.abs(le.edges[:, 3] - le.edges[:, 1]) > 64).sum() >= 3  # edges of more than two 32-row chunks
+    kern = RunsKernel.of(device)
+    kern.ROWS_PER_UNIT, rpu = rows_per_unit, kern.ROWS_PER_UNIT
+    try:
+        for gamma in (1.0, 0.0):
+            lut = gamma_lut(gamma)
+            assert_runs_equal(runs_numpy(le, lut, spec.shape), kern.run(le, range(3), lut, spec.shape))
+    finally:
+        kern.ROWS_PER_UNIT = rpu
+
+
 def test_tile_wider_than_15_bits(device):
     """A layer 40,000 pixels wide (piece cells are 15-bit columns on the device): the numpy twin's runs, exact."""
     spec = RasterSpec(resolution=(40000, 6), pixel=1.0, keep_xy=True)
