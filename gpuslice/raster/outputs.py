@@ -150,7 +150,7 @@ def resin_format_for(path: str | os.PathLike, name: str | None = None) -> ResinF
     if name is not None:
         fmt = RESIN_FORMATS.get(name)
         if fmt is None:
-            raise ParameterError(f"unknown resin format '{name}' (use {', '.join(RESIN_FORMATS)})")
+            raise ParameterError(f"{text}: unknown resin format '{name}' (use {', '.join(RESIN_FORMATS)})")
         if names_folder and not fmt.folder:
             raise ParameterError(f"{text}: names a folder, but a {fmt.title} is one file (e.g. part{fmt.suffix})")
         return fmt
