@@ -200,6 +200,7 @@ CATALOG = read_catalog()
 
 
 @pytest.mark.parametrize("name", sorted(CATALOG) or ["(no shared meshes)"])
+@pytest.mark.filterwarnings("ignore:invalid value encountered in cast:RuntimeWarning")  # trimesh on p_flt_max_coords
 def test_shared_meshes(shared_meshes, device, name):
     """Every shared mesh at 20 mm, 0.1 mm layers, 4 sub-planes: where the shortcut is taken its runs equal the
     polygon path's; it is taken on every closed, consistently wound mesh whose layers are their segments, and on no
