@@ -13,7 +13,7 @@ import sys
 import click
 
 from ..batch.options import BatchOptions
-from .options import build, click_options, fail, slicing_options, slicing_values, with_options
+from .options import RESIN_DEFAULTS, build, click_options, fail, slicing_options, slicing_values, with_options
 
 __all__ = ["batch"]
 
@@ -37,9 +37,7 @@ def _batch_options(kw: dict, raster_opt: tuple[str, ...]):
 
     overrides = None
     if kw["raster"] is not None and _default("thickness"):  # resin layers: `raster`'s own default thickness
-        from .raster import DEFAULTS as RASTER_DEFAULTS
-
-        kw["thickness"], overrides = None, RASTER_DEFAULTS
+        kw["thickness"], overrides = None, RESIN_DEFAULTS
     params, placement = slicing_values(kw, overrides)
     try:
         return build(BatchOptions, kw, params=params, placement=placement,

@@ -15,12 +15,21 @@ from ..errors import ParameterError
 from ..options import flag_of
 from ..raster.settings import PrintSettings
 from ..raster.spec import ResinOptions
-from .options import build, click_options, refuse_model_as_output, slicing_options, slicing_values, values, with_options
+from .options import (
+    RESIN_DEFAULTS,
+    build,
+    click_options,
+    refuse_model_as_output,
+    slicing_options,
+    slicing_values,
+    values,
+    with_options,
+)
 
 __all__ = ["check", "print_report"]
 
 #: check's own default layer height (as raster's: resin printers print thin layers)
-DEFAULTS = {"thickness": 0.05}
+DEFAULTS = RESIN_DEFAULTS
 #: rows of each list printed (the JSON report has them all)
 MAX_ROWS = 10
 

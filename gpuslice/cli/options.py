@@ -17,9 +17,13 @@ from ..errors import ParameterError
 from ..options import OptionInfo, options_of
 
 __all__ = ["click_options", "with_options", "build", "values", "flag_for", "cli_message", "fail", "EXIT_USAGE",
-           "option_classes", "slicing_options", "slicing_values", "refuse_model_as_output"]
+           "option_classes", "slicing_options", "slicing_values", "refuse_model_as_output", "RESIN_DEFAULTS"]
 
 EXIT_USAGE = 2
+
+#: the slicing defaults of the resin commands (`raster`, `check`, and `batch --raster`, `view --raster/--check`):
+#: resin printers print thinner layers than `slice`'s default
+RESIN_DEFAULTS = {"thickness": 0.05}
 
 
 def fail(message: str, code: int = EXIT_USAGE) -> None:

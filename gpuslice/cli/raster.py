@@ -13,6 +13,7 @@ import click
 from ..raster.settings import PrintSettings, format_duration, print_time_s, resin_ml
 from ..raster.spec import RasterSpec, ResinOptions
 from .options import (
+    RESIN_DEFAULTS,
     build,
     click_options,
     fail,
@@ -26,7 +27,7 @@ from .options import (
 __all__ = ["raster"]
 
 #: raster's own default layer height (resin printers print thinner layers than `slice`'s default)
-DEFAULTS = {"thickness": 0.05}
+DEFAULTS = RESIN_DEFAULTS
 
 
 def _print_checks(model: str):

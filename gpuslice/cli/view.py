@@ -11,7 +11,7 @@ import click
 from ..mesh.mesh import Placement
 from ..options import options_of
 from ..slicing.params import SliceParams
-from .options import fail, refuse_model_as_output, slicing_options, slicing_values, with_options
+from .options import RESIN_DEFAULTS, fail, refuse_model_as_output, slicing_options, slicing_values, with_options
 
 __all__ = ["view"]
 
@@ -25,14 +25,15 @@ def _size(n: int) -> str:
 @click.option("-o", "--output", type=click.Path(path_type=str), default=None,
               help="The page to write (.html; default: SOURCE's name with .html, in the current folder).")
 @with_options(slicing_options(defaults=False))  # None unless given: they are refused with a saved .npz
-@click.option("--raster", is_flag=True, help="Add each layer's resin mask (gpuslice.raster), drawn under the contours.")
+@click.option("--raster", is_flag=True, help="Add each layer's resin mask (gpuslice.raster), drawn under the contours "
+              "(layers 0.05 mm unless -t is given, as `gpuslice raster`).")
 @click.option("--printer", default="generic-4k", show_default=True,
               help="--raster: the printer preset (a name `gpuslice printers` lists, or a .toml/.json file).")
 @click.option("--mask-every", type=int, default=1, show_default=True,
               help="--raster: a mask for every N-th layer only (smaller page).")
 @click.option("--title", default=None, help="Page title (default: the model's file name).")
-@click.option("--check", is_flag=True, help="Run the pre-print checks (as `gpuslice check`) and mark islands, resin "
-              "traps and suction cups on their layers, with a list to jump to them.")
+@click.option("--check", is_flag=True, help="Run the pre-print checks (as `gpuslice check`: layers 0.05 mm unless -t "
+              "is given) and mark islands, resin traps and suction cups on their layers, with a list to jump to them.")
 @click.option("-q", "--quiet", is_flag=True, help="Print nothing but errors.")
 def view(source: str, output: str | None, raster: bool, printer: str, mask_every: int, title: str | None,
          check: bool, quiet: bool, **kw) -> None:
@@ -62,7 +63,8 @@ def view(source: str, output: str | None, raster: bool, printer: str, mask_every
         from ..raster.spec import with_printer
 
         masks = with_printer(printer)  # a preset name or a .toml/.json preset file
-    params, placement = slicing_values(kw)
+    # resin masks or pre-print checks: sliced as `raster` and `check` slice (0.05 mm) unless -t is given
+    params, placement = slicing_values(kw, RESIN_DEFAULTS if raster or check else None)
     t0 = time.perf_counter()
     done = run_job(Job(source=source, placement=placement, params=params, mesh_check=False, saved_result=True,
                        view=ViewOutput(output, title, masks, mask_every), checks=CheckOutput() if check else None))

@@ -360,3 +360,17 @@ def test_browser_two_thousand_layers_a_million_points(browser, tmp_path):
     times = v.page.evaluate("gpusliceViewer.stepTimes(1000, 1100)")
     assert len(times) == 100  # the numbers are for the benchmark (scripts/bench_view.py), not asserted here
     v.close()
+
+
+def test_cli_resin_views_slice_as_the_resin_commands(tmp_path, capsys):
+    """`view --check` and `view --raster` slice at `check`'s and `raster`'s 0.05 mm unless -t is given (their
+    reports and masks are those commands'); a plain view keeps `slice`'s 0.1 mm."""
+    stl = tmp_path / "cube.stl"
+    shapes.write_stl(shapes.box(), stl)
+    run = ["view", str(stl), "--fit", "4", "--backend", "numpy", "-o", str(tmp_path / "v.html"), "-q"]
+    layers = {}
+    raster = ("--raster", "--mask-every", "100")
+    for extra in ((), ("--check",), ("--check", "-t", "0.1"), raster):
+        assert main([*run, *extra]) == 0
+        layers[extra] = read_view_data(tmp_path / "v.html")["arrays"]["z"].size
+    assert layers == {(): 40, ("--check",): 80, ("--check", "-t", "0.1"): 40, raster: 80}
