@@ -15,7 +15,7 @@ trap reported); :data:`DEFAULT_GRID_MM` is 0.2 mm, give a finer grid or the prin
 
 **Memory.** Nothing is a 3D array: each layer is row intervals of solid cells (:mod:`gpuslice.checks.intervals`),
 and only the empty runs between two solid runs of a row (*gaps*) can be enclosed. Layers come in batches; a batch's
-gaps are joined into 2D components inside each layer (``scipy.sparse.csgraph.connected_components``); those that
+gaps are joined into 2D components inside each layer (:func:`gpuslice.checks.intervals.components`); those that
 reach the grid's border are outside, the others are *holes* and become nodes, linked to the holes of the layer
 below and above where they share a cell, or marked open where they share a cell with the outside of the layer below
 or above. Only the last layer of a batch is kept for the next, so memory is one batch of runs plus the holes. A

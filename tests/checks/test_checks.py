@@ -543,3 +543,34 @@ def test_layers_whose_unsupported_area_failed_are_reported_not_hidden():
     print_report(report, "box", console=Console(file=buf, width=200))
     out = buf.getvalue()
     assert "largest 0.500 mm² at layer 1" in out and "not computed on 1 layers" in out
+
+
+@pytest.mark.parametrize("n", [1, 50, 3000, 250_000])
+def test_components_number_as_scipy(n):
+    """The checks' connected components (numpy below 200k nodes, scipy above): scipy's labels, component by
+    component in order of first node, on random sparse graphs with isolated nodes and self-loops."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from gpuslice.checks.intervals import components
+
+    rng = np.random.default_rng(n)
+    m = int(n * 0.6)
+    src, dst = rng.integers(0, n, m), rng.integers(0, n, m)
+    want = connected_components(csr_matrix((np.ones(m, np.int8), (src, dst)), shape=(n, n)), directed=False)[1]
+    assert np.array_equal(components(n, src, dst), want)
+
+
+def test_check_command_does_not_import_scipy_sparse(tmp_path):
+    """`gpuslice check` on a small model: its components by numpy, no scipy.sparse import (~0.16 s of start-up)."""
+    import subprocess
+    import sys
+
+    stl = tmp_path / "hollow.stl"
+    from gpuslice.mesh import shapes
+
+    shapes.write_stl(shapes.hollow_box(), stl)  # a cavity: its holes are joined as components
+    code = ("import sys; from gpuslice.cli import main; "
+            f"rc = main(['check', {str(stl)!r}, '-t', '1', '--backend', 'numpy', '-q']); "
+            "assert rc == 0 and 'scipy.sparse' not in sys.modules, sorted(m for m in sys.modules if 'scipy' in m)")
+    subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, timeout=120)
