@@ -171,11 +171,11 @@ class Lines:
 def components(n: int, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """(n,) component label of each of ``n`` nodes joined by the edges ``src``–``dst``: labels 0, 1, … numbered in
     order of each component's first node (as scipy's ``connected_components``). By
-    :func:`gpuslice.mesh.defects.components`: numpy for the graphs the checks make (a few thousand nodes), scipy
+    :func:`gpuslice.mesh.graph.components`: numpy for the graphs the checks make (a few thousand nodes), scipy
     only for large ones, so that `gpuslice check` does not import scipy.sparse (~0.16 s) for a typical model."""
     if n == 0:
         return np.zeros(0, np.int64)
-    from ..mesh.defects import components as smallest_node_labels
+    from ..mesh.graph import components as smallest_node_labels
 
     labels = smallest_node_labels(n, np.asarray(src, np.int64), np.asarray(dst, np.int64))
     return np.unique(labels, return_inverse=True)[1].astype(np.int64).reshape(n)

@@ -5,7 +5,7 @@ The slicer never rewrites the mesh: loops get their orientation from nesting, op
 ``chain.py``, degenerate facets are dropped in ``mesh.py``. This module only *counts* what was wrong, so that
 ``gpuslice slice`` can say which repairs a file needed. Everything is vectorised and linear in the facets: the
 pairing of the facet sides along each edge comes from the edge numbering (``Mesh.edge_sides``, no sort here), the
-shells are connected components (the device's union-find when the mesh was welded on one, else scipy or numpy),
+shells are connected components (:func:`gpuslice.mesh.graph.components`: on the device when the mesh was welded on one),
 the volumes are summed a block of facets at a time, solid angles judge nested shells.
 
 Definitions (all counts are integers):
@@ -29,9 +29,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from .graph import components
 from .mesh import Mesh
 
-__all__ = ["MESH_REPAIR_KINDS", "mesh_repairs", "outward_facets", "connected_labels", "components"]
+__all__ = ["MESH_REPAIR_KINDS", "mesh_repairs", "outward_facets"]
 
 #: Keys of :func:`mesh_repairs`, in report order.
 MESH_REPAIR_KINDS = (
@@ -51,61 +52,8 @@ _BATCH = 500_000
 _ROWS = 256
 # total (sample point, facet) solid angles for the nesting test; candidates beyond it are left unjudged
 _WORK = 50_000_000
-# graphs with at least this many nodes go to scipy on the host (linear; the numpy pointer jumping is not)
-_SCIPY_NODES = 200_000
 # facets per block of the float64 volume terms (bounded memory: no (F, 3, 3) float64 copy of the mesh)
 _FACET_BLOCK = 1 << 16
-
-
-def connected_labels(n: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Connected components of the graph on nodes ``0 .. n - 1`` with edges ``a[i] -- b[i]``: (n,) int64 labels,
-    each node labelled with the smallest node of its component.
-
-    Min-label hooking with full pointer jumping (numpy only: no scipy import on the command line's path); the number
-    of rounds grows with the logarithm of the component sizes.
-    """
-    label = np.arange(n, dtype=np.int64)
-    a = np.asarray(a, dtype=np.int64)
-    b = np.asarray(b, dtype=np.int64)
-    while a.size:
-        la, lb = label[a], label[b]
-        differ = la != lb
-        if not differ.any():
-            break
-        a, b, la, lb = a[differ], b[differ], la[differ], lb[differ]  # edges inside a finished tree are done
-        low = np.minimum(la, lb)
-        np.minimum.at(label, np.maximum(la, lb), low)  # hook the larger root under the smaller
-        while True:  # pointer jumping until every node points at its root
-            up = label[label]
-            if np.array_equal(up, label):
-                break
-            label = up
-    return label
-
-
-def components(n: int, a: np.ndarray, b: np.ndarray, device=None) -> np.ndarray:
-    """:func:`connected_labels` (labels: the smallest node of each component) in linear time: on ``device`` (the
-    union-find of ``kernels/weld.cl``), else with scipy's ``connected_components`` for large graphs (its import,
-    ~0.2 s, pays off), else :func:`connected_labels`. Returns (n,) int32 or int64 labels."""
-    if device is not None:
-        from .weld import WeldKernel
-
-        kernel = WeldKernel.of(device)
-        labels = kernel.components(n, a, b)
-        kernel.release()
-        return labels
-    if n < _SCIPY_NODES:
-        return connected_labels(n, a, b)
-    from scipy.sparse import csr_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    graph = csr_matrix((np.ones(a.size, dtype=np.int8), (a, b)), shape=(n, n))
-    _, comp = connected_components(graph, directed=False)
-    del graph
-    smallest = np.empty(int(comp.max()) + 1 if n else 0, dtype=np.int64)
-    nodes = np.arange(n, dtype=np.int64)
-    smallest[comp[::-1]] = nodes[::-1]  # the last write wins: each component's smallest node
-    return smallest[comp]
 
 
 def _shells(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -190,18 +190,13 @@ def count_bodies(mesh: Mesh) -> int:
     """Connected components of facets sharing a vertex (bodies, shells)."""
     if mesh.n_faces == 0:
         return 0
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
+    from .graph import components
 
     f = mesh.faces.astype(np.int64)
     rows = np.concatenate([f[:, 0], f[:, 1]])
     cols = np.concatenate([f[:, 1], f[:, 2]])
-    n = mesh.vertices.shape[0]
-    graph = coo_matrix((np.ones(rows.size, dtype=np.int8), (rows, cols)), shape=(n, n))
-    n_comp, labels = connected_components(graph, directed=False)
-    used = np.zeros(n, dtype=bool)
-    used[f.reshape(-1)] = True
-    return int(np.unique(labels[used]).size)
+    labels = components(mesh.vertices.shape[0], rows, cols)
+    return int(np.unique(labels[f.reshape(-1)]).size)
 
 
 @dataclass(frozen=True)

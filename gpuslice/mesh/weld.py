@@ -290,7 +290,7 @@ class WeldKernel(KernelDriver):
 
     def components(self, n: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Connected components of the graph on nodes ``0 .. n - 1`` with edges ``a[i] -- b[i]``: (n,) int32 labels,
-        each node labelled with the smallest node of its component (as :func:`gpuslice.mesh.defects.connected_labels`).
+        each node labelled with the smallest node of its component (as :func:`gpuslice.mesh.graph.connected_labels`).
         """
         import pyopencl as cl
 

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..mesh.defects import connected_labels
+from ..mesh.graph import connected_labels
 from ..ragged import expand_ranges
 from . import rings as _rings
 from .rings import Nested, _groups, _ring_points, _winding_numbers, cycle_labels, filled, signed_areas

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..mesh.defects import connected_labels
+from ..mesh.graph import connected_labels
 from ..ragged import expand_ranges
 
 __all__ = ["Nested", "signed_areas", "filled", "cycle_labels", "beside", "in_halves", "node_lines", "move_chains"]

@@ -247,7 +247,7 @@ def _workload(pass_name: str) -> dict:
     # weld.cl's pairing of the sides and its union-find (the mesh check's shells)
     from dataclasses import astuple
 
-    from gpuslice.mesh.defects import connected_labels
+    from gpuslice.mesh.graph import connected_labels
     from gpuslice.mesh.weld import edge_table_numpy
 
     pairing = (WeldKernel.of(dev).edge_table(sphere.faces, n_v)[2], edge_table_numpy(sphere.faces, n_v)[2])

@@ -16,7 +16,8 @@ import pytest
 
 import gpuslice
 from gpuslice.mesh import shapes as S
-from gpuslice.mesh.defects import components, connected_labels, outward_facets
+from gpuslice.mesh.defects import outward_facets
+from gpuslice.mesh.graph import components, connected_labels
 from gpuslice.mesh.weld import EdgeSides, WeldKernel, edge_table_numpy, weld_device, weld_numpy
 
 
@@ -94,9 +95,9 @@ def test_pairing_of_random_faces(device):
 
 @pytest.mark.parametrize("where", ["numpy", "scipy", "device"])
 def test_components_label_each_node_with_its_smallest(where, device, monkeypatch):
-    import gpuslice.mesh.defects as D
+    import gpuslice.mesh.graph as G
 
-    monkeypatch.setattr(D, "_SCIPY_NODES", 10**9 if where == "numpy" else 0)
+    monkeypatch.setattr(G, "SCIPY_NODES", 10**9 if where == "numpy" else 0)
     rng = np.random.default_rng(2)
     for n, m in ((1, 0), (7, 0), (50, 30), (5000, 2500), (5000, 9000)):
         a, b = rng.integers(0, n, m), rng.integers(0, n, m)

@@ -624,7 +624,7 @@ def test_connected_labels_match_scipy():
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    from gpuslice.mesh.defects import connected_labels
+    from gpuslice.mesh.graph import connected_labels
 
     rng = np.random.default_rng(5)
     for n, m in ((1, 0), (10, 0), (50, 30), (2000, 1900), (2000, 4000), (5000, 2500)):
