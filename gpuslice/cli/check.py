@@ -28,8 +28,6 @@ from .options import (
 
 __all__ = ["check", "print_report"]
 
-#: check's own default layer height (as raster's: resin printers print thin layers)
-DEFAULTS = RESIN_DEFAULTS
 #: rows of each list printed (the JSON report has them all)
 MAX_ROWS = 10
 
@@ -106,7 +104,7 @@ def _with_flags(exc: ParameterError) -> ParameterError:
 
 @click.command()
 @click.argument("model", type=click.Path(dir_okay=True, path_type=str))
-@with_options(slicing_options(overrides=DEFAULTS))
+@with_options(slicing_options(overrides=RESIN_DEFAULTS))
 @with_options(click_options(ResinOptions, only=("printer",)))
 @with_options(click_options(CheckOptions))
 @with_options(click_options(PrintSettings, defaults=False))  # None unless given: they override the preset
@@ -120,7 +118,7 @@ def check(model: str, json_path: str | None, quiet: bool, **kw) -> None:
     from ..pipeline import CheckOutput, Job, run_job
 
     refuse_model_as_output(model, json_path)
-    params, placement = slicing_values(kw, DEFAULTS)
+    params, placement = slicing_values(kw, RESIN_DEFAULTS)
     options = build(ResinOptions, kw)
     spec = options.spec() if options.printer is not None else None
     settings = options.settings(**values(PrintSettings, kw))

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import click
 
+from ..raster.outputs import resin_format_names
 from ..raster.settings import PrintSettings, format_duration, print_time_s, resin_ml
 from ..raster.spec import RasterSpec, ResinOptions
 from .options import (
@@ -26,9 +27,6 @@ from .options import (
 
 __all__ = ["raster"]
 
-#: raster's own default layer height (resin printers print thinner layers than `slice`'s default)
-DEFAULTS = RESIN_DEFAULTS
-
 
 def _print_checks(model: str):
     from .check import print_report
@@ -40,12 +38,6 @@ def _outputs_help() -> str:
     from ..raster.outputs import resin_usage
 
     return resin_usage()
-
-
-def _format_names() -> list[str]:
-    from ..raster.outputs import resin_format_names
-
-    return resin_format_names()
 
 
 class _Bar:
@@ -78,9 +70,9 @@ class _Bar:
 @click.argument("model", type=click.Path(dir_okay=True, path_type=str))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=str),
               help=f"Where to write: {_outputs_help()}.")
-@click.option("--format", "fmt_name", type=click.Choice(_format_names()), default=None,
+@click.option("--format", "fmt_name", type=click.Choice(resin_format_names()), default=None,
               help="The output format, whatever -o's suffix (default: -o's suffix picks it; `png`: a PNG stack).")
-@with_options(slicing_options(overrides=DEFAULTS))
+@with_options(slicing_options(overrides=RESIN_DEFAULTS))
 @with_options(click_options(ResinOptions, only=("printer",)))
 @with_options(click_options(RasterSpec, defaults=False))  # None unless given: they override the preset
 @with_options(click_options(ResinOptions, exclude=("printer",)))
@@ -110,7 +102,7 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
     parent = Path(output.rstrip("/\\") or ".").resolve().parent
     if not parent.is_dir():
         fail(f"{output}: directory {parent} does not exist")
-    params, placement = slicing_values(kw, DEFAULTS)
+    params, placement = slicing_values(kw, RESIN_DEFAULTS)
     options = build(ResinOptions, kw)
     spec = options.spec(**values(RasterSpec, kw))
     settings = options.settings(**values(PrintSettings, kw))

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from ..formats import format_names
 from .options import fail, refuse_model_as_output, slicing_options, slicing_values, with_options
 
 __all__ = ["slice_cmd", "build_report", "adaptive_lines"]
@@ -15,12 +16,6 @@ def _formats_help() -> str:
     from ..formats import suffixes
 
     return ", ".join(suffixes())
-
-
-def _format_names() -> list[str]:
-    from ..formats import CONTOUR_FORMATS
-
-    return list(CONTOUR_FORMATS)
 
 
 def adaptive_lines(meta: dict) -> list[str]:
@@ -61,7 +56,7 @@ def build_report(result) -> dict:
 @with_options(slicing_options())
 @click.option("-o", "--output", type=click.Path(path_type=str), default=None,
               help=f"Write the layers; the suffix picks the format ({_formats_help()}).")
-@click.option("--format", "fmt_name", type=click.Choice(_format_names()), default=None,
+@click.option("--format", "fmt_name", type=click.Choice(format_names()), default=None,
               help="The output format, whatever -o's suffix (default: -o's suffix picks it).")
 @click.option("--report", type=click.Path(path_type=str), default=None, help="Write the run report as JSON.")
 @click.option("-q", "--quiet", is_flag=True, help="No summary on stdout.")

@@ -477,8 +477,7 @@ def write_target(layers: Iterable[Tile | RunLayer], target) -> dict[str, Any]:
     name of each suffix), else the suffix of ``target.path``, picks the machine (:data:`MACHINES`); a printer preset
     overrides its name, Z travel and (native format here) version."""
     path = Path(os.fspath(target.path))
-    fmt = getattr(target, "format", None)
-    suffix = fmt if fmt is not None else path.suffix.lower().lstrip(".")
+    suffix = target.format if target.format is not None else path.suffix.lower().lstrip(".")
     if suffix not in MACHINES:
         raise ParameterError(f"{path}: not a Photon Workshop suffix (use .{', .'.join(MACHINES)})")
     machine = MACHINES[suffix]
