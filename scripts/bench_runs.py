@@ -7,9 +7,10 @@ an 11520x5120 display of 0.019 mm pixels, gamma 0 and gamma 1. The file's talles
 
 In-process, warm (one warm-up run first), median of ``--repeat`` (wall and process CPU seconds: the CPU time of
 PoCL's threads counts, so it tells what a loaded machine hides): ``layer_edges`` (float32, as the runs take them);
-runs with OpenCL (given those edges; the stages split out in one more run that drains the queue after each; long
-rows finished on the host); both as the writers call them (``iter_runs`` making the edges chunk by chunk, the next
-chunk's on a thread while this one's runs are made: issue 18's in-process target, <= 0.3 s at gamma 0) and
+runs with OpenCL (given those edges; in ``LANES`` lanes and in one; the stages split out in one more run, one lane,
+that drains the queue after each; long rows finished on the host); both as the writers call them (``iter_runs``
+making the edges chunk by chunk, the next chunk's on a thread while this one's runs are made: issue 18's in-process
+target, <= 0.3 s at gamma 0) and
 with the numpy twin (``--skip-numpy``); once, for reference, the old bitmap path
 ``iter_tiles(backend="opencl-bitmap")`` with every tile consumed, its own ``layer_edges`` included (``--skip-old``,
 it takes ~20 s). Prints layers/s, the run count and the process's peak RSS after each stage, and the load average.
@@ -72,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     from gpuslice import mesh_from_triangles, slice_mesh
     from gpuslice.device import get_device
     from gpuslice.raster import RasterSpec, iter_tiles, layer_edges
-    from gpuslice.raster.runs import RunsKernel, iter_runs
+    from gpuslice.raster.runs import LANES, RunsKernel, iter_runs
 
     dev = get_device()
     m = trimesh.load(MESH, force="mesh")
@@ -114,22 +115,24 @@ def main(argv: list[str] | None = None) -> int:
             wall, cpu, le = timed(lambda spec=spec: layer_edges(res, spec, dtype=np.float32), args.repeat)
         row("layer_edges (float32)", wall, cpu, f"{le.edges.shape[0]} edges")
 
-        def runs(backend, le=le, spec=spec):
+        def runs(backend, le=le, spec=spec, lanes=None):
             count = 0
             given = dict(merged=le, z_samples=k) if k > 1 else {} if le is None else dict(edges=le)
-            for r in iter_runs(None if k > 1 else res, spec, backend=backend, device=dev, **given):
+            for r in iter_runs(None if k > 1 else res, spec, backend=backend, device=dev, lanes=lanes, **given):
                 count += r.n_runs
             return count
 
         wall, cpu, count = timed(lambda: runs("opencl"), args.repeat)
-        row("runs, OpenCL (given the edges)", wall, cpu, f"{count} runs")
+        row(f"runs, OpenCL (given the edges), {LANES} lanes", wall, cpu, f"{count} runs")
+        wall, cpu, count = timed(lambda: runs("opencl", lanes=1), args.repeat)
+        row("runs, OpenCL (given the edges), one lane (before lanes)", wall, cpu, f"{count} runs")
         if k == 1:
             wall, cpu, count = timed(lambda: runs("opencl", None), args.repeat)
             row("layer_edges + runs, OpenCL, as the writers call them", wall, cpu, f"{count} runs")
         long0, fb0, stages = kern.long_rows, kern.fallbacks, {}
         for _ in range(max(args.stage_repeat, 1)):
             kern.timings = {}
-            runs("opencl")
+            runs("opencl", lanes=1)  # (one lane: the stages of every batch on kern's queue, drained after each)
             for name, v in kern.timings.items():
                 stages.setdefault(name, []).append(v)
         kern.timings = None

@@ -22,13 +22,17 @@ are added back); pixels outside a layer's tile are 0, as in the raster path.
 Runs are ordered by (layer, row, x); two runs of one row never touch with the same grey (they are merged).
 
 Backends: ``"numpy"`` (:func:`runs_numpy`, the vectorised reference, in :mod:`gpuslice.raster.runs_twin` with
-:class:`Runs`) and ``"opencl"`` (``kernels/runs.cl``, :class:`RunsKernel`, here).
+:class:`Runs`) and ``"opencl"`` (``kernels/runs.cl``, :class:`RunsKernel`, here). On OpenCL, :func:`iter_runs`
+makes :data:`LANES` batches at once, each on its own queue and thread (:meth:`gpuslice.device.Device.lane`): a
+batch waits twice for the device (its rows' capacities, then its run counts: prefix sums on the host), and the
+other lane's kernels fill those waits.
 """
 
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterator, Sequence
+from collections import deque
+from collections.abc import Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -84,9 +88,12 @@ class RunsKernel(KernelDriver):
 
     def __init__(self, device) -> None:
         super().__init__(device)
+        import pyopencl as cl
+
         prog = device.program("runs.cl")
-        self._prep, self._edges, self._pieces = prog.runs_prep, prog.runs_edges, prog.runs_pieces
-        self._rows_k, self._emit = prog.runs_rows, prog.runs_emit
+        # kernel objects of this driver's own: a lane's driver sets their arguments from its own thread
+        self._prep, self._edges, self._pieces, self._rows_k, self._emit = (
+            cl.Kernel(prog, name) for name in ("runs_prep", "runs_edges", "runs_pieces", "runs_rows", "runs_emit"))
         #: rows finished on the host so far (more than CH records), batches redone by the numpy twin
         self.long_rows = self.fallbacks = 0
         #: set to a dict to get seconds per stage added up in it (the queue is then drained after each stage)
@@ -246,6 +253,38 @@ class RunsKernel(KernelDriver):
         return _cells_to_runs(g, c, s, rows, lut)
 
 
+#: batches of layers made at once by :func:`iter_runs` on OpenCL, each on a queue and a thread of its own (the module
+#: docstring; BENCHMARKS, "Runs in two lanes"); 1: one at a time, in the caller's thread
+LANES = 2
+
+
+def _in_lanes(kerns: list[RunsKernel], calls: Iterable[tuple]) -> Iterator[Runs]:
+    """``kerns[i % n].run(*args)`` for the i-th ``args`` of ``calls``, yielded in order, up to n = len(kerns) at once
+    (one thread a lane, each lane's calls one after the other: its driver's buffers are reused). An exception is
+    raised where its batch would have been yielded; closing the iterator early waits for the batches under way."""
+    n = len(kerns)
+    if n == 1:
+        for args in calls:
+            yield kerns[0].run(*args)
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    pools = [ThreadPoolExecutor(1, thread_name_prefix=f"gpuslice-runs-lane{i}") for i in range(n)]
+    pending: deque = deque()
+    try:
+        for i, args in enumerate(calls):
+            pending.append(pools[i % n].submit(kerns[i % n].run, *args))
+            if len(pending) == n:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+    finally:
+        for f in pending:
+            f.cancel()
+        for pool in pools:
+            pool.shutdown(wait=True)
+
+
 # ---- public entry points ------------------------------------------------------------------------------------------
 def _batches(le: LayerEdges, max_pieces: int) -> Iterator[range]:
     """Consecutive layer ranges of at most about ``max_pieces`` cell records each (at least one layer)."""
@@ -280,6 +319,7 @@ def iter_runs(
     edges: LayerEdges | None = None,
     z_samples: int = 1,
     merged: LayerEdges | None = None,
+    lanes: int | None = None,
 ) -> Iterator[Runs]:
     """Yield one :class:`Runs` per batch of consecutive layers (``layers``, default all, in order).
 
@@ -310,22 +350,32 @@ def iter_runs(
     lut = np.repeat(gamma_lut(spec.gamma), max(k, 1))  # lut[i] = gamma_lut[i // k]: see kernels/runs.cl
     if lut[0] != 0:  # pragma: no cover - gamma_lut maps no coverage to black for every gamma
         raise ParameterError("the gamma table must map coverage 0 to grey 0")
-    kern = RunsKernel.of(device if device is not None else get_device()) if backend == "opencl" else None
+    kerns = []
+    if backend == "opencl":
+        dev = device if device is not None else get_device()
+        n_lanes = LANES if lanes is None else int(lanes)
+        if n_lanes < 1:
+            raise ParameterError(f"lanes must be at least 1, got {lanes}", param="lanes")
+        kerns = [RunsKernel.of(dev.lane(i)) for i in range(n_lanes)]
     # the next chunk's edges are made on a thread while this one's batches run (numpy releases the GIL)
     if merged is not None:
         chunks = iter([(0, merged)])
     else:
         chunks = prefetch(iter_layer_edges(result, spec, bounds, layers, edges, k, dtype=np.float32),
                           depth=0 if edges is not None else 1)
-    for pos, le in chunks:
-        if le.edges.dtype != np.float32:  # every backend computes on float32: convert once, not per batch
-            le = LayerEdges(le.edges.astype(np.float32), le.edge_offsets, le.tiles)
-        for batch in _batches(le, max_batch_pieces):
-            sel = index[pos + batch.start : pos + batch.stop]
-            if kern is None:
-                yield runs_numpy(le, lut, spec.shape, batch, sel)
-            else:
-                yield kern.run(le, batch, lut, spec.shape, sel)
+
+    def calls() -> Iterator[tuple]:
+        for pos, le in chunks:
+            if le.edges.dtype != np.float32:  # every backend computes on float32: convert once, not per batch
+                le = LayerEdges(le.edges.astype(np.float32), le.edge_offsets, le.tiles)
+            for batch in _batches(le, max_batch_pieces):
+                yield le, batch, lut, spec.shape, index[pos + batch.start : pos + batch.stop]
+
+    if not kerns:
+        for le, batch, lut_, shape, sel in calls():
+            yield runs_numpy(le, lut_, shape, batch, sel)
+    else:
+        yield from _in_lanes(kerns, calls())
 
 
 def layer_runs(result, spec: RasterSpec | None = None, **options) -> Runs:

@@ -311,6 +311,46 @@ def test_iter_runs_batches_and_empty_layers(device):
     assert np.array_equal(sub.to_mask(0), masks(res, spec, backend="opencl-bitmap", layers=[2])[0])
 
 
+def test_lanes_same_runs_in_order_and_errors_where_they_happen(device):
+    """Batches made in 1, 2 or 3 lanes (queues and threads of their own): the same runs in the same order; closing
+    the iterator early leaves no lane thread behind; an error in one lane's batch is raised where that batch would
+    have come, after the batches before it."""
+    import threading
+
+    from gpuslice.raster import runs as runs_mod
+
+    res = slice_mesh(mesh_from_triangles(shapes.torus(15.0, 5.0, 48, 24)), thickness=1.0, backend="numpy")
+    spec = RasterSpec(resolution=(900, 900), pixel=0.05)
+    parts = {n: list(iter_runs(res, spec, device=device, max_batch_pieces=2_000, lanes=n)) for n in (1, 2, 3)}
+    assert len(parts[1]) >= 6  # several batches per lane
+    for n in (2, 3):
+        assert len(parts[n]) == len(parts[1])
+        for a, b in zip(parts[1], parts[n], strict=True):
+            assert_runs_equal(a, b)
+    it = iter_runs(res, spec, device=device, max_batch_pieces=2_000, lanes=2)
+    next(it)
+    it.close()
+    assert not [t for t in threading.enumerate() if t.name.startswith("gpuslice-runs-lane")]
+    lane1 = RunsKernel.of(device.lane(1))
+
+    def broken(*args):
+        raise RuntimeError("lane 1 failed")
+
+    lane1.run = broken
+    try:
+        got = []
+        with pytest.raises(RuntimeError, match="lane 1 failed"):
+            for r in iter_runs(res, spec, device=device, max_batch_pieces=2_000, lanes=2):
+                got.append(r)
+        assert len(got) == 1  # batch 0 (lane 0) came; batch 1 (lane 1) raised
+        assert_runs_equal(got[0], parts[1][0])
+    finally:
+        del lane1.run
+    with pytest.raises(Exception, match="lanes must be at least 1"):
+        next(iter_runs(res, spec, device=device, lanes=0))
+    assert runs_mod.LANES >= 1
+
+
 def test_edges_cut_into_row_bands_and_overlapping_pieces(device):
     """Every edge cut into units of 2 rows (runs_pieces writes nearly all pieces), star polygons whose vertices put
     two or more pieces in the same cells of a row (summed per cell first in runs_rows): runs == the numpy twin."""
