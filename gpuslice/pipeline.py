@@ -204,6 +204,10 @@ def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | Non
 
             release_scratch(dev)
     out = JobResult(mesh, result, dev, timings, stats)
+    if result.n_layers == 0 and (job.contours is not None or job.checks is not None or job.view is not None):
+        from .errors import ParameterError
+
+        raise ParameterError(f"{job.model_name}: no layers to write (the model is thinner than one layer)")
     if job.contours is not None:
         from .formats import export
 
@@ -319,7 +323,8 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
     else:
         layers = iter_tiles(out.result, r.spec, backend=backend, device=dev, bounds=bounds,
                             supersample=r.options.supersample)
-    name = r.options.job_name or Path(job.model_name).stem
+    # (a file name's bytes that are not UTF-8, kept by Python as surrogates, become U+FFFD in the archive's fields)
+    name = r.options.job_name or Path(job.model_name).stem.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
     n = out.result.n_layers
     tick = (lambda k: progress(k, n)) if progress is not None else None
     settings = r.settings if r.settings is not None else r.options.settings()

@@ -13,7 +13,17 @@ import sys
 import click
 
 from ..batch.options import BatchOptions
-from .options import RESIN_DEFAULTS, build, click_options, fail, slicing_options, slicing_values, with_options
+from .options import (
+    RESIN_DEFAULTS,
+    build,
+    check_output_file,
+    check_resin_layers,
+    click_options,
+    fail,
+    slicing_options,
+    slicing_values,
+    with_options,
+)
 
 __all__ = ["batch"]
 
@@ -137,11 +147,14 @@ def batch(inputs, out_dir, pattern, raster_opt, workers, threads, scheduler, tra
         fail("--transfer only applies with --scheduler")
     if kw["raster"] is None and raster_opt:
         fail("--raster-opt needs --raster")
+    check_output_file(report)  # refused now, not after every model is done
     opts = _batch_options(kw, raster_opt)
     if opts.raster is not None:
         from ..raster.outputs import source_date
 
         source_date()  # a bad SOURCE_DATE_EPOCH is an error now, not in every model
+        check_resin_layers(opts.params)
+        opts.resin()  # the resin options checked now (a job name with '/', ...), not in every model
     models = discover(inputs, pattern, opts.suffix, out_dir)
     client = None
     if scheduler is not None:

@@ -38,7 +38,20 @@ def _setup(model, thicknesses, modes, kw):
     load_times: dict[str, float] = {}
     dev = prepare_device(params, timings=load_times)
     mesh = load_job_mesh(job, dev, load_times)
+    _refuse_no_layers(model, mesh, [s.overrides.get("thickness") for s in settings])
     return settings, params, mesh, load_times
+
+
+def _refuse_no_layers(model: str, mesh, thicknesses) -> None:
+    """A one-line error naming ``model`` when it is flat, or when one of the uniform ``thicknesses`` (mm; None
+    entries skipped) cuts it nowhere: its first plane, at half a layer, lies above the top."""
+    from ..schedule.uniform import uniform
+
+    if mesh.height <= 0:
+        fail(f"{model}: the model is flat (0 mm tall): no layers to slice")
+    for t in thicknesses:
+        if t is not None and len(uniform(mesh.height, t)) == 0:
+            fail(f"{model}: {t:g} mm layers give no layers: the model is only {mesh.height:g} mm tall")
 
 
 def _fmt(v, digits=4):
@@ -76,14 +89,16 @@ def _table(res) -> None:
 
 
 
-def _make_dir(path: str) -> None:
-    """Create the plot directory (as ``mkdir -p`` of one level); its parent must exist."""
+def _make_dir(path: str, create: bool = True) -> None:
+    """Create the plot directory (as ``mkdir -p`` of one level); its parent must exist. ``create=False`` only checks
+    (before the work, so that a failed run leaves no empty directory)."""
     d = Path(path)
     if d.exists() and not d.is_dir():
         fail(f"{d}: exists and is not a directory")
     if not d.parent.is_dir():
         fail(f"{d}: directory {d.parent} does not exist")
-    d.mkdir(exist_ok=True)
+    if create:
+        d.mkdir(exist_ok=True)
 
 @click.command()
 @click.argument("model", type=click.Path(dir_okay=True, path_type=str))
@@ -107,9 +122,13 @@ def bench(model, thicknesses, modes, repeat, no_quality, ref_thickness, as_json,
         fail("--json and --csv exclude each other")
     if repeat < 1:
         fail(f"--repeat must be >= 1, got {repeat}")
+    if ref_thickness is not None and not ref_thickness > 0:  # (0 would silently mean the default)
+        fail(f"--ref-thickness must be a positive number of mm, got {ref_thickness}")
     if plots_dir is not None:
-        _make_dir(plots_dir)
+        _make_dir(plots_dir, create=False)
     settings, params, mesh, load_times = _setup(model, thicknesses, modes, kw)
+    if not no_quality:
+        _refuse_no_layers(model, mesh, [ref_thickness])
     console = Console(stderr=True)
     steps = 1 + len(settings) * repeat + (0 if no_quality else len(settings))
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
@@ -127,6 +146,7 @@ def bench(model, thicknesses, modes, repeat, no_quality, ref_thickness, as_json,
     if plots_dir is not None:
         from ..bench.plots import plot_all
 
+        _make_dir(plots_dir)
         paths = plot_all(res.results, plots_dir, Path(model).stem)
         click.echo(f"wrote {len(paths)} plot files to {plots_dir}", err=as_json or as_csv)
 
@@ -144,20 +164,21 @@ def plot(model, thicknesses, modes, out_dir, layers, **kw) -> None:
     from ..bench.plots import default_layers, plot_all, plot_layers
     from ..slicing.slicer import slice_mesh
 
-    _make_dir(out_dir)
+    _make_dir(out_dir, create=False)
+    try:  # (checked before any work, the range once the first setting is sliced: before any file is written)
+        idx = [int(x) for x in (layers or "").split(",") if x.strip()]
+    except ValueError:
+        fail(f"--layers: expected comma-separated layer indices, got '{layers}'")
     settings, params, mesh, _ = _setup(model, thicknesses, modes, kw)
     results = {s.label: slice_mesh(mesh, replace(params, **s.overrides)) for s in settings}
+    first = next(iter(results.values()))
+    bad = [i for i in idx if not 0 <= i < first.n_layers]
+    if bad:
+        fail(f"--layers: {bad} out of range (0..{first.n_layers - 1})")
+    _make_dir(out_dir)
     name = Path(model).stem
     paths = plot_all(results, out_dir, name)
     if layers:
-        first = next(iter(results.values()))
-        try:
-            idx = [int(x) for x in layers.split(",") if x.strip()]
-        except ValueError:
-            fail(f"--layers: expected comma-separated layer indices, got '{layers}'")
-        bad = [i for i in idx if not 0 <= i < first.n_layers]
-        if bad:
-            fail(f"--layers: {bad} out of range (0..{first.n_layers - 1})")
         paths += plot_layers(first, idx or default_layers(first), Path(out_dir) / f"{name}_layers_chosen")
     for lv in (r.meta.get("adaptive") or {} for r in results.values()):
         for x in lv.get("levels", []):

@@ -18,6 +18,8 @@ from ..raster.spec import ResinOptions
 from .options import (
     RESIN_DEFAULTS,
     build,
+    check_output_file,
+    check_resin_layers,
     click_options,
     refuse_model_as_output,
     slicing_options,
@@ -118,7 +120,9 @@ def check(model: str, json_path: str | None, quiet: bool, **kw) -> None:
     from ..pipeline import CheckOutput, Job, run_job
 
     refuse_model_as_output(model, json_path)
+    check_output_file(json_path)
     params, placement = slicing_values(kw, RESIN_DEFAULTS)
+    check_resin_layers(params)
     options = build(ResinOptions, kw)
     spec = options.spec() if options.printer is not None else None
     settings = options.settings(**values(PrintSettings, kw))

@@ -3,9 +3,10 @@
 
 Results go to stdout (or files), progress and errors to stderr. A user error (bad file, bad option) prints one line
 ``gpuslice: error: <file>: <problem>`` and exits with status 2; the library's errors name option fields
-(``max_gap``), shown here as their flags (``--max-gap``). Ctrl-C exits with 130. Outputs are written under a
-temporary name and renamed when complete, so an interrupted run leaves no partial file. ``--debug`` shows
-tracebacks.
+(``max_gap``), shown here as their flags (``--max-gap``). Ctrl-C exits with 130; SIGTERM (``kill``, ``timeout``)
+and SIGHUP (a closed terminal) stop a command the same way, exiting with 128 + the signal's number (143, 129).
+Outputs are written under a temporary name and renamed when complete, so an interrupted run leaves no partial
+file. ``--debug`` shows tracebacks.
 
 The installed ``gpuslice`` command (and ``python -m gpuslice.cli``) enters through :func:`entry`, which ends the
 process without the interpreter's teardown once the command is over (see :func:`exit_now`); :func:`main` returns
@@ -14,8 +15,10 @@ the exit code and is what scripts and tests call in-process.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import os
+import signal
 import sys
 import threading
 
@@ -85,9 +88,13 @@ def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else list(argv)
     debug = "--debug" in args
     try:
-        cli.main(args=args, prog_name="gpuslice", standalone_mode=False)
-    except click.exceptions.Abort:
+        with _stop_on_terminate():
+            cli.main(args=args, prog_name="gpuslice", standalone_mode=False)
+    except click.exceptions.Abort as exc:
         _INTERRUPTED.set()
+        if isinstance(exc.__cause__, Terminated):
+            click.echo(f"gpuslice: {exc.__cause__}", err=True)
+            return 128 + exc.__cause__.signum
         click.echo("gpuslice: interrupted", err=True)
         return 130
     except click.ClickException as exc:
@@ -98,8 +105,11 @@ def main(argv: list[str] | None = None) -> int:
             raise
         click.echo(f"gpuslice: error: {flatten(_message(exc))}", err=True)
         return EXIT_USAGE
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         _INTERRUPTED.set()
+        if isinstance(exc, Terminated):
+            click.echo(f"gpuslice: {exc}", err=True)
+            return 128 + exc.signum
         click.echo("gpuslice: interrupted", err=True)
         return 130
     except SystemExit as exc:
@@ -137,6 +147,53 @@ def entry() -> None:
 
 #: set once the command was interrupted (Ctrl-C): see :func:`_unraisable`
 _INTERRUPTED = threading.Event()
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP while a command runs, raised in the main thread as Ctrl-C's KeyboardInterrupt is: every
+    ``with`` block unwinds as for Ctrl-C (an output's temporary file removed, encoder threads and workers stopped)."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = int(signum)
+
+    def __str__(self) -> str:
+        return f"terminated ({signal.Signals(self.signum).name})"
+
+
+@contextlib.contextmanager
+def _stop_on_terminate():
+    """While the command runs, SIGTERM and SIGHUP raise :class:`Terminated` in the main thread instead of killing
+    the process on the spot, which would leave an output's hidden temporary file (``.part.goo.tmp-…``) behind.
+    Only signals left at their default action are taken (``nohup`` keeps SIGHUP ignored); later ones while the
+    command unwinds are ignored, so the clean-up finishes; the previous handlers come back afterwards. Nothing is
+    done outside the main thread (``signal.signal`` is refused there)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    pid = os.getpid()
+    seen: list[int] = []
+
+    def handler(signum, frame):
+        if os.getpid() != pid:  # a forked child that inherited the handler: die as the signal asks
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+            return
+        if not seen:
+            seen.append(signum)
+            _INTERRUPTED.set()
+            raise Terminated(signum)
+
+    previous = {}
+    for name in ("SIGTERM", "SIGHUP"):
+        signum = getattr(signal, name, None)
+        if signum is not None and signal.getsignal(signum) == signal.SIG_DFL:
+            previous[signum] = signal.signal(signum, handler)
+    try:
+        yield
+    finally:
+        for signum, old in previous.items():
+            signal.signal(signum, old)
 
 
 def _unraisable(info) -> None:

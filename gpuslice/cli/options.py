@@ -17,13 +17,18 @@ from ..errors import ParameterError
 from ..options import OptionInfo, options_of
 
 __all__ = ["click_options", "with_options", "build", "values", "flag_for", "cli_message", "fail", "EXIT_USAGE",
-           "option_classes", "slicing_options", "slicing_values", "refuse_model_as_output", "RESIN_DEFAULTS"]
+           "option_classes", "slicing_options", "slicing_values", "refuse_model_as_output", "RESIN_DEFAULTS",
+           "check_output_file", "check_distinct_outputs", "check_resin_layers", "MIN_RESIN_LAYER"]
 
 EXIT_USAGE = 2
 
 #: the slicing defaults of the resin commands (`raster`, `check`, and `batch --raster`, `view --raster/--check`):
 #: resin printers print thinner layers than `slice`'s default
 RESIN_DEFAULTS = {"thickness": 0.05}
+
+#: the thinnest layer the resin commands take, mm: no resin printer's Z axis steps finer than about 1 µm (the finest
+#: makers quote 1.25 µm); thinner layers only make millions of layers to rasterise (-t 5e-6: 4 million on a 20 mm part)
+MIN_RESIN_LAYER = 0.001
 
 
 def fail(message: str, code: int = EXIT_USAGE) -> None:
@@ -46,6 +51,51 @@ def refuse_model_as_output(model: str, *outputs: str | None) -> None:
             same = False
         if same:
             fail(f"{out}: is the model {model} itself; name another output")
+
+
+def check_output_file(*paths: str | None) -> None:
+    """A one-line error, before any work, for an output file that could not be written at the end: its folder does
+    not exist or is a file, or the path is an existing folder. None paths are skipped."""
+    from pathlib import Path
+
+    for out in paths:
+        if out is None:
+            continue
+        path = Path(out)
+        if path.is_dir():
+            fail(f"{out}: is a folder; name the file to write")
+        parent = path.parent
+        if parent.exists() and not parent.is_dir():
+            fail(f"{out}: {parent} is a file, not a directory")
+        if not parent.is_dir():
+            fail(f"{out}: directory {parent} does not exist")
+
+
+def check_distinct_outputs(output: str | None, report: str | None) -> None:
+    """A one-line error when ``--report`` names the output itself (it would silently replace the file just written);
+    None paths are skipped."""
+    import os
+
+    if output is None or report is None:
+        return
+    a, b = (os.path.normcase(os.path.abspath(x.rstrip("/\\") or ".")) for x in (output, report))
+    if a == b:
+        fail(f"{report}: --report names the output itself; name another file")
+
+
+def check_resin_layers(params) -> None:
+    """A one-line error when a resin command's finest layer (``-t``, ``--first-layer``; ``--min-height`` for
+    cusp/area, the last ``--roi-ladder`` step for roi) is thinner than :data:`MIN_RESIN_LAYER` mm."""
+    if params.adaptive in ("cusp", "area"):
+        finest = {"min_height": params.min_height}
+    elif params.adaptive == "roi":
+        finest = {"roi_ladder": min(params.roi_ladder)}
+    else:
+        finest = {"thickness": params.thickness, "first_layer": params.first_layer}
+    for name, value in finest.items():
+        if value is not None and value < MIN_RESIN_LAYER:
+            fail(f"{flag_for(name)} {value:g} mm: resin layers thinner than {MIN_RESIN_LAYER:g} mm are refused "
+                 "(no resin printer moves in finer steps)")
 
 
 def _click_option(info: OptionInfo, defaults: bool, default: Any) -> Callable:

@@ -16,6 +16,9 @@ from ..raster.spec import RasterSpec, ResinOptions
 from .options import (
     RESIN_DEFAULTS,
     build,
+    check_distinct_outputs,
+    check_output_file,
+    check_resin_layers,
     click_options,
     fail,
     refuse_model_as_output,
@@ -102,7 +105,10 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
     parent = Path(output.rstrip("/\\") or ".").resolve().parent
     if not parent.is_dir():
         fail(f"{output}: directory {parent} does not exist")
+    check_output_file(report)
+    check_distinct_outputs(output, report)
     params, placement = slicing_values(kw, RESIN_DEFAULTS)
+    check_resin_layers(params)
     options = build(ResinOptions, kw)
     spec = options.spec(**values(RasterSpec, kw))
     settings = options.settings(**values(PrintSettings, kw))

@@ -7,7 +7,15 @@ from pathlib import Path
 import click
 
 from ..formats import format_names
-from .options import fail, refuse_model_as_output, slicing_options, slicing_values, with_options
+from .options import (
+    check_distinct_outputs,
+    check_output_file,
+    fail,
+    refuse_model_as_output,
+    slicing_options,
+    slicing_values,
+    with_options,
+)
 
 __all__ = ["slice_cmd", "build_report", "adaptive_lines"]
 
@@ -68,11 +76,11 @@ def slice_cmd(model: str, output: str | None, fmt_name: str | None, report: str 
 
     if output is not None:
         format_for(output, fmt_name)  # an unknown suffix fails before any work
-        if Path(output).is_dir():
-            fail(f"{output}: is a folder; name the file to write")
     elif fmt_name is not None:
         fail(f"--format {fmt_name} needs -o, the file to write")
     refuse_model_as_output(model, output, report)
+    check_output_file(output, report)  # a folder that is missing: refused now, not after the slicing
+    check_distinct_outputs(output, report)
     params, placement = slicing_values(kw)
     done = run_job(Job(source=model, placement=placement, params=params, contours=output, contours_format=fmt_name,
                        cusp=report is not None))

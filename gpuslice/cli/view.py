@@ -11,7 +11,16 @@ import click
 from ..mesh.mesh import Placement
 from ..options import options_of
 from ..slicing.params import SliceParams
-from .options import RESIN_DEFAULTS, fail, refuse_model_as_output, slicing_options, slicing_values, with_options
+from .options import (
+    RESIN_DEFAULTS,
+    check_output_file,
+    check_resin_layers,
+    fail,
+    refuse_model_as_output,
+    slicing_options,
+    slicing_values,
+    with_options,
+)
 
 __all__ = ["view"]
 
@@ -47,6 +56,9 @@ def view(source: str, output: str | None, raster: bool, printer: str, mask_every
     if Path(output).suffix.lower() not in (".html", ".htm"):
         fail(f"{output}: the viewer is an HTML page (use a .html name)")
     refuse_model_as_output(source, output)
+    check_output_file(output)
+    if mask_every < 1:
+        fail(f"--mask-every must be >= 1, got {mask_every}")
     if src.suffix.lower() == ".npz":
         flags = {i.name: i.flags[0] for cls in (SliceParams, Placement) for i in options_of(cls) if i.flags}
         given = [flags[k] for k, v in kw.items() if v is not None and k in flags]
@@ -58,13 +70,13 @@ def view(source: str, output: str | None, raster: bool, printer: str, mask_every
             import PIL  # noqa: F401
         except ImportError:
             fail("--raster needs pillow (pip install 'gpuslice[raster]')")
-        if mask_every < 1:
-            fail(f"--mask-every must be >= 1, got {mask_every}")
         from ..raster.spec import with_printer
 
         masks = with_printer(printer)  # a preset name or a .toml/.json preset file
     # resin masks or pre-print checks: sliced as `raster` and `check` slice (0.05 mm) unless -t is given
     params, placement = slicing_values(kw, RESIN_DEFAULTS if raster or check else None)
+    if raster or check:
+        check_resin_layers(params)
     t0 = time.perf_counter()
     done = run_job(Job(source=source, placement=placement, params=params, mesh_check=False, saved_result=True,
                        view=ViewOutput(output, title, masks, mask_every), checks=CheckOutput() if check else None))

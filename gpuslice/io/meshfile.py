@@ -80,8 +80,11 @@ def read_mesh_file(path: str | os.PathLike[str]) -> RawMesh:
     if isinstance(name, bytes):  # os.PathLike[bytes]
         name = os.fsdecode(name)
     try:
-        if stat.S_ISDIR(os.stat(name).st_mode):
+        mode = os.stat(name).st_mode
+        if stat.S_ISDIR(mode):
             raise IsADirectoryError
+        if not (stat.S_ISREG(mode) or stat.S_ISFIFO(mode)):  # /dev/zero would be read until memory runs out
+            raise MeshFileError(f"{name}: not a regular file (a device or a socket)")
         ext = os.path.splitext(name)[1].lower()
         if ext in TRIMESH_EXTENSIONS:  # trimesh opens the file itself
             return _read_with_trimesh(name, TRIMESH_EXTENSIONS[ext])
@@ -175,6 +178,10 @@ def _read_with_trimesh(name: str, file_type: str, data: bytes | None = None) -> 
     source: str | io.BytesIO = name if data is None else io.BytesIO(data)
     if file_type == "3mf":
         source = inflate_3mf(name, data)
+        with zipfile.ZipFile(source) as zf:  # trimesh says only "StopIteration" when there is no model part
+            if not any(n.lower().endswith(".model") for n in zf.namelist()):
+                raise MeshFileError(f"{name}: not a 3MF file: the zip holds no 3D model part (3D/3dmodel.model)")
+        source.seek(0)
     try:
         if isinstance(source, str):
             mesh = trimesh.load(source, force="mesh", process=False)

@@ -21,6 +21,9 @@ __all__ = ["RasterSpec", "ResinOptions", "PRINTERS", "BACKENDS", "gamma_lut", "w
 #: rasterisers: ``auto`` (= ``opencl``), ``opencl`` (runs), ``numpy`` (the twin), ``gl``
 #: (moderngl), ``opencl-bitmap`` (the bitmap kernel runs replaced)
 BACKENDS = ("auto", "opencl", "numpy", "gl", "opencl-bitmap")
+#: the largest pixel a display may have, mm (a resin display's are 0.01-0.1 mm; larger ones only overflow the
+#: formats' float32 header fields)
+MAX_PIXEL_MM = 1000.0
 
 
 @dataclass(frozen=True)
@@ -54,8 +57,9 @@ class RasterSpec:
         if nx * ny > 2**31 - 1:
             raise ParameterError(f"resolution {nx}x{ny} is too large", param="resolution")
         for name, v in (("pixel", self.pixel), ("pixel_y", self.py)):
-            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
-                raise ParameterError(f"{name} must be a positive number of mm, got {v}", param=name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and 0 < v <= MAX_PIXEL_MM):
+                raise ParameterError(f"{name} must be a positive number of mm up to {MAX_PIXEL_MM:g}, got {v}",
+                                     param=name)
         if not (math.isfinite(self.gamma) and self.gamma >= 0):
             raise ParameterError(f"gamma must be >= 0, got {self.gamma}", param="gamma")
 
@@ -191,6 +195,10 @@ class ResinOptions:
                                  f"{self.raster_backend}", param=("z_samples", "raster_backend"))
         if self.workers is not None and not 1 <= self.workers <= 256:
             raise ParameterError(f"workers must be from 1 to 256, got {self.workers}", param="workers")
+        if self.job_name is not None and (not self.job_name or any(ch in self.job_name for ch in "/\\\0")):
+            # a PNG stack's layers are <job name>NNNNN.png in its folder: '../x' would write them beside it
+            raise ParameterError(f"job_name {self.job_name!r}: a job name is a file name prefix; it cannot hold '/' "
+                                 "or '\\', nor be empty", param="job_name")
 
     def spec(self, **display) -> RasterSpec:
         """The :class:`RasterSpec`: the preset's values (if any) overridden by ``display`` values that are not None."""

@@ -270,6 +270,9 @@ def cusp_schedule(
     if height <= 0:
         return schedule_from_edges(np.zeros(0) if height == 0 else np.zeros(0), f"adaptive-{mode}", info)
     delta = float(resolution) if resolution else max(min_height / 10, height / 400_000)
+    if resolution is None and delta > min_height:  # the bins are at least height / 400000 wide
+        raise ParameterError(f"min_height must be at least {delta:g} mm for a {height:g} mm tall model (its height "
+                             f"/ 400000), got {min_height:g}", param="min_height")
     if not (delta > 0 and delta <= min_height):
         raise ParameterError(f"adaptive resolution must be in (0, min_height], got {resolution}", param="min_height")
     n_min = max(1, int(round(min_height / delta)))
@@ -374,11 +377,19 @@ def roi_schedule(
         if len(thr) != max(len(ladder) - 1, 1):
             raise ParameterError(f"roi_threshold needs 1 or {len(ladder) - 1} values, got {len(thr)}",
                                  param="roi_threshold")
+        if not all(np.isfinite(v) and v >= 0 for v in thr):
+            raise ParameterError(f"roi_threshold must be points per layer >= 0, got {threshold}",
+                                 param="roi_threshold")
     else:
         thr = None
         if not (0.0 <= quantile <= 1.0):
             raise ParameterError(f"roi_quantile must be in [0, 1], got {quantile}", param="roi_quantile")
+    if max_windows < 0:
+        raise ParameterError(f"roi_windows must be >= 0 (0: all), got {max_windows}", param="roi_windows")
     height = mesh.height
+    if height / ladder[-1] > 5e7:  # as uniform schedules: the finest level may cover the whole height
+        raise ParameterError(f"roi_ladder's finest step: {height:g} mm at {ladder[-1]:g} mm would make more than 5e7 "
+                             "layers", param="roi_ladder")
     info: dict = {"mode": "roi", "ladder_mm": list(ladder), "quantile": None if thr else quantile,
                   "threshold_points": list(thr) if thr else None, "min_layers": min_layers,
                   "max_windows": max_windows, "levels": []}
