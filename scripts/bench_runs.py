@@ -128,7 +128,9 @@ def main(argv: list[str] | None = None) -> int:
         row("runs, OpenCL (given the edges), one lane (before lanes)", wall, cpu, f"{count} runs")
         if k == 1:
             wall, cpu, count = timed(lambda: runs("opencl", None), args.repeat)
-            row("layer_edges + runs, OpenCL, as the writers call them", wall, cpu, f"{count} runs")
+            row(f"layer_edges + runs, OpenCL, as the writers call them, {LANES} lanes", wall, cpu, f"{count} runs")
+            wall, cpu, count = timed(lambda: runs("opencl", None, lanes=1), args.repeat)
+            row("layer_edges + runs, OpenCL, as the writers call them, one lane", wall, cpu, f"{count} runs")
         long0, fb0, stages = kern.long_rows, kern.fallbacks, {}
         for _ in range(max(args.stage_repeat, 1)):
             kern.timings = {}
