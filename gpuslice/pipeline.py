@@ -290,6 +290,7 @@ def _check_printer_fits(job: Job, mesh: Mesh) -> None:
 
 
 def _write_resin(job: Job, out: JobResult, progress, now) -> None:
+    from .io.atomic import utf8
     from .raster.coverage import choose_backend, iter_tiles
     from .raster.edges import check_fits
     from .raster.outputs import RESIN_FORMATS, ResinTarget
@@ -324,7 +325,7 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
         layers = iter_tiles(out.result, r.spec, backend=backend, device=dev, bounds=bounds,
                             supersample=r.options.supersample)
     # (a file name's bytes that are not UTF-8, kept by Python as surrogates, become U+FFFD in the archive's fields)
-    name = r.options.job_name or Path(job.model_name).stem.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+    name = utf8(r.options.job_name or Path(job.model_name).stem).decode("utf-8")
     n = out.result.n_layers
     tick = (lambda k: progress(k, n)) if progress is not None else None
     settings = r.settings if r.settings is not None else r.options.settings()

@@ -147,7 +147,7 @@ def batch(inputs, out_dir, pattern, raster_opt, workers, threads, scheduler, tra
         fail("--transfer only applies with --scheduler")
     if kw["raster"] is None and raster_opt:
         fail("--raster-opt needs --raster")
-    check_output_file(report)  # refused now, not after every model is done
+    check_output_file(report, creates=out_dir)  # refused now, not after every model is done
     opts = _batch_options(kw, raster_opt)
     if opts.raster is not None:
         from ..raster.outputs import source_date
@@ -166,13 +166,15 @@ def batch(inputs, out_dir, pattern, raster_opt, workers, threads, scheduler, tra
         with _Progress(len(models), quiet) as progress:
             runner = BatchRunner(models, opts, out_dir, force=force, progress=progress, inputs=inputs)
             result = runner.run(workers, threads=threads, client=client, transfer=transfer or "bytes")
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         if runner is not None and report is not None:
             write_report(runner.report(), report)
         if runner is not None:
             s = runner.report()["summary"]
-            click.echo(f"gpuslice: interrupted: {s['done']} done, {s['not_run']} not run", err=True)
-            raise SystemExit(130) from None  # said once, with the counts
+            signum = getattr(exc, "signum", None)  # (SIGTERM, SIGHUP: cli.main.Terminated)
+            why = "interrupted" if signum is None else str(exc)
+            click.echo(f"gpuslice: {why}: {s['done']} done, {s['not_run']} not run", err=True)
+            raise SystemExit(130 if signum is None else 128 + signum) from None  # said once, with the counts
         raise
     finally:
         if client is not None:

@@ -165,9 +165,9 @@ class Terminated(KeyboardInterrupt):
 def _stop_on_terminate():
     """While the command runs, SIGTERM and SIGHUP raise :class:`Terminated` in the main thread instead of killing
     the process on the spot, which would leave an output's hidden temporary file (``.part.goo.tmp-…``) behind.
-    Only signals left at their default action are taken (``nohup`` keeps SIGHUP ignored); later ones while the
-    command unwinds are ignored, so the clean-up finishes; the previous handlers come back afterwards. Nothing is
-    done outside the main thread (``signal.signal`` is refused there)."""
+    Only signals left at their default action are taken (``nohup`` keeps SIGHUP ignored); a second one while the
+    command unwinds ends the process at once, as without this handler; the previous handlers come back afterwards.
+    Nothing is done outside the main thread (``signal.signal`` is refused there)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -183,6 +183,8 @@ def _stop_on_terminate():
             seen.append(signum)
             _INTERRUPTED.set()
             raise Terminated(signum)
+        signal.signal(signum, signal.SIG_DFL)  # a second one while the first unwinds: die as the signal asks
+        os.kill(os.getpid(), signum)
 
     previous = {}
     for name in ("SIGTERM", "SIGHUP"):

@@ -53,11 +53,13 @@ def refuse_model_as_output(model: str, *outputs: str | None) -> None:
             fail(f"{out}: is the model {model} itself; name another output")
 
 
-def check_output_file(*paths: str | None) -> None:
+def check_output_file(*paths: str | None, creates: str | None = None) -> None:
     """A one-line error, before any work, for an output file that could not be written at the end: its folder does
-    not exist or is a file, or the path is an existing folder. None paths are skipped."""
+    not exist or is a file, or the path is an existing folder. None paths are skipped; ``creates``: a folder the
+    command makes itself (batch's output folder, a PNG stack), where a file may go although it does not exist yet."""
     from pathlib import Path
 
+    made = Path(creates.rstrip("/\\") or ".").resolve() if creates is not None else None
     for out in paths:
         if out is None:
             continue
@@ -65,6 +67,8 @@ def check_output_file(*paths: str | None) -> None:
         if path.is_dir():
             fail(f"{out}: is a folder; name the file to write")
         parent = path.parent
+        if made is not None and parent.resolve() == made and not made.exists():
+            continue  # (made by the command before the file is written)
         if parent.exists() and not parent.is_dir():
             fail(f"{out}: {parent} is a file, not a directory")
         if not parent.is_dir():

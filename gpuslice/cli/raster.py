@@ -105,7 +105,7 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
     parent = Path(output.rstrip("/\\") or ".").resolve().parent
     if not parent.is_dir():
         fail(f"{output}: directory {parent} does not exist")
-    check_output_file(report)
+    check_output_file(report, creates=output)  # (a PNG stack's folder is made by the command)
     check_distinct_outputs(output, report)
     params, placement = slicing_values(kw, RESIN_DEFAULTS)
     check_resin_layers(params)

@@ -22,7 +22,7 @@ if TYPE_CHECKING:
 
 PathLike = str | os.PathLike
 
-__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_text", "atomic_write_tree", "remove_path"]
+__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_text", "atomic_write_tree", "remove_path", "utf8"]
 
 
 def remove_path(path: Path) -> None:
@@ -152,9 +152,19 @@ def atomic_write_bytes(path: PathLike, data: bytes | bytearray | memoryview) -> 
         fh.write(data)
 
 
+def utf8(text: str) -> bytes:
+    """``text`` as UTF-8; a file name's bytes that are not UTF-8 (which Python keeps as lone surrogates, U+DC80 to
+    U+DCFF) become U+FFFD instead of an encoding error."""
+    try:
+        return text.encode("utf-8")
+    except UnicodeEncodeError:
+        return text.encode("utf-8", "surrogateescape").decode("utf-8", "replace").encode("utf-8", "replace")
+
+
 def atomic_write_text(path: PathLike, text: str, *, encoding: str = "utf-8") -> None:
-    """Write ``text`` to ``path`` atomically, encoded with ``encoding``, newlines written as given."""
-    atomic_write_bytes(path, text.encode(encoding))
+    """Write ``text`` to ``path`` atomically, encoded with ``encoding`` (UTF-8: :func:`utf8`), newlines written as
+    given."""
+    atomic_write_bytes(path, utf8(text) if encoding.lower().replace("-", "") == "utf8" else text.encode(encoding))
 
 
 def atomic_write_tree(path: PathLike, payload: bytes | dict[str, bytes]) -> None:

@@ -254,14 +254,17 @@ class RunsKernel(KernelDriver):
 
 
 #: batches of layers made at once by :func:`iter_runs` on OpenCL, each on a queue and a thread of its own (the module
-#: docstring; BENCHMARKS, "Runs in two lanes"); 1: one at a time, in the caller's thread
+#: docstring; BENCHMARKS, "Runs in two lanes"); 1: one at a time, in the caller's thread. Memory: each lane keeps
+#: its own scratch (about 30 bytes per cell record of its largest batch), and a finished batch may wait for the one
+#: before it (a runs stage of the armadillo job at 80 mm: 270 against 210 MB peak; whole jobs: BENCHMARKS)
 LANES = 2
 
 
 def _in_lanes(kerns: list[RunsKernel], calls: Iterable[tuple]) -> Iterator[Runs]:
     """``kerns[i % n].run(*args)`` for the i-th ``args`` of ``calls``, yielded in order, up to n = len(kerns) at once
-    (one thread a lane, each lane's calls one after the other: its driver's buffers are reused). An exception is
-    raised where its batch would have been yielded; closing the iterator early waits for the batches under way."""
+    (one thread a lane, each lane's calls one after the other: its driver's buffers are reused). An exception in a
+    lane is raised where its batch would have been yielded (one from ``calls`` itself, at once); closing the
+    iterator early waits for the batches under way."""
     n = len(kerns)
     if n == 1:
         for args in calls:

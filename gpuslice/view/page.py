@@ -243,10 +243,10 @@ def write_view(result: SliceResult, path: str | os.PathLike, **kwargs: Any) -> i
 
     Keyword arguments are those of :func:`build_view_html`. Errors name ``path``.
     """
-    from ..io.atomic import atomic_write_bytes
+    from ..io.atomic import atomic_write_bytes, utf8
 
     try:
-        page = build_view_html(result, **kwargs).encode("utf-8")
+        page = utf8(build_view_html(result, **kwargs))
     except ParameterError as exc:
         raise ParameterError(f"{path}: {exc}") from None
     atomic_write_bytes(path, page)

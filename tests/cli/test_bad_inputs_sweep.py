@@ -307,3 +307,70 @@ def test_the_library_refuses_a_job_name_that_leads_out_of_the_output(name):
     with pytest.raises(ParameterError, match="job name is a file name prefix"):
         ResinOptions(job_name=name)
     assert ResinOptions(job_name="part-1").job_name == "part-1"
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGHUP"), reason="POSIX signals")
+def test_a_second_terminate_while_unwinding_ends_the_process():
+    """The first SIGTERM unwinds the command (its clean-up runs); a second one does not wait for that clean-up (a
+    thread stuck in a driver call would hold it forever): the process ends as the signal asks."""
+    code = textwrap.dedent("""
+        import importlib, os, signal, time
+        cli_main = importlib.import_module("gpuslice.cli.main")
+        with cli_main._stop_on_terminate():
+            try:
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(5)
+            except cli_main.Terminated:
+                print("first", flush=True)
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(5)
+                print("survived", flush=True)
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == -signal.SIGTERM and proc.stdout.split() == ["first"], (proc.returncode, proc.stdout)
+
+
+def test_batch_terminated_exits_with_the_signal(cube, tmp_path, capsys, monkeypatch):
+    """`batch` caught the Terminated interrupt as Ctrl-C's and exited 130 "interrupted"; now 143 / "terminated"."""
+    import gpuslice.batch
+
+    cli_main = sys.modules["gpuslice.cli.main"]
+
+    def run(self, *args, **kwargs):
+        raise cli_main.Terminated(signal.SIGTERM)
+
+    monkeypatch.setattr(gpuslice.batch.BatchRunner, "run", run)
+    assert main(["batch", str(cube), "-o", str(tmp_path / "out"), "-q", "-j", "0"]) == 128 + signal.SIGTERM
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("gpuslice: terminated (SIGTERM): 0 done") and "Traceback" not in err
+
+
+@pytest.mark.parametrize("cmd", ["batch", "raster"])
+def test_a_report_inside_the_output_folder_the_command_makes(cube, tmp_path, cmd):
+    """`batch -o out --report out/r.json` and `raster -o stack/ --report stack/r.json`: the folder does not exist
+    yet, but the command makes it before the report is written (the sweep's first check refused them)."""
+    out = tmp_path / "out"
+    args = (["batch", str(cube), "-o", str(out), "-q", "-j", "0"] if cmd == "batch" else
+            ["raster", str(cube), "-o", f"{out}/", "--format", "png", "-q", "--no-progress",
+             "--resolution", "600x600"])
+    assert main([*args, "--report", str(out / "r.json")]) == 0
+    assert (out / "r.json").stat().st_size > 0
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="file names of arbitrary bytes")
+def test_a_non_utf8_name_in_reports_views_and_job_names(cube, tmp_path):
+    """The model's stray bytes (or a job name's) became encoding errors in the JSON report, the viewer page and the
+    GOO/SL1 name fields: they are written as U+FFFD now."""
+    import json
+
+    model = os.path.join(os.fsdecode(bytes(tmp_path)), os.fsdecode(b"\xfe-part.stl"))
+    with open(cube, "rb") as src, open(model, "wb") as dst:
+        dst.write(src.read())
+    assert main(["slice", model, "-o", str(tmp_path / "s.svg"), "--report", str(tmp_path / "r.json"), "-q"]) == 0
+    report = json.loads((tmp_path / "r.json").read_text(encoding="utf-8"))
+    assert os.path.basename(report["file"]) == "\ufffd-part.stl"
+    assert main(["view", model, "-o", str(tmp_path / "v.html")]) == 0
+    assert "\ufffd-part" in (tmp_path / "v.html").read_text(encoding="utf-8")
+    for suffix in (".goo", ".sl1"):
+        assert main(["raster", str(cube), "-o", str(tmp_path / f"j{suffix}"), "-q", "--no-progress",
+                     "--resolution", "600x600", "--job-name", os.fsdecode(b"x\xffy")]) == 0
