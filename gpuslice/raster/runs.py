@@ -284,8 +284,10 @@ def _in_lanes(kerns: list[RunsKernel], calls: Iterable[tuple]) -> Iterator[Runs]
     finally:
         for f in pending:
             f.cancel()
+        # (closed by the garbage collector on one of its own lanes' threads: that thread cannot join itself)
+        inside = threading.current_thread().name.startswith("gpuslice-runs-lane")
         for pool in pools:
-            pool.shutdown(wait=True)
+            pool.shutdown(wait=not inside)
 
 
 # ---- public entry points ------------------------------------------------------------------------------------------
