@@ -21,6 +21,7 @@ Metadata of a field (all optional but ``help``):
 from __future__ import annotations
 
 import dataclasses
+import numbers
 import types
 import typing
 from collections.abc import Callable, Iterator
@@ -29,7 +30,13 @@ from typing import Any
 
 from .errors import ParameterError
 
-__all__ = ["OptionInfo", "option", "options_of", "parse_value", "flag_of", "parse_floats", "parse_resolution"]
+__all__ = ["OptionInfo", "option", "options_of", "parse_value", "flag_of", "parse_floats", "parse_resolution",
+           "is_real"]
+
+
+def is_real(v: object) -> bool:
+    """A real number: a Python or numpy integer or float, not a bool (``True`` is no thickness)."""
+    return isinstance(v, numbers.Real) and not isinstance(v, bool)
 
 
 def option(

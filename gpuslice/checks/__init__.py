@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ParameterError
-from ..options import option
+from ..options import is_real, option
 from .cavities import DEFAULT_GRID_MM, KINDS, SUCTION_CUP, TRAP, Cavities, CavityFinder
 from .islands import Islands, PixelIslands, contour_islands
 from .summary import CheckReport, peel_and_time
@@ -40,11 +40,35 @@ class CheckOptions:
 
     def __post_init__(self) -> None:
         t = self.overhang_tolerance
-        if t is not None and not (isinstance(t, int | float) and math.isfinite(t) and t >= 0):
+        if t is not None and not (is_real(t) and math.isfinite(t) and t >= 0):
             raise ParameterError(f"overhang_tolerance must be >= 0 mm, got {t}", param="overhang_tolerance")
         g = self.trap_grid
-        if not (isinstance(g, int | float) and math.isfinite(g) and g >= 0):
+        if not (is_real(g) and math.isfinite(g) and g >= 0):
             raise ParameterError(f"trap_grid must be >= 0 mm, got {g}", param="trap_grid")
+
+
+
+def _check_arguments(result, spec, settings, options, bounds, backend: str, workers) -> None:
+    """One-line :class:`ParameterError` for arguments of :func:`run_checks` of the wrong kind, before any work."""
+    from ..raster.settings import PrintSettings
+    from ..raster.spec import RasterSpec
+    from ..slicing.result import SliceResult
+
+    for name, value, kind, hint in (
+        ("result", result, SliceResult, "gpuslice.slice_mesh's"),
+        ("spec", spec, RasterSpec, "gpuslice.raster.RasterSpec or with_printer(name), or None"),
+        ("settings", settings, PrintSettings, "gpuslice.raster.PrintSettings, or None"),
+        ("options", options, CheckOptions, "gpuslice.checks.CheckOptions, or None"),
+    ):
+        if not isinstance(value, kind) and not (value is None and name != "result"):
+            raise ParameterError(f"{name} must be a {kind.__name__} ({hint}), got {type(value).__name__}")
+    from ..raster.edges import check_raster_args
+
+    check_raster_args(result, spec, bounds=bounds)  # (the bounds as the rasterisers take them)
+    if backend not in ("auto", "opencl", "numpy"):
+        raise ParameterError(f"unknown checks backend {backend!r} (use auto, opencl or numpy)")
+    if workers is not None and not (is_real(workers) and float(workers).is_integer() and workers >= 1):
+        raise ParameterError(f"workers must be a whole number >= 1 (or None: the CPUs), got {workers!r}")
 
 
 def _pixel_mm(spec) -> tuple[float, float]:
@@ -155,6 +179,7 @@ def run_checks(result, spec=None, settings=None, *, options: CheckOptions | None
     from ..raster.settings import PrintSettings
     from ..raster.spec import RasterSpec
 
+    _check_arguments(result, spec, settings, options, bounds, backend, workers)
     options = options or CheckOptions()
     settings = settings or PrintSettings()
     timings: dict[str, float] = {}

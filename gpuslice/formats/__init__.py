@@ -106,9 +106,18 @@ def export(result: SliceResult, path: str | os.PathLike, fmt: str | None = None,
     Raises
     ------
     ParameterError
-        Unknown suffix, or options the writer does not take.
+        Unknown suffix, options the writer does not take, a path that is a directory, a ``result`` that is not a
+        :class:`~gpuslice.slicing.result.SliceResult`.
     """
+    from ..slicing.result import SliceResult
+
+    if not isinstance(path, str | os.PathLike):
+        raise ParameterError(f"path must be a file path, got {type(path).__name__}")
     p = Path(os.fspath(path))
+    if not isinstance(result, SliceResult):
+        raise ParameterError(f"{p}: result must be a SliceResult (gpuslice.slice_mesh's), got {type(result).__name__}")
+    if fmt is None and p.is_dir():  # its suffix (usually none) says nothing: name the real problem
+        raise ParameterError(f"{p}: is a directory")
     fmt = format_for(p, fmt)
     unknown = sorted(set(options) - set(fmt.options()))
     if unknown:

@@ -79,6 +79,8 @@ def read_mesh_file(path: str | os.PathLike[str]) -> RawMesh:
     name = os.fspath(path)
     if isinstance(name, bytes):  # os.PathLike[bytes]
         name = os.fsdecode(name)
+    if "\0" in name:  # os.stat would raise a bare ValueError
+        raise MeshFileError(f"{name!r}: not a valid path (it holds a NUL character)")
     try:
         mode = os.stat(name).st_mode
         if stat.S_ISDIR(mode):

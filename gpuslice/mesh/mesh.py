@@ -29,7 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EmptyMeshError, InvalidGeometryError, ParameterError
-from ..options import option
+from ..options import is_real, option
+from .sources import _arrays, real_array
 from .weld import EdgeSides, WeldKernel, edge_table_numpy, weld_numpy
 
 __all__ = ["Mesh", "Placement", "load_mesh", "mesh_from_triangles", "mesh_from_arrays"]
@@ -208,8 +209,20 @@ class Placement:
     fit: float | None = option(None, "Scale so the longest side is this many mm")
 
     def __post_init__(self) -> None:
-        if self.scale is not None and self.fit is not None:
-            raise ParameterError("give scale or fit, not both", param=("scale", "fit"))
+        _check_scale_fit(self.scale, self.fit)
+
+
+
+def _check_scale_fit(scale, fit) -> None:
+    """:class:`ParameterError` naming ``scale``/``fit`` unless each is None or a positive finite number, not both."""
+    if scale is not None and fit is not None:
+        raise ParameterError("give scale or fit, not both", param=("scale", "fit"))
+    if fit is not None and not (is_real(fit) and np.isfinite(fit) and fit > 0):
+        raise ParameterError(f"fit must be a positive length in mm, got {fit if is_real(fit) else repr(fit)}",
+                             param="fit")
+    if scale is not None and not (is_real(scale) and np.isfinite(scale) and scale > 0):
+        raise ParameterError(f"scale must be a positive factor, got {scale if is_real(scale) else repr(scale)}",
+                             param="scale")
 
 
 def mesh_from_triangles(
@@ -230,13 +243,17 @@ def mesh_from_triangles(
     ``device`` (a :class:`gpuslice.device.Device`): weld and number edges with ``kernels/weld.cl`` (the same ids
     as the numpy path) for meshes of more than :data:`DEVICE_WELD_MIN_FACETS` facets.
     """
-    tri = np.asarray(triangles)
+    tri = real_array(triangles, "triangles", name)
     if tri.ndim != 3 or tri.shape[1:] != (3, 3):
         raise ParameterError(f"{name}: triangles must have shape (F, 3, 3), got {tri.shape}")
     if tri.shape[0] == 0:
         raise EmptyMeshError(f"{name}: no facets")
-    if scale is not None and fit is not None:
-        raise ParameterError("give scale or fit, not both", param=("scale", "fit"))
+    _check_scale_fit(scale, fit)
+    if normals is not None:
+        normals = real_array(normals, "normals", name)
+        if normals.shape != (tri.shape[0], 3):
+            raise ParameterError(f"{name}: normals must have shape ({tri.shape[0]}, 3), one per facet, got "
+                                 f"{normals.shape}")
     # float32 is the precision of STL; the weld reads -0.0 as 0.0, so both weld together (no normalised copy)
     corners = np.ascontiguousarray(tri.reshape(-1, 3), dtype=np.float32)
     return _from_corners(
@@ -250,20 +267,19 @@ def _placement(verts: np.ndarray, name: str, scale: float | None, fit: float | N
     lo = np.array([verts[:, k].min() for k in range(3)], dtype=np.float64)
     hi = np.array([verts[:, k].max() for k in range(3)], dtype=np.float64)
     factor = 1.0
+    longest = float((hi - lo).max())
     if fit is not None:
-        if not (np.isfinite(fit) and fit > 0):
-            raise ParameterError(f"fit must be a positive length in mm, got {fit}", param="fit")
-        longest = float((hi - lo).max())
         if longest <= 0:
             raise InvalidGeometryError(f"{name}: the mesh has no extent to fit")
         factor = fit / longest
     elif scale is not None:
-        if not (np.isfinite(scale) and scale > 0):
-            raise ParameterError(f"scale must be a positive factor, got {scale}", param="scale")
         factor = float(scale)
     extreme = float(np.abs(np.concatenate([lo, hi])).max())
     if extreme * factor > 1e18:
         raise InvalidGeometryError(f"{name}: coordinates up to {extreme * factor:.3g} overflow float32 arithmetic")
+    if 0 < longest * factor < np.finfo(np.float32).tiny:  # every coordinate would round to 0 (or a subnormal)
+        raise InvalidGeometryError(f"{name}: scale {factor:.3g} shrinks the mesh ({longest:.3g} units across) below "
+                                   "float32's smallest length")
     return factor, np.array([0.0, 0.0, -lo[2] * factor])
 
 
@@ -320,13 +336,7 @@ def mesh_from_arrays(
     name: str = "<arrays>",
 ) -> Mesh:
     """Build a :class:`Mesh` from indexed arrays: vertices (V, 3) and faces (F, 3), counter-clockwise outward."""
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces)
-    if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
-        raise ParameterError(f"{name}: vertices must be (V, 3) and faces (F, 3)")
-    if f.size and (f.min() < 0 or f.max() >= len(v)):
-        raise ParameterError(f"{name}: face indices out of range")
-    return mesh_from_triangles(v[f], scale=scale, fit=fit, name=name)
+    return mesh_from_triangles(_arrays(vertices, faces, name), scale=scale, fit=fit, name=name)
 
 
 def load_mesh(
@@ -355,6 +365,9 @@ def load_mesh(
     ParameterError
         A source of no known kind, or malformed arrays.
     """
+    if name is not None and not isinstance(name, str):
+        raise ParameterError(f"name must be a string (how messages call the source), got {type(name).__name__}")
+    _check_scale_fit(scale, fit)
     if isinstance(source, Mesh):
         if scale is None and fit is None:
             return source

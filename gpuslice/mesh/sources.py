@@ -25,9 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import EmptyMeshError, ParameterError
+from ..errors import EmptyMeshError, ParameterError, flatten
 
-__all__ = ["SourceTriangles", "read_source"]
+__all__ = ["SourceTriangles", "read_source", "real_array"]
 
 
 @dataclass
@@ -49,13 +49,28 @@ def _trimesh_types() -> tuple[type, type] | None:
     return tm.Trimesh, tm.Scene
 
 
+def real_array(value: Any, what: str, name: str) -> np.ndarray:
+    """``value`` as a numpy array of real numbers, its integer or float dtype kept (an object array of numbers
+    becomes float64); :class:`ParameterError` naming ``name`` and ``what`` for anything else: strings, complex or
+    bool values, ragged nested lists."""
+    try:
+        a = np.asarray(value)
+        if a.dtype.kind == "O":
+            a = a.astype(np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ParameterError(f"{name}: {what} must be a numeric array ({flatten(str(exc), 120)})") from None
+    if a.dtype.kind not in "iuf":
+        raise ParameterError(f"{name}: {what} must be real numbers, got dtype {a.dtype}")
+    return a
+
+
 def _arrays(vertices: Any, faces: Any, name: str) -> np.ndarray:
     """(F, 3, 3) float64 corners of indexed arrays, checked (one-line :class:`ParameterError` naming ``name``)."""
+    v = real_array(vertices, "vertices", name).astype(np.float64, copy=False)
     try:
-        v = np.asarray(vertices, dtype=np.float64)
         f = np.asarray(faces)
     except (TypeError, ValueError) as exc:
-        raise ParameterError(f"{name}: vertices and faces must be numeric arrays ({exc})") from None
+        raise ParameterError(f"{name}: faces must be a numeric array ({flatten(str(exc), 120)})") from None
     if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
         raise ParameterError(f"{name}: vertices must be (V, 3) and faces (F, 3), got {v.shape} and {f.shape}")
     if f.size and not np.issubdtype(f.dtype, np.integer):

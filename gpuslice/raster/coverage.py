@@ -45,7 +45,7 @@ from ..device import KernelDriver
 from ..errors import ParameterError
 from ..ragged import expand_ranges
 from ..slicing.result import SliceResult
-from .edges import LayerEdges, layer_edges
+from .edges import LayerEdges, check_raster_args, layer_edges
 from .spec import BACKENDS, RasterSpec, gamma_lut
 
 __all__ = ["Tile", "coverage_numpy", "RasterKernel", "iter_tiles", "iter_masks", "masks", "choose_backend",
@@ -296,6 +296,7 @@ def masks(result: SliceResult, spec: RasterSpec | None = None, **options) -> np.
     Row 0 is the top of the display (the +Y edge in landscape). Use ``layers=[...]`` or :func:`iter_masks` for
     big displays: every layer costs nx·ny bytes.
     """
+    check_raster_args(result, spec, options.get("layers"), options.get("bounds"))
     spec = spec or RasterSpec()
     n = result.n_layers if options.get("layers") is None else len(options["layers"])
     out = np.zeros((n, *spec.shape), np.uint8)

@@ -97,11 +97,39 @@ def box_tiles(c_lo, c_hi, r_lo, r_hi, spec: RasterSpec) -> np.ndarray:
     return np.stack([r0, c0, np.where(empty, 0, r1 - r0), np.where(empty, 0, c1 - c0)], axis=1)
 
 
+def check_raster_args(result, spec, layers=None, bounds=None) -> None:
+    """One-line :class:`ParameterError` for a ``result``, ``spec``, ``layers`` or ``bounds`` of the wrong kind, as
+    every rasteriser takes them (the layers' range is checked by :func:`layer_edges`)."""
+    if not isinstance(result, SliceResult):
+        raise ParameterError(f"result must be a SliceResult (gpuslice.slice_mesh's), got {type(result).__name__}")
+    if spec is not None and not isinstance(spec, RasterSpec):
+        raise ParameterError(f"spec must be a RasterSpec (RasterSpec(...) or with_printer(name)), got "
+                             f"{type(spec).__name__}", param="spec")
+    if layers is not None:
+        try:
+            sel = np.asarray(layers)
+        except (TypeError, ValueError):
+            sel = np.zeros((0, 0))
+        # floats would be truncated and booleans read as layers 0 and 1: neither is what was meant
+        if sel.ndim != 1 or (sel.size and sel.dtype.kind not in "iu"):
+            raise ParameterError(f"layers must be a sequence of whole layer indices, got {layers!r}"[:200],
+                                 param="layers")
+    if bounds is not None:
+        try:
+            b = np.asarray(bounds, dtype=np.float64)
+        except (TypeError, ValueError):
+            b = np.zeros(0)
+        if b.shape != (4,) or not np.isfinite(b).all():
+            raise ParameterError(f"bounds must be four finite numbers (xmin, ymin, xmax, ymax) in mm, got {bounds!r}",
+                                 param="bounds")
+
+
 def layer_edges(result: SliceResult, spec: RasterSpec, bounds=None, layers: Sequence[int] | None = None,
                 dtype=np.float64) -> LayerEdges:
     """The edges of the closed loops of ``layers`` (default all) in tile-local pixel coordinates; see
     :class:`LayerEdges`. ``bounds`` (xmin, ymin, xmax, ymax) mm is what gets centred (default: the result's).
     ``dtype``: of the edges (computed in float64, rounded once: float32 is what the rasterisers take)."""
+    check_raster_args(result, spec, layers, bounds)
     if bounds is None:
         bounds = result_bounds(result)
     n_layers = result.n_layers
@@ -171,6 +199,7 @@ def iter_layer_edges(result: SliceResult, spec: RasterSpec, bounds=None, layers:
     if edges is not None:
         yield 0, merge_layer_groups(edges, k) if k > 1 else edges
         return
+    check_raster_args(result, spec, layers, bounds)
     if bounds is None:  # one centring for every chunk: the whole result's
         bounds = result_bounds(result)
     sel = np.arange(result.n_layers) if layers is None else np.asarray(layers, dtype=np.int64)

@@ -19,8 +19,31 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ParameterError
+from ..options import is_real
 
 __all__ = ["Schedule", "uniform", "from_z"]
+
+
+
+def _shown(v) -> str:
+    """``v`` as a message shows it: a number as itself, anything else by its repr."""
+    return str(v) if is_real(v) else repr(v)
+
+
+def _reals(value, what: str) -> np.ndarray:
+    """``value`` (a number or an array of at most one dimension) as a 1-D float64 array; :class:`ParameterError`
+    naming ``what`` for text, complex or bool values and for arrays of two or more dimensions."""
+    try:
+        a = np.asarray(value)
+        if a.dtype.kind == "O":
+            a = a.astype(np.float64)
+    except (TypeError, ValueError):
+        raise ParameterError(f"schedule: {what} must be numbers (mm), got {type(value).__name__}") from None
+    if a.dtype.kind not in "iuf":
+        raise ParameterError(f"schedule: {what} must be numbers (mm), got dtype {a.dtype}")
+    if a.ndim > 1:
+        raise ParameterError(f"schedule: {what} must be one number per layer (1-D), got shape {a.shape}")
+    return np.ascontiguousarray(a, dtype=np.float64).reshape(-1)
 
 
 @dataclass(frozen=True)
@@ -32,8 +55,8 @@ class Schedule:
     mode: str = "custom"
 
     def __post_init__(self) -> None:
-        z = np.ascontiguousarray(self.z, dtype=np.float64).reshape(-1)
-        t = np.ascontiguousarray(self.thickness, dtype=np.float64).reshape(-1)
+        z = _reals(self.z, "z values")
+        t = _reals(self.thickness, "thicknesses")
         if t.shape != z.shape:
             raise ParameterError(f"schedule: {z.size} z values but {t.size} thicknesses")
         if not (np.all(np.isfinite(z)) and np.all(np.isfinite(t))):
@@ -84,13 +107,13 @@ def uniform(
     >>> uniform(1.0, 0.25, z_mode="paper").z
     array([0.25, 0.5 , 0.75])
     """
-    if not (np.isfinite(thickness) and thickness > 0):
-        raise ParameterError(f"layer thickness must be a positive number of mm, got {thickness}")
-    if not (np.isfinite(height) and height >= 0):
-        raise ParameterError(f"object height must be finite and non-negative, got {height}")
+    if not (is_real(thickness) and np.isfinite(thickness) and thickness > 0):
+        raise ParameterError(f"layer thickness must be a positive number of mm, got {_shown(thickness)}")
+    if not (is_real(height) and np.isfinite(height) and height >= 0):
+        raise ParameterError(f"object height must be finite and non-negative, got {_shown(height)}")
+    if not (first_layer is None or (is_real(first_layer) and np.isfinite(first_layer) and first_layer > 0)):
+        raise ParameterError(f"first layer thickness must be a positive number of mm, got {_shown(first_layer)}")
     h0 = thickness if first_layer is None else float(first_layer)
-    if not (np.isfinite(h0) and h0 > 0):
-        raise ParameterError(f"first layer thickness must be a positive number of mm, got {first_layer}")
     if height / thickness > 5e7:
         raise ParameterError(f"{height:g} mm at {thickness:g} mm would make more than 5e7 layers")
     if z_mode == "mid":
@@ -117,7 +140,7 @@ def from_z(z: np.ndarray, thickness: np.ndarray | float | None = None) -> Schedu
     between its plane and the one below (0 for the first) to the middle between its plane and the one above
     (the last layer is as thick above its plane as below).
     """
-    z = np.asarray(z, dtype=np.float64).reshape(-1)
+    z = _reals(z, "z values")
     if thickness is None:
         if z.size == 0:
             t = np.zeros(0)
@@ -128,5 +151,9 @@ def from_z(z: np.ndarray, thickness: np.ndarray | float | None = None) -> Schedu
             edges[-1] = z[-1] + (z[-1] - edges[-2])
             t = np.diff(edges)
     else:
-        t = np.broadcast_to(np.asarray(thickness, dtype=np.float64), z.shape)
+        t = _reals(thickness, "thicknesses")
+        if t.size not in (1, z.size):
+            raise ParameterError(f"schedule: thickness must be one number or one per z value ({z.size}), got "
+                                 f"{t.size} values")
+        t = np.broadcast_to(t, z.shape)
     return Schedule(z, t, mode="custom")

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from ..errors import ParameterError
-from ..options import option, parse_floats
+from ..options import is_real, option, parse_floats
 from ..schedule.adaptive import ADAPTIVE_MODES
 from .nest import FILL_RULES
 
@@ -65,6 +67,37 @@ class SliceParams:
     roi_windows: int = option(1, "roi: windows kept per level (0: all)")
 
     def __post_init__(self) -> None:
+        # types first (a string or a bool where a number goes fails here, named, not deep in a stage); ranges are
+        # checked where each value is used (uniform, adaptive_schedule), as the command line's messages expect
+        for name in ("thickness", "first_layer", "max_gap", "max_cusp", "max_area", "min_height", "max_height",
+                     "smooth", "roi_quantile", "max_segments_per_batch", "roi_windows"):
+            v = getattr(self, name)
+            if not (is_real(v) or (v is None and name == "first_layer")):
+                raise ParameterError(f"{name} must be a number, got {v!r}", param=name)
+            if isinstance(v, np.generic):  # the same value as a Python number: the report's JSON takes no numpy
+                object.__setattr__(self, name, v.item())
+        for name in ("max_segments_per_batch", "roi_windows"):
+            v = getattr(self, name)
+            if not (float(v).is_integer()):
+                raise ParameterError(f"{name} must be a whole number, got {v!r}", param=name)
+        for name in ("roi_ladder", "roi_threshold"):
+            v = getattr(self, name)
+            if v is None and name == "roi_threshold":
+                continue
+            if is_real(v) and name == "roi_threshold":  # one threshold for every step
+                object.__setattr__(self, name, v.item() if isinstance(v, np.generic) else v)
+                continue
+            if not (isinstance(v, tuple | list) and all(is_real(x) for x in v)):
+                raise ParameterError(f"{name} must be a tuple of numbers, got {v!r}", param=name)
+            # a tuple (hashable, as the frozen dataclass is) of Python numbers (the report's JSON takes no numpy)
+            object.__setattr__(self, name, tuple(x.item() if isinstance(x, np.generic) else x for x in v))
+        if self.z_mode not in Z_MODES:
+            raise ParameterError(f"unknown z_mode {self.z_mode!r} (use {' or '.join(map(repr, Z_MODES))})",
+                                 param="z_mode")
+        if self.device is not None and not isinstance(self.device, str):
+            raise ParameterError(f"device must be a device spec string ('P:D' or a name piece) or None, got "
+                                 f"{type(self.device).__name__}; pass a Device object to slice_mesh's device=",
+                                 param="device")
         if self.adaptive not in (None, *ADAPTIVE_MODES):
             raise ParameterError(f"unknown adaptive mode '{self.adaptive}' (use roi, cusp or area)")
         if self.fill_rule not in FILL_RULES:
@@ -76,3 +109,4 @@ class SliceParams:
             raise ParameterError(f"max_gap must be >= 0 mm, got {self.max_gap}", param="max_gap")
         if self.max_segments_per_batch < 1:
             raise ParameterError("max_segments_per_batch must be positive", param="max_segments_per_batch")
+

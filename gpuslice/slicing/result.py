@@ -21,16 +21,37 @@ first point at the end. Outer loops are counter-clockwise and holes clockwise, s
 from __future__ import annotations
 
 import json
+import operator
 import os
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..errors import MeshFileError
+from ..errors import MeshFileError, ParameterError
 
-__all__ = ["SliceResult", "LayerView"]
+__all__ = ["SliceResult", "LayerView", "LayerIndexError"]
+
+
+class LayerIndexError(ParameterError, IndexError):
+    """A layer or loop index out of range: a :class:`~gpuslice.errors.ParameterError` that is also the
+    ``IndexError`` a Python sequence raises."""
+
+
+def _index(i: Any, n: int, what: str) -> int:
+    """``i`` (an integer, negative from the end as in Python) as an index into ``n`` items, or a one-line error."""
+    if isinstance(i, bool | np.bool_):
+        raise ParameterError(f"{what} index must be an integer, got {i!r}")
+    try:
+        k = operator.index(i)
+    except TypeError:
+        raise ParameterError(f"{what} index must be an integer, got {type(i).__name__} {i!r}") from None
+    if not -n <= k < n:
+        raise LayerIndexError(f"{what} {k} out of range for {n} {what}s")
+    return k % n
 
 _ARRAYS = (
     "points",
@@ -62,7 +83,7 @@ class LayerView:
     loops: range
 
     def loop(self, i: int) -> np.ndarray:
-        r = self.loops[i]
+        r = self.loops[_index(i, len(self.loops), "loop")]
         o = self.result.loop_offsets
         return self.result.points[o[r] : o[r + 1]]
 
@@ -174,9 +195,9 @@ class SliceResult:
         return float(np.dot(self.area, self.thickness))
 
     def layer(self, i: int) -> LayerView:
-        if not -self.n_layers <= i < self.n_layers:
-            raise IndexError(f"layer {i} out of range for {self.n_layers} layers")
-        i %= self.n_layers
+        """Layer ``i`` (negative: from the top, as in Python) as a :class:`LayerView`; :class:`LayerIndexError`
+        (a ``ParameterError`` and an ``IndexError``) when out of range."""
+        i = _index(i, self.n_layers, "layer")
         a, b = int(self.layer_offsets[i]), int(self.layer_offsets[i + 1])
         return LayerView(i, float(self.z[i]), float(self.thickness[i]), float(self.area[i]), self, range(a, b))
 
@@ -211,6 +232,9 @@ class SliceResult:
         ``alpha``, ``edgecolor``, ``linewidth``."""
         from .plotting import plot_layers
 
+        if layers is not None:  # each an integer in range, or a one-line error naming it
+            for i in [layers] if np.ndim(layers) == 0 else layers:
+                _index(i, self.n_layers, "layer")
         return plot_layers(self, layers, ax, **style)
 
     def __len__(self) -> int:
@@ -233,13 +257,61 @@ class SliceResult:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> SliceResult:
-        """Read a ``.npz`` written by :meth:`save`."""
+        """Read a ``.npz`` written by :meth:`save`; :class:`~gpuslice.errors.MeshFileError` naming the file when it
+        is not one (missing, truncated, another .npz, arrays that do not fit together)."""
+        if not isinstance(path, str | os.PathLike):
+            raise ParameterError(f"path must be a file path, got {type(path).__name__}")
         p = Path(path)
         try:
-            with np.load(p, allow_pickle=False) as data:
+            data = np.load(p, allow_pickle=False)
+            if not isinstance(data, np.lib.npyio.NpzFile):  # a .npy file
+                raise ValueError("a single .npy array, not an .npz archive")
+            with data:
                 arrays = {name: data[name] for name in _ARRAYS}
                 repairs = {k[len("repairs__") :]: data[k] for k in data.files if k.startswith("repairs__")}
                 meta = json.loads(bytes(data["meta_json"]).decode()) if "meta_json" in data.files else {}
-        except (OSError, KeyError, ValueError) as exc:
+        except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
             raise MeshFileError(f"{p}: not a gpuslice result ({exc})") from None
+        problem = _layout_problem(arrays, repairs, meta)
+        if problem:
+            raise MeshFileError(f"{p}: not a gpuslice result ({problem})")
         return cls(**arrays, repairs=repairs, meta=meta)
+
+
+#: the dtype kinds of the 1-D arrays of the layout (numpy's ``dtype.kind``)
+_KINDS = {"loop_offsets": "iu", "layer_offsets": "iu", "loop_layer": "iu", "loop_is_hole": "b", "loop_parent": "iu",
+          "loop_closed": "b", "z": "fiu", "thickness": "fiu", "area": "fiu"}  # (an empty layer's area may be 0 int)
+
+
+def _layout_problem(arrays: dict[str, np.ndarray], repairs: dict[str, np.ndarray], meta: Any) -> str | None:
+    """What does not fit the layout (module docstring) in a loaded result's arrays, or None: shapes, dtypes,
+    lengths, offsets' ends and order, index ranges, finite z/thickness/area. Passes over the per-loop and per-layer
+    arrays only, never the points."""
+    pts = arrays["points"]
+    if pts.ndim != 2 or pts.shape[1] != 2 or pts.dtype.kind != "f":
+        return f"points must be (P, 2) floats, got shape {pts.shape} dtype {pts.dtype}"
+    for name, kind in _KINDS.items():
+        a = arrays[name]
+        if a.ndim != 1 or a.dtype.kind not in kind:
+            return f"{name} must be 1-D of dtype kind {kind!r}, got shape {a.shape} dtype {a.dtype}"
+    n_loops, n_layers = arrays["loop_layer"].size, arrays["z"].size
+    sizes = {"loop_offsets": n_loops + 1, "layer_offsets": n_layers + 1, "loop_is_hole": n_loops,
+             "loop_parent": n_loops, "loop_closed": n_loops, "thickness": n_layers, "area": n_layers}
+    for name, size in sizes.items():
+        if arrays[name].size != size:
+            return f"{name} holds {arrays[name].size} values, expected {size}"
+    for kind, counts in repairs.items():
+        if counts.shape != (n_layers,) or counts.dtype.kind not in "iu":
+            return f"repairs__{kind} must be {n_layers} integers, got shape {counts.shape} dtype {counts.dtype}"
+    for name, end in (("loop_offsets", pts.shape[0]), ("layer_offsets", n_loops)):
+        o = arrays[name]
+        if o[0] != 0 or o[-1] != end or np.any(o[1:] < o[:-1]):
+            return f"{name} must rise from 0 to {end}"
+    lay, par = arrays["loop_layer"], arrays["loop_parent"]
+    if n_loops and (lay.min() < 0 or lay.max() >= n_layers or par.min() < -1 or par.max() >= n_loops):
+        return "loop_layer or loop_parent out of range"
+    if not all(np.isfinite(arrays[k]).all() for k in ("z", "thickness", "area")):
+        return "z, thickness or area not finite"
+    if not isinstance(meta, dict):
+        return f"meta_json must hold an object, got {type(meta).__name__}"
+    return None

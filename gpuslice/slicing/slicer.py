@@ -8,11 +8,12 @@ memory is set by the batch, not by the model.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict
+from dataclasses import asdict, fields
 from typing import Any
 
 import numpy as np
 
+from ..errors import ParameterError
 from ..mesh.mesh import Mesh
 from ..prefetch import prefetch
 from ..schedule.adaptive import AdaptiveSchedule
@@ -124,6 +125,18 @@ def slice_mesh(
 
     given_device = overrides.pop("device") if isinstance(overrides.get("device"), Device) else None
     placement = {k: overrides.pop(k) for k in ("scale", "fit", "name") if k in overrides}
+    if params is not None and not isinstance(params, SliceParams):
+        raise ParameterError(f"params must be a SliceParams, got {type(params).__name__} (options go as keywords: "
+                             "slice_mesh(mesh, thickness=0.1))")
+    unknown = sorted(set(overrides) - {f.name for f in fields(SliceParams)})
+    if unknown:
+        raise ParameterError(f"unknown slicing option '{unknown[0]}' (use a SliceParams field, or scale, fit, name)")
+    if schedule is not None and not isinstance(schedule, Schedule):
+        raise ParameterError(f"schedule must be a Schedule (gpuslice.from_z, uniform, cusp_schedule), got "
+                             f"{type(schedule).__name__}")
+    if layer_thickness is not None and (z is None or schedule is not None):
+        raise ParameterError("layer_thickness goes with explicit z planes (slice_mesh(mesh, z=..., layer_thickness="
+                             "...)); uniform layers take thickness=")
     params = SliceParams(**{**asdict(params or SliceParams()), **overrides})
     timings: dict[str, float] = {}
     device = None

@@ -1,0 +1,384 @@
+"""The public Python API against bad input, as a user of a geometry library meets it: one-line errors of the
+project's own classes (:class:`~gpuslice.errors.GpusliceError`) naming the argument, raised at the entry point, never
+a numpy/shapely error from deep inside nor a silently wrong result (a truncated layer index, a misread flag, an
+ignored argument). The command line's own sweep is ``tests/cli/test_bad_inputs_sweep.py``. Every case here failed
+before its fix."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+import gpuslice
+from gpuslice import Placement, SliceParams, SliceResult, formats
+from gpuslice.checks import CheckOptions, run_checks
+from gpuslice.errors import InvalidGeometryError, MeshFileError, ParameterError
+from gpuslice.raster import PrintSettings, RasterSpec, masks
+from gpuslice.slicing.result import LayerIndexError
+
+V = np.array([[0, 0, 0], [10, 0, 0], [10, 10, 0], [0, 10, 0],
+              [0, 0, 10], [10, 0, 10], [10, 10, 10], [0, 10, 10]], float)
+F = np.array([[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4],
+              [1, 2, 6], [1, 6, 5], [2, 3, 7], [2, 7, 6], [3, 0, 4], [3, 4, 7]])
+TRI = V[F]
+SPEC = RasterSpec(resolution=(300, 300), pixel=0.05)
+
+
+@pytest.fixture(scope="module")
+def cube():
+    return gpuslice.mesh_from_arrays(V, F)
+
+
+@pytest.fixture(scope="module")
+def res(cube):
+    return gpuslice.slice_mesh(cube, thickness=2.5, backend="numpy")  # 4 layers of a 10 mm cube
+
+
+def _one_line(exc: pytest.ExceptionInfo, *words: str) -> None:
+    text = str(exc.value)
+    assert "\n" not in text and all(w in text for w in words), text
+
+
+# ---- meshes ----------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("tri, words", [
+    (np.full((2, 3, 3), "a"), ["triangles must be real numbers", "<U1"]),          # was numpy's ValueError
+    (np.full((2, 3, 3), "a", dtype=object), ["triangles must be a numeric array"]),
+    ([[[0, 0, 0], [1, 0, 0]], [[0, 0, 0]]], ["triangles must be a numeric array"]),  # ragged: was ValueError
+    (TRI.astype(complex), ["triangles must be real numbers", "complex"]),          # was sliced, imaginary dropped
+    (TRI.astype(bool), ["triangles must be real numbers", "bool"]),                # was sliced as 0/1 corners
+])
+def test_triangles_of_no_real_numbers_are_refused(tri, words):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no ComplexWarning on the way to the error
+        with pytest.raises(ParameterError) as exc:
+            gpuslice.mesh_from_triangles(tri)
+    _one_line(exc, "<triangles>", *words)
+
+
+def test_triangles_as_python_objects_still_load():
+    """Lists, object arrays of numbers and anything with ``__array__`` are real numbers too."""
+    class Tensor:
+        def __array__(self, dtype=None, copy=None):
+            return TRI
+
+    for tri in (TRI.tolist(), TRI.astype(object), Tensor(), np.asfortranarray(TRI)):
+        np.testing.assert_array_equal(gpuslice.mesh_from_triangles(tri).triangles,
+                                      gpuslice.mesh_from_triangles(TRI).triangles)
+
+
+@pytest.mark.parametrize("normals", [np.zeros((5, 3)), np.zeros((12, 2)), "x"])
+def test_normals_of_the_wrong_shape_are_refused(normals):
+    """Five normals for twelve facets were stored as they were: ``Mesh.info()`` then failed far from the cause."""
+    with pytest.raises(ParameterError) as exc:
+        gpuslice.mesh_from_triangles(TRI, normals=normals)
+    _one_line(exc, "<triangles>", "normals")
+
+
+@pytest.mark.parametrize("kw, param", [
+    ({"scale": "2"}, "scale"), ({"scale": [2]}, "scale"), ({"scale": np.array([1.0, 2.0])}, "scale"),
+    ({"scale": True}, "scale"), ({"fit": "80"}, "fit"), ({"fit": [80]}, "fit"),
+])
+def test_scale_and_fit_must_be_numbers(kw, param):
+    """Were numpy TypeErrors (``isfinite`` of a string), or ``scale=True`` taken as 1."""
+    for call in (lambda: gpuslice.mesh_from_triangles(TRI, **kw), lambda: gpuslice.load_mesh((V, F), **kw),
+                 lambda: gpuslice.slice_mesh((V, F), backend="numpy", **kw)):
+        with pytest.raises(ParameterError) as exc:
+            call()
+        assert exc.value.params == (param,)
+        _one_line(exc, f"{param} must be a positive")
+
+
+@pytest.mark.parametrize("kw", [{"scale": -1}, {"scale": 0}, {"scale": float("nan")}, {"scale": "2"},
+                                {"fit": -5}, {"fit": float("inf")}, {"fit": [80]}, {"scale": True}])
+def test_placement_is_checked_when_made(kw):
+    """``Placement(scale=-1)`` was accepted and failed only once a mesh was loaded with it."""
+    with pytest.raises(ParameterError) as exc:
+        Placement(**kw)
+    assert exc.value.params == tuple(kw)
+    assert Placement(scale=np.float32(2.0)).scale == 2.0 and Placement(fit=np.int64(80)).fit == 80
+
+
+def test_a_scale_that_collapses_the_mesh_is_refused():
+    """scale=1e-50 rounded every coordinate to 0: a mesh of no extent and an empty slicing, silently."""
+    with pytest.raises(InvalidGeometryError) as exc:
+        gpuslice.mesh_from_triangles(TRI, scale=1e-50)
+    _one_line(exc, "<triangles>", "float32's smallest length")
+    assert gpuslice.mesh_from_triangles(TRI, scale=1e-30).height > 0  # small, not collapsed
+
+
+@pytest.mark.parametrize("faces, words", [
+    (F.astype(float), ["faces must be integer vertex indices", "float64"]),   # was IndexError
+    (F + 0.5, ["faces must be integer vertex indices"]),
+    (F.astype(bool), ["faces must be integer vertex indices", "bool"]),      # was IndexError (a boolean mask)
+    (F.astype(object), ["faces must be integer vertex indices", "object"]),
+])
+def test_mesh_from_arrays_checks_faces_as_load_mesh_does(faces, words):
+    with pytest.raises(ParameterError) as exc:
+        gpuslice.mesh_from_arrays(V, faces)
+    _one_line(exc, "<arrays>", *words)
+
+
+@pytest.mark.parametrize("source", [lambda: gpuslice.mesh_from_arrays(V.astype(complex), F),
+                                    lambda: gpuslice.load_mesh((V.astype(complex), F)),
+                                    lambda: gpuslice.mesh_from_arrays(np.full((8, 3), "a"), F)])
+def test_vertices_of_no_real_numbers_are_refused(source):
+    """Complex vertices were sliced with a ComplexWarning, their imaginary part dropped; strings were ValueErrors."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ParameterError) as exc:
+            source()
+    _one_line(exc, "<arrays>", "vertices must be real numbers")
+
+
+def test_mesh_from_arrays_is_the_same_mesh_as_before():
+    a, b = gpuslice.mesh_from_arrays(V, F), gpuslice.mesh_from_triangles(V[F], name="<arrays>")
+    for name in ("vertices", "faces", "face_edges", "edge_vertices"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
+def test_load_mesh_name_and_path_errors(tmp_path):
+    with pytest.raises(ParameterError) as exc:  # was a TypeError from os.path
+        gpuslice.load_mesh(b"solid x\nendsolid x\n", name=5)
+    _one_line(exc, "name must be a string")
+    with pytest.raises(MeshFileError) as exc:  # was ValueError: embedded null byte
+        gpuslice.load_mesh(str(tmp_path / "a\0b.stl"))
+    _one_line(exc, "NUL")
+
+
+# ---- slicing ---------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("kw, words", [
+    ({"z": "abc"}, ["z values must be numbers"]),                                     # was ValueError
+    ({"z": np.array([[1.0, 2.0], [3.0, 4.0]])}, ["z values must be one number per layer", "(2, 2)"]),  # was flattened
+    ({"z": np.array([1 + 1j, 2])}, ["z values must be numbers", "complex"]),          # was sliced at z = 1, 2
+    ({"z": np.array([False, True])}, ["z values must be numbers", "bool"]),           # was sliced at z = 0, 1
+    ({"z": [1, 2, 3], "layer_thickness": [1, 2]}, ["one number or one per z value (3)", "got 2"]),  # numpy's
+    ({"z": [1, 2, 3], "layer_thickness": [[1], [1], [1]]}, ["thicknesses must be one number per layer"]),
+    ({"z": [1, 2, 3], "layer_thickness": "a"}, ["thicknesses must be numbers"]),
+])
+def test_bad_z_planes_and_thicknesses(cube, kw, words):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ParameterError) as exc:
+            gpuslice.slice_mesh(cube, backend="numpy", **kw)
+    _one_line(exc, "schedule:", *words)
+
+
+def test_layer_thickness_without_z_is_refused(cube):
+    """It was ignored: 0.1 mm layers (the default) came out where 0.5 mm ones were meant."""
+    with pytest.raises(ParameterError) as exc:
+        gpuslice.slice_mesh(cube, layer_thickness=0.5, backend="numpy")
+    _one_line(exc, "layer_thickness goes with explicit z", "thickness=")
+    with pytest.raises(ParameterError):
+        gpuslice.slice_mesh(cube, schedule=gpuslice.from_z([1.0]), layer_thickness=0.5, backend="numpy")
+    r = gpuslice.slice_mesh(cube, z=[1.0, 2.0], layer_thickness=0.5, backend="numpy")
+    assert r.thickness.tolist() == [0.5, 0.5]
+
+
+@pytest.mark.parametrize("call, words", [
+    (lambda m: gpuslice.slice_mesh(m, bogus=1), ["unknown slicing option 'bogus'"]),   # SliceParams.__init__()'s
+    (lambda m: gpuslice.slice_mesh(m, {"thickness": 1}), ["params must be a SliceParams", "dict"]),  # asdict()'s
+    (lambda m: gpuslice.slice_mesh(m, 5), ["params must be a SliceParams", "int"]),
+    (lambda m: gpuslice.slice_mesh(m, schedule=[1, 2, 3]), ["schedule must be a Schedule", "list"]),  # 'no .z'
+])
+def test_slice_mesh_arguments_of_the_wrong_kind(cube, call, words):
+    with pytest.raises(ParameterError) as exc:
+        call(cube)
+    _one_line(exc, *words)
+
+
+@pytest.mark.parametrize("kw, param", [
+    ({"thickness": "0.1"}, "thickness"), ({"thickness": True}, "thickness"), ({"thickness": (0.1, 0.2)}, "thickness"),
+    ({"thickness": None}, "thickness"), ({"first_layer": "a"}, "first_layer"), ({"max_gap": "2"}, "max_gap"),
+    ({"max_gap": None}, "max_gap"), ({"max_segments_per_batch": "1"}, "max_segments_per_batch"),
+    ({"max_segments_per_batch": 1.5}, "max_segments_per_batch"),
+    ({"max_segments_per_batch": float("nan")}, "max_segments_per_batch"), ({"max_cusp": "a"}, "max_cusp"),
+    ({"smooth": "a"}, "smooth"), ({"roi_quantile": "a"}, "roi_quantile"), ({"roi_windows": 1.5}, "roi_windows"),
+    ({"roi_ladder": "1,0.5"}, "roi_ladder"), ({"roi_ladder": 1.0}, "roi_ladder"),
+    ({"roi_ladder": (1, "a")}, "roi_ladder"),
+    ({"roi_threshold": "5"}, "roi_threshold"), ({"z_mode": 5}, "z_mode"), ({"device": 5}, "device"),
+])
+def test_slice_params_of_the_wrong_type(kw, param):
+    """Each was accepted (then a TypeError deep in a stage, or a bool read as 1 mm) or a bare TypeError."""
+    with pytest.raises(ParameterError) as exc:
+        SliceParams(**kw)
+    assert exc.value.params == (param,)
+    _one_line(exc, param)
+
+
+def test_slice_params_keep_valid_values():
+    p = SliceParams(thickness=np.float32(0.5), max_segments_per_batch=2e6, roi_ladder=[1.0, 0.5], roi_threshold=5)
+    assert p.roi_ladder == (1.0, 0.5) and hash(p)  # a list becomes the tuple a frozen dataclass can hash
+    assert p.thickness == 0.5 and type(p.thickness) is float
+
+
+def test_numpy_numbers_as_options_can_be_saved(cube, tmp_path):
+    """np.float32/np.int64 options went into the report as they were: ``save()`` then failed in ``json.dumps``."""
+    r = gpuslice.slice_mesh(cube, thickness=np.float32(2.5), roi_windows=np.int64(2), roi_ladder=(np.float32(1),),
+                            backend="numpy")
+    r.save(tmp_path / "r.npz")
+    assert SliceResult.load(tmp_path / "r.npz").meta["params"]["thickness"] == 2.5
+    np.testing.assert_array_equal(r.z, gpuslice.slice_mesh(cube, thickness=2.5, backend="numpy").z)
+
+
+@pytest.mark.parametrize("call", [
+    lambda: gpuslice.uniform(10, "a"), lambda: gpuslice.uniform("a", 0.1), lambda: gpuslice.uniform(10, [0.1]),
+    lambda: gpuslice.uniform(10, np.array([0.1, 0.2])), lambda: gpuslice.uniform(10, 0.1, first_layer="a"),
+    lambda: gpuslice.uniform(10, True), lambda: gpuslice.from_z("abc"), lambda: gpuslice.from_z([[1, 2], [3, 4]]),
+    lambda: gpuslice.from_z([1, 2, 3], [1, 2]), lambda: gpuslice.Schedule("ab", "cd"),
+])
+def test_schedules_of_the_wrong_type(call):
+    with pytest.raises(ParameterError) as exc:
+        call()
+    _one_line(exc)
+
+
+# ---- the result ------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("i", [1.5, "1", None, True])
+def test_layer_index_must_be_an_integer(res, i):
+    """1.5 was an IndexError from numpy, '1' and None TypeErrors, True layer 1."""
+    with pytest.raises(ParameterError) as exc:
+        res.layer(i)
+    _one_line(exc, "layer index must be an integer")
+    assert res.layer(np.int64(2)).index == 2 and res.layer(-1).index == 3
+
+
+def test_index_out_of_range_is_both_ours_and_an_index_error(res):
+    for call in (lambda: res.layer(4), lambda: res.layer(-5), lambda: res.layer(0).loop(5)):
+        with pytest.raises(LayerIndexError) as exc:
+            call()
+        assert isinstance(exc.value, IndexError) and isinstance(exc.value, ParameterError)
+        _one_line(exc, "out of range")
+
+
+@pytest.mark.parametrize("layers", ["a", 1.5, [100]])
+def test_plot_layers_are_checked(res, layers):
+    pytest.importorskip("matplotlib")
+    with pytest.raises(ParameterError) as exc:  # were ValueError from int('a'), a silent int(1.5), a bare IndexError
+        res.plot(layers=layers)
+    _one_line(exc, "layer")
+
+
+def _saved(res, tmp_path, **change) -> str:
+    path = tmp_path / "ok.npz"
+    res.save(path)
+    with np.load(path) as data:
+        arrays = dict(data)
+    for key, value in change.items():
+        if callable(value):
+            for k in [k for k in arrays if k.startswith(key)]:
+                arrays[k] = value(arrays[k])
+        else:
+            arrays[key] = value
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, **arrays)
+    return str(bad)
+
+
+@pytest.mark.parametrize("change, words", [
+    ({"points": np.zeros((5, 3), np.float32)}, ["points must be (P, 2) floats"]),       # was shapely's ValueError
+    ({"points": np.array([["a", "b"]])}, ["points must be (P, 2) floats"]),              # was ValueError
+    ({"loop_offsets": lambda o: o * 100}, ["loop_offsets must rise from 0 to"]),           # shapely's ValueError
+    ({"layer_offsets": lambda o: o[:2]}, ["layer_offsets holds 2 values, expected 5"]),    # IndexError
+    ({"z": lambda z: z[:2]}, ["layer_offsets holds 5 values, expected 3"]),                # silently 2 layers
+    ({"loop_offsets": lambda o: o.astype(float)}, ["loop_offsets must be 1-D"]),           # numpy's TypeError
+    ({"loop_parent": lambda p: p + 1000}, ["loop_parent out of range"]),                  # silently loaded
+    ({"area": lambda a: np.full_like(a, np.nan)}, ["not finite"]),                         # NaN areas
+    ({"repairs__": lambda r: r[:1]}, ["repairs__", "must be 4 integers"]),                # silently loaded
+    ({"meta_json": np.frombuffer(b"[1,2]", np.uint8)}, ["meta_json must hold an object"]),
+    ({"z": np.float64(1.0)}, ["z must be 1-D"]),                                          # IndexError
+])
+def test_loading_a_corrupted_result_names_the_file(res, tmp_path, change, words):
+    path = _saved(res, tmp_path, **change)
+    with pytest.raises(MeshFileError) as exc:
+        SliceResult.load(path)
+    _one_line(exc, path, "not a gpuslice result", *words)
+
+
+def test_loading_what_is_no_npz_names_the_file(res, tmp_path):
+    """A .npy file (TypeError: no context manager), an empty file (EOFError), a truncated one (BadZipFile)."""
+    np.save(tmp_path / "plain.npy", np.arange(3))
+    (tmp_path / "empty.npz").write_bytes(b"")
+    res.save(tmp_path / "ok.npz")
+    (tmp_path / "cut.npz").write_bytes((tmp_path / "ok.npz").read_bytes()[:1000])
+    for name in ("plain.npy", "empty.npz", "cut.npz"):
+        with pytest.raises(MeshFileError) as exc:
+            SliceResult.load(tmp_path / name)
+        _one_line(exc, name, "not a gpuslice result")
+    with pytest.raises(ParameterError):
+        SliceResult.load(None)
+    back = SliceResult.load(tmp_path / "ok.npz")  # a good one still loads, every array equal
+    for name in ("points", "loop_offsets", "layer_offsets", "loop_parent", "z", "area"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(res, name))
+
+
+# ---- raster, checks, formats, print settings -------------------------------------------------------------------------
+@pytest.mark.parametrize("kw, words", [
+    ({"layers": [1.5]}, ["layers must be a sequence of whole layer indices"]),               # was layer 1, silently
+    ({"layers": np.array([True, False, True, False])}, ["whole layer indices"]),             # was layers 1, 0, 1, 0
+    ({"layers": 2}, ["whole layer indices"]),                                                # TypeError: len()
+    ({"layers": ["a"]}, ["whole layer indices"]),
+    ({"layers": [[0, 1]]}, ["whole layer indices"]),
+    ({"bounds": (0, 0, 1)}, ["bounds must be four finite numbers"]),                         # ValueError: unpack
+    ({"bounds": (np.nan, 0, 1, 1)}, ["bounds must be four finite numbers"]),                 # garbage, warnings
+])
+def test_masks_arguments(res, kw, words):
+    with pytest.raises(ParameterError) as exc:
+        masks(res, SPEC, backend="numpy", **kw)
+    _one_line(exc, *words)
+
+
+@pytest.mark.parametrize("call, words", [
+    (lambda r, m: masks(r, {"resolution": (10, 10)}), ["spec must be a RasterSpec", "dict"]),
+    (lambda r, m: masks(r, "elegoo-mars-3"), ["spec must be a RasterSpec", "str"]),
+    (lambda r, m: masks(m, SPEC), ["result must be a SliceResult", "Mesh"]),
+    (lambda r, m: next(gpuslice.raster.iter_tiles(None, SPEC)), ["result must be a SliceResult"]),
+    (lambda r, m: next(gpuslice.raster.iter_masks(r, SPEC, layers=[0.5])), ["whole layer indices"]),
+])
+def test_raster_arguments_of_the_wrong_kind(res, cube, call, words):
+    """Were AttributeErrors ('dict' object has no attribute 'shape'); the generators check at their first step."""
+    with pytest.raises(ParameterError) as exc:
+        call(res, cube)
+    _one_line(exc, *words)
+
+
+@pytest.mark.parametrize("kw, words", [
+    ({"spec": "elegoo"}, ["spec must be a RasterSpec"]), ({"settings": {"exposure": 1}}, ["settings must be a Print"]),
+    ({"options": {"trap_grid": 1}}, ["options must be a CheckOptions"]), ({"bounds": (0, 0, 1)}, ["bounds must be"]),
+    ({"backend": "bogus"}, ["unknown checks backend 'bogus'"]),                              # silently OpenCL
+    ({"workers": "a"}, ["workers must be a whole number"]), ({"workers": 0}, ["workers must be"]),
+])
+def test_run_checks_arguments(res, kw, words):
+    with pytest.raises(ParameterError) as exc:
+        run_checks(res, **kw)
+    _one_line(exc, *words)
+
+
+def test_run_checks_result_and_options_types(cube):
+    with pytest.raises(ParameterError) as exc:
+        run_checks(cube)
+    _one_line(exc, "result must be a SliceResult", "Mesh")
+    with pytest.raises(ParameterError):  # True was a 1 mm grid
+        CheckOptions(trap_grid=True)
+
+
+def test_export_arguments(res, tmp_path):
+    for call, words in ((lambda: formats.export(res, None), ["path must be a file path"]),
+                        (lambda: formats.export(None, tmp_path / "x.svg"), ["result must be a SliceResult"]),
+                        (lambda: formats.export(res, tmp_path), [str(tmp_path), "is a directory"])):
+        with pytest.raises(ParameterError) as exc:
+            call()
+        _one_line(exc, *words)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_print_settings_flag_and_messages():
+    """per_layer_settings='no' was True (a non-empty string); exposure='2' said 'got 2', as if it were a number."""
+    with pytest.raises(ParameterError) as exc:
+        PrintSettings(per_layer_settings="no")
+    _one_line(exc, "per_layer_settings must be True or False", "'no'")
+    with pytest.raises(ParameterError) as exc:
+        PrintSettings(exposure="2")
+    _one_line(exc, "exposure must be > 0, got '2'")
+    assert PrintSettings(per_layer_settings=np.bool_(True)).per_layer_settings
