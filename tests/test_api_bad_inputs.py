@@ -382,3 +382,49 @@ def test_print_settings_flag_and_messages():
         PrintSettings(exposure="2")
     _one_line(exc, "exposure must be > 0, got '2'")
     assert PrintSettings(per_layer_settings=np.bool_(True)).per_layer_settings
+
+
+# ---- the display and the resin options (raster/spec.py) ------------------------------------------------------------
+@pytest.mark.parametrize("kw, words", [
+    ({"mirror_x": "no"}, ["mirror_x must be True or False"]),            # was taken as True
+    ({"keep_xy": "yes"}, ["keep_xy must be True or False"]),
+    ({"portrait": 2}, ["portrait must be True or False"]),
+    ({"pixel": True}, ["pixel must be a positive number"]),              # was a 1 mm pixel
+    ({"gamma": True}, ["gamma must be a number"]),
+    ({"gamma": "1"}, ["gamma must be a number"]),                        # TypeError
+    ({"resolution": (True, True)}, ["resolution must be two positive integers"]),
+    ({"resolution": "3840x2400"}, ["resolution must be two positive integers"]),  # ValueError: unpack
+    ({"resolution": (3840,)}, ["resolution must be two positive integers"]),
+    ({"pixel_y": "a"}, ["pixel_y must be a positive number"]),           # TypeError
+])
+def test_raster_spec_of_the_wrong_kind(kw, words):
+    from gpuslice.raster import RasterSpec
+
+    with pytest.raises(ParameterError) as exc:
+        RasterSpec(**kw)
+    _one_line(exc, *words)
+
+
+def test_raster_spec_takes_numpy_numbers():
+    """A float32 pixel (from an array of presets) was refused; numpy numbers are stored as Python ones."""
+    from gpuslice.raster import RasterSpec
+
+    spec = RasterSpec(resolution=(np.int64(1920), np.int32(1080)), pixel=np.float32(0.05), pixel_y=np.float64(0.06))
+    assert spec.resolution == (1920, 1080) and type(spec.resolution[0]) is int
+    assert type(spec.pixel) is float and spec.py == 0.06
+
+
+@pytest.mark.parametrize("kw, words", [
+    ({"printer": 5}, ["printer must be text"]),                          # AttributeError: 'int' has no 'lower'
+    ({"job_name": 5}, ["job_name must be text"]),                        # TypeError
+    ({"supersample": 2.5}, ["supersample must be a whole number"]),      # accepted
+    ({"z_samples": 2.5}, ["z_samples must be a whole number"]),          # accepted
+    ({"workers": True}, ["workers must be a whole number"]),             # one worker
+    ({"png_level": "1"}, ["png_level must be a whole number"]),          # TypeError
+])
+def test_resin_options_of_the_wrong_kind(kw, words):
+    from gpuslice.raster.spec import ResinOptions
+
+    with pytest.raises(ParameterError) as exc:
+        ResinOptions(**kw)
+    _one_line(exc, *words)

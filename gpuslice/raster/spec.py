@@ -6,13 +6,14 @@ is described in :mod:`gpuslice.raster.coverage`."""
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ..errors import ParameterError
-from ..options import option, parse_resolution
+from ..options import is_real, option, parse_resolution
 from .printers import PRINTERS, Printer, find_printer
 from .settings import PrintSettings
 
@@ -50,18 +51,31 @@ class RasterSpec:
     gamma: float = option(1.0, "Antialiasing gamma (PrusaSlicer's): 1 linear coverage, 0 hard threshold at 50 %")
 
     def __post_init__(self) -> None:
-        nx, ny = self.resolution
-        if not (isinstance(nx, int | np.integer) and isinstance(ny, int | np.integer) and nx > 0 and ny > 0):
-            raise ParameterError(f"resolution must be two positive integers NXxNY, got {self.resolution}",
-                                 param="resolution")
+        res = self.resolution
+        whole = (isinstance(res, tuple | list) and len(res) == 2
+                 and all(isinstance(v, numbers.Integral) and not isinstance(v, bool) for v in res))
+        if not (whole and res[0] > 0 and res[1] > 0):
+            raise ParameterError(f"resolution must be two positive integers NXxNY, got {res!r}", param="resolution")
+        nx, ny = int(res[0]), int(res[1])
         if nx * ny > 2**31 - 1:
             raise ParameterError(f"resolution {nx}x{ny} is too large", param="resolution")
-        for name, v in (("pixel", self.pixel), ("pixel_y", self.py)):
-            if not (isinstance(v, int | float) and math.isfinite(v) and 0 < v <= MAX_PIXEL_MM):
-                raise ParameterError(f"{name} must be a positive number of mm up to {MAX_PIXEL_MM:g}, got {v}",
+        object.__setattr__(self, "resolution", (nx, ny))  # (Python ints: numpy ones would reach the headers)
+        for name in ("pixel", "pixel_y"):
+            v = getattr(self, name)
+            if v is None and name == "pixel_y":
+                continue
+            if not (is_real(v) and math.isfinite(v) and 0 < v <= MAX_PIXEL_MM):
+                raise ParameterError(f"{name} must be a positive number of mm up to {MAX_PIXEL_MM:g}, got {v!r}",
                                      param=name)
-        if not (math.isfinite(self.gamma) and self.gamma >= 0):
-            raise ParameterError(f"gamma must be >= 0, got {self.gamma}", param="gamma")
+            if isinstance(v, np.generic):  # (a numpy scalar as the Python number: reports and headers take those)
+                object.__setattr__(self, name, v.item())
+        if not (is_real(self.gamma) and math.isfinite(self.gamma) and self.gamma >= 0):
+            raise ParameterError(f"gamma must be a number >= 0, got {self.gamma!r}", param="gamma")
+        for name in ("mirror_x", "mirror_y", "portrait", "keep_xy"):
+            v = getattr(self, name)
+            if not isinstance(v, bool | np.bool_):  # ("no" would be taken as true)
+                raise ParameterError(f"{name} must be True or False, got {v!r}", param=name)
+            object.__setattr__(self, name, bool(v))
 
     @property
     def nx(self) -> int:
@@ -179,6 +193,14 @@ class ResinOptions:
                             "slab (1: off; needs the OpenCL rasteriser)")
 
     def __post_init__(self) -> None:
+        for name in ("printer", "job_name", "raster_backend"):
+            v = getattr(self, name)
+            if not (isinstance(v, str) or (v is None and name != "raster_backend")):
+                raise ParameterError(f"{name} must be text, got {v!r}", param=name)
+        for name in ("supersample", "png_level", "z_samples", "workers"):
+            v = getattr(self, name)
+            if not ((v is None and name == "workers") or (isinstance(v, numbers.Integral) and not isinstance(v, bool))):
+                raise ParameterError(f"{name} must be a whole number, got {v!r}", param=name)
         if self.printer is not None:
             find_printer(self.printer)
         if self.raster_backend not in BACKENDS:
