@@ -428,3 +428,23 @@ def test_resin_options_of_the_wrong_kind(kw, words):
     with pytest.raises(ParameterError) as exc:
         ResinOptions(**kw)
     _one_line(exc, *words)
+
+
+def test_runs_and_adaptive_schedules_called_directly(res, cube):
+    """layer_runs(res, "x") was an AttributeError ('str' has no 'gamma'); cusp_schedule(max_cusp="a") a numpy
+    TypeError, smooth=True a smoothing of 1 mm per mm; adaptive_schedule(mesh, None) an AttributeError."""
+    from gpuslice.raster.runs import layer_runs
+    from gpuslice.schedule.adaptive import adaptive_schedule, cusp_schedule
+
+    for call, words in (
+        (lambda: layer_runs(res, "x"), ["spec must be a RasterSpec", "str"]),
+        (lambda: layer_runs(res, SPEC, layers=[0.5]), ["whole layer indices"]),
+        (lambda: cusp_schedule(cube, max_cusp="a"), ["max_cusp must be a number"]),
+        (lambda: cusp_schedule(cube, smooth=True), ["smooth must be a number"]),
+        (lambda: cusp_schedule(cube, resolution=-1.0), ["resolution must be a positive number"]),
+        (lambda: adaptive_schedule(cube, None), ["params must be a SliceParams"]),
+    ):
+        with pytest.raises(ParameterError) as exc:
+            call()
+        _one_line(exc, *words)
+    assert len(cusp_schedule(cube).z) > 0

@@ -40,7 +40,7 @@ from ..device import KernelDriver, aligned_empty, get_device
 from ..errors import ParameterError
 from ..prefetch import prefetch
 from ..ragged import expand_ranges, group_ranks
-from .edges import LayerEdges, iter_layer_edges
+from .edges import LayerEdges, check_raster_args, iter_layer_edges
 from .runs_twin import Runs, _cells_to_runs, _piece_records, _rows, _sum_cells, runs_numpy, runs_to_mask
 from .spec import RasterSpec, gamma_lut
 
@@ -342,6 +342,8 @@ def iter_runs(
     """
     if backend not in BACKENDS:
         raise ParameterError(f"unknown runs backend '{backend}' (use {', '.join(BACKENDS)})")
+    if merged is None and edges is None:
+        check_raster_args(result, spec, layers, bounds)
     spec = spec or RasterSpec()
     k = int(z_samples)
     if merged is not None:

@@ -42,6 +42,7 @@ import numpy as np
 from ..device import KernelDriver
 from ..errors import ParameterError
 from ..mesh.mesh import Mesh
+from ..options import is_real
 from .uniform import Schedule, from_z
 
 __all__ = [
@@ -256,6 +257,12 @@ def cusp_schedule(
     """
     if mode not in ("cusp", "area"):
         raise ParameterError(f"unknown error-bounded mode '{mode}' (use cusp or area)")
+    for name, v in (("max_cusp", max_cusp), ("max_area", max_area), ("min_height", min_height),
+                    ("max_height", max_height), ("smooth", smooth)):
+        if not is_real(v):  # (text or a bool: named here, not a numpy TypeError below)
+            raise ParameterError(f"{name} must be a number, got {v!r}", param=name)
+    if resolution is not None and not (is_real(resolution) and resolution > 0):
+        raise ParameterError(f"resolution must be a positive number of mm, got {resolution!r}", param="resolution")
     if mode == "cusp" and not (np.isfinite(max_cusp) and max_cusp > 0):
         raise ParameterError(f"max_cusp must be a positive number of mm, got {max_cusp}", param="max_cusp")
     if mode == "area" and not (np.isfinite(max_area) and max_area > 0):
@@ -428,6 +435,8 @@ def adaptive_schedule(mesh: Mesh, params, device=None, *, slicer: Callable[[Sche
     """The schedule that ``params.adaptive`` (``"roi"``, ``"cusp"`` or ``"area"``) asks for, with ``params``'
     adaptive fields (see :class:`~gpuslice.slicing.params.SliceParams`); ``slicer``: see :func:`roi_schedule`
     (needed for roi only)."""
+    if not hasattr(params, "adaptive"):  # (SliceParams imports this module: duck-typed, no import circle)
+        raise ParameterError(f"params must be a SliceParams (its adaptive fields), got {type(params).__name__}")
     mode = params.adaptive
     if mode == "roi":
         return roi_schedule(mesh, params.roi_ladder, threshold=params.roi_threshold, quantile=params.roi_quantile,
