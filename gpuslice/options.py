@@ -31,12 +31,22 @@ from typing import Any
 from .errors import ParameterError
 
 __all__ = ["OptionInfo", "option", "options_of", "parse_value", "flag_of", "parse_floats", "parse_resolution",
-           "is_real"]
+           "is_real", "python_number", "shown"]
 
 
 def is_real(v: object) -> bool:
     """A real number: a Python or numpy integer or float, not a bool (``True`` is no thickness)."""
     return isinstance(v, numbers.Real) and not isinstance(v, bool)
+
+
+def python_number(v: object) -> object:
+    """``v``, a numpy number as the same Python number (reports' JSON and archive headers take those), else as is."""
+    return v.item() if is_real(v) and hasattr(v, "item") else v
+
+
+def shown(v: object) -> str:
+    """``v`` as an error message shows it: a number as itself, anything else by its repr (a string: ``'2'``)."""
+    return str(v) if is_real(v) else repr(v)
 
 
 def option(

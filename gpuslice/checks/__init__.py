@@ -47,24 +47,18 @@ class CheckOptions:
             raise ParameterError(f"trap_grid must be >= 0 mm, got {g}", param="trap_grid")
 
 
-
 def _check_arguments(result, spec, settings, options, bounds, backend: str, workers) -> None:
     """One-line :class:`ParameterError` for arguments of :func:`run_checks` of the wrong kind, before any work."""
+    from ..raster.edges import check_raster_args
     from ..raster.settings import PrintSettings
-    from ..raster.spec import RasterSpec
-    from ..slicing.result import SliceResult
 
+    check_raster_args(result, spec, bounds=bounds)  # result, spec and bounds as the rasterisers take them
     for name, value, kind, hint in (
-        ("result", result, SliceResult, "gpuslice.slice_mesh's"),
-        ("spec", spec, RasterSpec, "gpuslice.raster.RasterSpec or with_printer(name), or None"),
         ("settings", settings, PrintSettings, "gpuslice.raster.PrintSettings, or None"),
         ("options", options, CheckOptions, "gpuslice.checks.CheckOptions, or None"),
     ):
-        if not isinstance(value, kind) and not (value is None and name != "result"):
+        if value is not None and not isinstance(value, kind):
             raise ParameterError(f"{name} must be a {kind.__name__} ({hint}), got {type(value).__name__}")
-    from ..raster.edges import check_raster_args
-
-    check_raster_args(result, spec, bounds=bounds)  # (the bounds as the rasterisers take them)
     if backend not in ("auto", "opencl", "numpy"):
         raise ParameterError(f"unknown checks backend {backend!r} (use auto, opencl or numpy)")
     if workers is not None and not (is_real(workers) and float(workers).is_integer() and workers >= 1):

@@ -175,15 +175,12 @@ def _stop_on_terminate():
     seen: list[int] = []
 
     def handler(signum, frame):
-        if os.getpid() != pid:  # a forked child that inherited the handler: die as the signal asks
-            signal.signal(signum, signal.SIG_DFL)
-            os.kill(os.getpid(), signum)
-            return
-        if not seen:
+        if os.getpid() == pid and not seen:
             seen.append(signum)
             _INTERRUPTED.set()
             raise Terminated(signum)
-        signal.signal(signum, signal.SIG_DFL)  # a second one while the first unwinds: die as the signal asks
+        # a second one while the first unwinds, or a forked child that inherited the handler: die as the signal asks
+        signal.signal(signum, signal.SIG_DFL)
         os.kill(os.getpid(), signum)
 
     previous = {}

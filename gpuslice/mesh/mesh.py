@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EmptyMeshError, InvalidGeometryError, ParameterError
-from ..options import is_real, option
+from ..options import is_real, option, shown
 from .sources import _arrays, real_array
 from .weld import EdgeSides, WeldKernel, edge_table_numpy, weld_numpy
 
@@ -212,16 +212,15 @@ class Placement:
         _check_scale_fit(self.scale, self.fit)
 
 
-
 def _check_scale_fit(scale, fit) -> None:
     """:class:`ParameterError` naming ``scale``/``fit`` unless each is None or a positive finite number, not both."""
     if scale is not None and fit is not None:
         raise ParameterError("give scale or fit, not both", param=("scale", "fit"))
     if fit is not None and not (is_real(fit) and np.isfinite(fit) and fit > 0):
-        raise ParameterError(f"fit must be a positive length in mm, got {fit if is_real(fit) else repr(fit)}",
+        raise ParameterError(f"fit must be a positive length in mm, got {shown(fit)}",
                              param="fit")
     if scale is not None and not (is_real(scale) and np.isfinite(scale) and scale > 0):
-        raise ParameterError(f"scale must be a positive factor, got {scale if is_real(scale) else repr(scale)}",
+        raise ParameterError(f"scale must be a positive factor, got {shown(scale)}",
                              param="scale")
 
 

@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ParameterError
-from ..options import option
+from ..options import option, shown
 
 __all__ = ["PrintSettings", "layer_table", "layer_times", "print_time_s", "resin_ml", "transition_step",
            "format_duration", "LAYER_COLUMNS"]
@@ -100,27 +100,27 @@ class PrintSettings:
         for name in ("bottom_layers", "transition_layers"):
             v = getattr(self, name)
             if not (_is_int(v) and 0 <= v <= 100000):
-                raise ParameterError(f"{name} must be a whole number of layers from 0 to 100000, got {_shown(v)}",
+                raise ParameterError(f"{name} must be a whole number of layers from 0 to 100000, got {shown(v)}",
                                      param=name)
         for name in ("bottom_exposure", "exposure", "resin_density"):
             v = getattr(self, name)
             if not (_is_number(v) and v > 0):
-                raise ParameterError(f"{name} must be > 0, got {_shown(v)}", param=name)
+                raise ParameterError(f"{name} must be > 0, got {shown(v)}", param=name)
         for name in ("lift_height", "lift_height2", "retract_height2", "wait_before_cure", "wait_after_cure",
                      "wait_after_lift", "lift_speed2", "retract_speed2"):
             for n in (name, f"bottom_{name}"):
                 v = getattr(self, n)
                 if v is not None and not (_is_number(v) and v >= 0):
-                    raise ParameterError(f"{n} must be >= 0, got {_shown(v)}", param=n)
+                    raise ParameterError(f"{n} must be >= 0, got {shown(v)}", param=n)
         for name in ("lift_speed", "retract_speed"):
             for n in (name, f"bottom_{name}"):
                 v = getattr(self, n)
                 if v is not None and not (_is_number(v) and v > 0):
-                    raise ParameterError(f"{n} must be > 0 mm/min, got {_shown(v)}", param=n)
+                    raise ParameterError(f"{n} must be > 0 mm/min, got {shown(v)}", param=n)
         for name in ("light_pwm", "bottom_light_pwm"):
             v = getattr(self, name)
             if not (_is_int(v) and 1 <= v <= 255):
-                raise ParameterError(f"{name} must be a whole number from 1 to 255, got {_shown(v)}", param=name)
+                raise ParameterError(f"{name} must be a whole number from 1 to 255, got {shown(v)}", param=name)
         if not isinstance(self.per_layer_settings, bool | np.bool_):  # 'no' would read as True
             raise ParameterError(f"per_layer_settings must be True or False, got {self.per_layer_settings!r}",
                                  param="per_layer_settings")
@@ -175,11 +175,6 @@ def _is_number(v: Any) -> bool:
 
 def _is_int(v: Any) -> bool:
     return isinstance(v, int | np.integer) and not isinstance(v, bool)
-
-
-def _shown(v: Any) -> str:
-    """``v`` as a message shows it: a number as itself, anything else (a string: ``'2'``) by its repr."""
-    return str(v) if isinstance(v, int | float | np.integer | np.floating) else repr(v)
 
 
 #: the columns of :func:`layer_table`, all (n,) arrays

@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..errors import ParameterError
-from ..options import is_real, option, parse_resolution
+from ..options import is_real, option, parse_resolution, python_number
 from .printers import PRINTERS, Printer, find_printer
 from .settings import PrintSettings
 
@@ -67,8 +67,7 @@ class RasterSpec:
             if not (is_real(v) and math.isfinite(v) and 0 < v <= MAX_PIXEL_MM):
                 raise ParameterError(f"{name} must be a positive number of mm up to {MAX_PIXEL_MM:g}, got {v!r}",
                                      param=name)
-            if isinstance(v, np.generic):  # (a numpy scalar as the Python number: reports and headers take those)
-                object.__setattr__(self, name, v.item())
+            object.__setattr__(self, name, python_number(v))
         if not (is_real(self.gamma) and math.isfinite(self.gamma) and self.gamma >= 0):
             raise ParameterError(f"gamma must be a number >= 0, got {self.gamma!r}", param="gamma")
         for name in ("mirror_x", "mirror_y", "portrait", "keep_xy"):

@@ -19,15 +19,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ParameterError
-from ..options import is_real
+from ..options import is_real, shown
 
 __all__ = ["Schedule", "uniform", "from_z"]
 
-
-
-def _shown(v) -> str:
-    """``v`` as a message shows it: a number as itself, anything else by its repr."""
-    return str(v) if is_real(v) else repr(v)
 
 
 def _reals(value, what: str) -> np.ndarray:
@@ -108,11 +103,11 @@ def uniform(
     array([0.25, 0.5 , 0.75])
     """
     if not (is_real(thickness) and np.isfinite(thickness) and thickness > 0):
-        raise ParameterError(f"layer thickness must be a positive number of mm, got {_shown(thickness)}")
+        raise ParameterError(f"layer thickness must be a positive number of mm, got {shown(thickness)}")
     if not (is_real(height) and np.isfinite(height) and height >= 0):
-        raise ParameterError(f"object height must be finite and non-negative, got {_shown(height)}")
+        raise ParameterError(f"object height must be finite and non-negative, got {shown(height)}")
     if not (first_layer is None or (is_real(first_layer) and np.isfinite(first_layer) and first_layer > 0)):
-        raise ParameterError(f"first layer thickness must be a positive number of mm, got {_shown(first_layer)}")
+        raise ParameterError(f"first layer thickness must be a positive number of mm, got {shown(first_layer)}")
     h0 = thickness if first_layer is None else float(first_layer)
     if height / thickness > 5e7:
         raise ParameterError(f"{height:g} mm at {thickness:g} mm would make more than 5e7 layers")

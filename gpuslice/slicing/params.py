@@ -4,10 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
 from ..errors import ParameterError
-from ..options import is_real, option, parse_floats
+from ..options import is_real, option, parse_floats, python_number
 from ..schedule.adaptive import ADAPTIVE_MODES
 from .nest import FILL_RULES
 
@@ -74,23 +72,20 @@ class SliceParams:
             v = getattr(self, name)
             if not (is_real(v) or (v is None and name == "first_layer")):
                 raise ParameterError(f"{name} must be a number, got {v!r}", param=name)
-            if isinstance(v, np.generic):  # the same value as a Python number: the report's JSON takes no numpy
-                object.__setattr__(self, name, v.item())
+            object.__setattr__(self, name, python_number(v))
         for name in ("max_segments_per_batch", "roi_windows"):
             v = getattr(self, name)
             if not (float(v).is_integer()):
                 raise ParameterError(f"{name} must be a whole number, got {v!r}", param=name)
         for name in ("roi_ladder", "roi_threshold"):
             v = getattr(self, name)
-            if v is None and name == "roi_threshold":
-                continue
-            if is_real(v) and name == "roi_threshold":  # one threshold for every step
-                object.__setattr__(self, name, v.item() if isinstance(v, np.generic) else v)
+            if name == "roi_threshold" and (v is None or is_real(v)):  # none, or one threshold for every step
+                object.__setattr__(self, name, python_number(v))
                 continue
             if not (isinstance(v, tuple | list) and all(is_real(x) for x in v)):
                 raise ParameterError(f"{name} must be a tuple of numbers, got {v!r}", param=name)
             # a tuple (hashable, as the frozen dataclass is) of Python numbers (the report's JSON takes no numpy)
-            object.__setattr__(self, name, tuple(x.item() if isinstance(x, np.generic) else x for x in v))
+            object.__setattr__(self, name, tuple(python_number(x) for x in v))
         if self.z_mode not in Z_MODES:
             raise ParameterError(f"unknown z_mode {self.z_mode!r} (use {' or '.join(map(repr, Z_MODES))})",
                                  param="z_mode")
