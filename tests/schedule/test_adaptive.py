@@ -103,6 +103,26 @@ def test_slab_kernel_matches_numpy_twin(device, sphere):
 # ---- error-bounded schedules ----------------------------------------------------------------------------------
 
 
+def test_slab_kernel_follows_the_mesh_not_its_id(device):
+    """The device keeps a mesh's facets for the next slabs of the same mesh; it must not answer for another mesh that
+    has the same id and facet count (a dead mesh's id reused, here: new vertices on the same object), nor fail once
+    the buffers were let go (``release_scratch`` before a resin job's layers: a KeyError before)."""
+    from gpuslice.device import release_scratch
+
+    mesh = mesh_from_triangles(icosphere(20.0))
+    edges = np.linspace(0, mesh.height, 301)
+    first = slab_max_nz(mesh, edges, device)
+    tilted = mesh.vertices.copy()
+    tilted[:, 2] = mesh.vertices[:, 2] + 0.3 * mesh.vertices[:, 0]  # sheared: other normals, as many facets
+    tilted[:, 2] -= tilted[:, 2].min()
+    mesh.vertices = tilted
+    want = slab_max_nz_numpy(*facet_slopes_numpy(mesh), edges)
+    assert not np.array_equal(want, first)
+    np.testing.assert_array_equal(slab_max_nz(mesh, edges, device), want)
+    release_scratch(device)
+    np.testing.assert_array_equal(slab_max_nz(mesh, edges, device), want)
+
+
 @pytest.mark.parametrize("backend", ["numpy", "opencl"])
 def test_icosphere_cusp_bound_and_layer_count(request, sphere, backend):
     dev = request.getfixturevalue("device") if backend == "opencl" else None
