@@ -55,6 +55,10 @@ class Mesh:
         The two vertex ids of each edge, smaller first.
     stored_normals : (F, 3) float32 or None
         Normals as stored in the file, for the kept facets.
+
+    Normals, the edge pairing and the mesh check's counts are computed once per mesh and kept: change a mesh by
+    making another (``dataclasses.replace(mesh, vertices=...)`` starts with nothing kept), not by editing its arrays
+    in place.
     """
 
     vertices: np.ndarray
@@ -68,7 +72,9 @@ class Mesh:
     offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
     dropped_degenerate: int = 0
     solids: int = 1
-    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+    #: normals, edge sides, mesh-check counts and the device, computed once for these arrays: not an argument, so a
+    #: copy made by ``dataclasses.replace(mesh, vertices=...)`` starts with its own (it used to share this dict)
+    _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def n_faces(self) -> int:

@@ -33,7 +33,6 @@ schedule: each layer keeps the thickness of the deepest level that covers it.
 
 from __future__ import annotations
 
-import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -151,15 +150,6 @@ class AdaptiveKernel(KernelDriver):
         self._blocks = prg.adaptive_slab_blocks
         self._push = prg.adaptive_push_down
 
-    def _holds(self, mesh: Mesh) -> bool:
-        """Whether the buffers ``zmin``, ``zmax``, ``nz`` hold ``mesh``'s facets: the last :meth:`facets` was of
-        this very object with these very vertex and face arrays (not a mesh that has since died and left its id to
-        another of as many facets, as the id and facet count kept before could not tell) and nothing has dropped the
-        buffers since (:func:`gpuslice.device.release_scratch`; before, a KeyError)."""
-        held = getattr(self, "_mesh", None)
-        return (held is not None and held[0]() is mesh and held[1:] == (id(mesh.vertices), id(mesh.faces))
-                and all(k in self._buffers for k in ("zmin", "zmax", "nz")))
-
     def facets(self, mesh: Mesh, *, read_back: bool = True):
         """Per facet (zmin, zmax, |n_z|) float32; left on the device (buffers ``zmin``, ``zmax``, ``nz``) too."""
         q = self.device.queue
@@ -169,7 +159,6 @@ class AdaptiveKernel(KernelDriver):
         d_lo, d_hi, d_nz = (self._buffer(k, 4 * max(n_f, 1)) for k in ("zmin", "zmax", "nz"))
         if n_f:
             self._facets(q, *self._grid(n_f), d_v, d_f, np.int32(n_f), d_lo, d_hi, d_nz)
-        self._mesh = weakref.ref(mesh), id(mesh.vertices), id(mesh.faces)  # (slab_max reuses them for this mesh)
         if not read_back:
             return None
         out = tuple(np.empty(n_f, np.float32) for _ in range(3))
@@ -182,8 +171,7 @@ class AdaptiveKernel(KernelDriver):
         import pyopencl as cl
 
         q = self.device.queue
-        if not self._holds(mesh):
-            self.facets(mesh, read_back=False)
+        self.facets(mesh, read_back=False)  # (each call: a mesh's arrays may have changed since, even in place)
         e32 = np.ascontiguousarray(edges, dtype=np.float32)
         n_l = max(e32.size - 1, 0)
         out = np.zeros(n_l, np.uint32)

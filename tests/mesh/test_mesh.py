@@ -105,3 +105,22 @@ def test_device_weld_gives_the_same_mesh(device):
     b = mesh_from_triangles(tri, fit=50, device=device)
     for name in ("vertices", "faces", "face_edges", "edge_vertices"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
+def test_a_replaced_mesh_keeps_nothing_of_the_original():
+    """``dataclasses.replace(mesh, vertices=...)`` makes another mesh: its normals and mesh check are its own, and the
+    original's stay right (the kept values' dict was shared by both before)."""
+    from dataclasses import replace
+
+    from gpuslice import mesh_repairs
+
+    m = mesh_from_triangles(S.box())
+    normals = m.face_normals().copy()
+    assert mesh_repairs(m)["inverted_shells"] == 0
+    v = m.vertices.copy()
+    v[:, 0] = -v[:, 0]  # mirrored in x: the same faces now wind inwards
+    mirrored = replace(m, vertices=v)
+    assert mesh_repairs(mirrored)["inverted_shells"] == 1
+    np.testing.assert_allclose(mirrored.face_normals(), normals * [1, -1, -1], atol=1e-6)  # det -1: turned
+    np.testing.assert_array_equal(m.face_normals(), normals)
+    assert mesh_repairs(m)["inverted_shells"] == 0

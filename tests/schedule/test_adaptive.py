@@ -104,9 +104,9 @@ def test_slab_kernel_matches_numpy_twin(device, sphere):
 
 
 def test_slab_kernel_follows_the_mesh_not_its_id(device):
-    """The device keeps a mesh's facets for the next slabs of the same mesh; it must not answer for another mesh that
-    has the same id and facet count (a dead mesh's id reused, here: new vertices on the same object), nor fail once
-    the buffers were let go (``release_scratch`` before a resin job's layers: a KeyError before)."""
+    """The device's slabs are always those of the mesh as it is now: not of another mesh that had the same id and facet
+    count (a dead mesh's id reused; here: new vertices on the same object), nor of the mesh before an edit in place,
+    and no KeyError once the buffers were let go (``release_scratch`` before a resin job's layers)."""
     from gpuslice.device import release_scratch
 
     mesh = mesh_from_triangles(icosphere(20.0))
@@ -121,6 +121,8 @@ def test_slab_kernel_follows_the_mesh_not_its_id(device):
     np.testing.assert_array_equal(slab_max_nz(mesh, edges, device), want)
     release_scratch(device)
     np.testing.assert_array_equal(slab_max_nz(mesh, edges, device), want)
+    mesh.vertices[:, 2] *= 0.5  # edited in place: the same arrays, other facets
+    np.testing.assert_array_equal(slab_max_nz(mesh, edges, device), slab_max_nz_numpy(*facet_slopes_numpy(mesh), edges))
 
 
 @pytest.mark.parametrize("backend", ["numpy", "opencl"])
