@@ -17,6 +17,8 @@ refused cache falls back to the source build. ``PYOPENCL_NO_CACHE=1`` builds fro
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import hashlib
 import os
 import threading
@@ -46,6 +48,8 @@ class Device:
     device_index: int
     origin: Device | None = field(default=None, repr=False)
     _lanes: dict = field(default_factory=dict, repr=False)
+    _lock: threading.RLock = field(default_factory=threading.RLock, repr=False)
+    _pid: int = field(default_factory=os.getpid, repr=False)  # the process that made the context
 
     def lane(self, k: int) -> Device:
         """This device with in-order queue number ``k`` of its own (``k`` = 0: this device itself), made once: work
@@ -66,6 +70,22 @@ class Device:
     def name(self) -> str:
         return f"{self.device.platform.name.strip()} / {self.device.name.strip()}"
 
+    def exclusive(self) -> threading.RLock:
+        """The lock of this device (and its lanes) for one job's use of the kernel drivers that keep no lock of
+        their own (:data:`SHARED_DRIVERS`): re-entrant; held by :func:`~gpuslice.slicing.slicer.slice_mesh`, by the
+        mesh's weld and mesh check and by the adaptive schedules on a device, so that two threads slicing at once
+        take turns instead of overwriting each other's buffers (segfaults, wrong layers: found with two batch tasks
+        on one Dask worker's threads). Also checks that the context belongs to this process (:meth:`check_process`)."""
+        self.check_process()
+        return (self.origin or self)._lock
+
+    def check_process(self) -> None:
+        """A :class:`DeviceError` when this device's context was made by another process: OpenCL contexts do not
+        survive ``fork`` (a forked child's first kernel waits forever on PoCL's threads, which were not forked)."""
+        if self._pid != os.getpid():
+            raise DeviceError(f"{self.name}: this OpenCL context was made before the process forked and does not work "
+                              "in the child; use the 'spawn' or 'forkserver' start method of multiprocessing")
+
     @property
     def is_gpu(self) -> bool:
         import pyopencl as cl
@@ -85,6 +105,7 @@ class Device:
         """
         if not resources.files("gpuslice.kernels").joinpath(filename).is_file():
             raise DeviceError(f"{filename}: no such kernel file")
+        self.check_process()
         return _build(self.origin or self, self.local_size)
 
 
@@ -97,6 +118,24 @@ class Device:
 TRANSFERS = "events kept until done"
 
 _DRIVERS_LOCK = threading.RLock()  # (a driver made inside another one's construction)
+
+#: The kernel drivers whose buffers one job's stages hand on to each other (the crossings' segments to chaining) or
+#: that keep no lock of their own: a thread uses them inside :meth:`Device.exclusive`. The runs (``RunsKernel``: a
+#: lock per driver) and the run-length encoders (``RunKernels``: a queue per thread) may run beside them.
+SHARED_DRIVERS = ("CrossingsKernel", "ChainKernels", "WeldKernel", "AdaptiveKernel", "SegmentEdgesKernel",
+                  "RasterKernel")
+
+
+def locked(method):
+    """Decorator of a driver method of :data:`SHARED_DRIVERS` that is a whole use of it (uploads, kernels, read-back):
+    it runs inside its device's :meth:`Device.exclusive`."""
+
+    @functools.wraps(method)
+    def run(self, *args, **kwargs):
+        with self.device.exclusive():
+            return method(self, *args, **kwargs)
+
+    return run
 
 
 class KernelDriver:
@@ -204,10 +243,12 @@ def release_scratch(device: Device | None = None) -> None:
 
     for (_, dev_id), drv in list(KernelDriver._instances.items()):
         if device is None or dev_id == id(device) or drv.device.origin is device:  # (and the device's lanes)
-            drv._buffers.clear()
-            if drv._events:  # (the uploads' events hold their host arrays: let them go, once done)
-                drv.device.queue.finish()
-                drv._events.clear()
+            own = getattr(drv, "_lock", None)  # (a driver with a lock of its own: the runs, between two batches)
+            with drv.device.exclusive(), own if own is not None else contextlib.nullcontext():
+                drv._buffers.clear()
+                if drv._events:  # (the uploads' events hold their host arrays: let them go, once done)
+                    drv.device.queue.finish()
+                    drv._events.clear()
     gc.collect()
     try:
         import ctypes
@@ -376,7 +417,10 @@ def get_device(spec: str | Device | None = None) -> Device:
     import pyopencl as cl
 
     if isinstance(spec, Device):
+        spec.check_process()
         return spec
+    for made in _DEVICES.values():  # (before asking the platforms: a forked child's driver may not answer)
+        made.check_process()
     entry = resolve(spec)
     key = entry["id"]
     if key not in _DEVICES:

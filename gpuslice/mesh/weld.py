@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..device import KernelDriver
+from ..device import KernelDriver, locked
 
 __all__ = ["EdgeSides", "WeldKernel", "first_occurrence_ids", "weld_device", "edge_ids_device", "weld_numpy",
            "edge_ids_numpy", "edge_table_numpy"]
@@ -236,6 +236,7 @@ class WeldKernel(KernelDriver):
         cl.enqueue_copy(q, total, d_total, is_blocking=True)
         return int(total[0]), d_ids, d_per_id
 
+    @locked
     def weld(self, corners: np.ndarray, *, signed_zero: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """``(vid, first)`` of (N, 3) float32 corners: the same arrays as :func:`weld_numpy` (``signed_zero=False``:
         -0.0 welds with 0.0, read so by the kernel: no normalised copy of the corners is needed)."""
@@ -252,6 +253,7 @@ class WeldKernel(KernelDriver):
             del self._buffers["corners"]
         return vid, first
 
+    @locked
     def edge_table(self, faces: np.ndarray, n_vertices: int | None = None, *, check: bool = True):
         """``(face_edges, edge_vertices, sides)``: the arrays of :func:`edge_ids_numpy` and the :class:`EdgeSides`
         pairing (the same as :func:`edge_table_numpy`'s), of (F, 3) vertex ids.
@@ -281,6 +283,7 @@ class WeldKernel(KernelDriver):
         """``(face_edges, edge_vertices)`` of (F, 3) vertex ids: the same arrays as :func:`edge_ids_numpy`."""
         return self.edge_table(faces, n_vertices)[:2]
 
+    @locked
     def release(self, keep_bytes: int = _KEEP_BYTES) -> None:
         """Drop this driver's device buffers when together they hold more than ``keep_bytes``: a large mesh's tables
         (~140 bytes a facet) would otherwise stay allocated through slicing, raising the job's peak memory; small
@@ -288,6 +291,7 @@ class WeldKernel(KernelDriver):
         if sum(size for _, size in self._buffers.values()) > keep_bytes:
             self._buffers.clear()
 
+    @locked
     def components(self, n: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Connected components of the graph on nodes ``0 .. n - 1`` with edges ``a[i] -- b[i]``: (n,) int32 labels,
         each node labelled with the smallest node of its component (as :func:`gpuslice.mesh.graph.connected_labels`).

@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..device import KernelDriver
+from ..device import KernelDriver, locked
 from ..errors import ParameterError
 from ..ragged import expand_ranges
 from ..slicing.result import SliceResult
@@ -146,6 +146,7 @@ class RasterKernel(KernelDriver):
         self._resolve = prog.raster_resolve
         self._acc_size = 0
 
+    @locked
     def run(self, le: LayerEdges, batch: range, lut: np.ndarray) -> list[np.ndarray]:
         """Tiles of the layers ``batch`` (indices into ``le``): a list of (rows, cols) uint8 arrays."""
         import pyopencl as cl

@@ -127,9 +127,10 @@ def iter_sub_plane_edges(mesh, z: np.ndarray, k: int, spec: RasterSpec, bounds, 
         done = []
         for a in starts[g : g + group]:
             b = min(a + chunk, n_layers)
-            seg = compute_crossings(mesh, z[a * k : b * k], device, read_back=False)
-            merged, short = kern(seg, (b - a) * k, k, spec, bounds)
-            del seg
+            with device.exclusive():  # (the crossings' buffers are read by the edges' kernels: one thread's turn)
+                seg = compute_crossings(mesh, z[a * k : b * k], device, read_back=False)
+                merged, short = kern(seg, (b - a) * k, k, spec, bounds)
+                del seg
             done.append((a, merged, a + np.flatnonzero(short | on_vertex[a:b])))
         cut = np.concatenate([d[2] for d in done])
         for i in range(0, cut.size, 256):  # (blocks of at most EDGE_CHUNK layers: one chunk of polygon edges each)

@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from ..device import KernelDriver
+from ..device import KernelDriver, locked
 from ..errors import ParameterError
 from ..mesh.mesh import Mesh
 from ..options import is_real
@@ -150,6 +150,7 @@ class AdaptiveKernel(KernelDriver):
         self._blocks = prg.adaptive_slab_blocks
         self._push = prg.adaptive_push_down
 
+    @locked
     def facets(self, mesh: Mesh, *, read_back: bool = True):
         """Per facet (zmin, zmax, |n_z|) float32; left on the device (buffers ``zmin``, ``zmax``, ``nz``) too."""
         q = self.device.queue
@@ -166,6 +167,7 @@ class AdaptiveKernel(KernelDriver):
             self._read(*zip(out, (d_lo, d_hi, d_nz), strict=True))
         return out
 
+    @locked
     def slab_max(self, mesh: Mesh, edges: np.ndarray) -> np.ndarray:
         """(L,) float32 max |n_z| per slab of ``edges`` (L + 1 values, mm) over the facets touching it."""
         import pyopencl as cl

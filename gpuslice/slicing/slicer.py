@@ -7,6 +7,7 @@ memory is set by the batch, not by the model.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import asdict, fields
 from typing import Any
@@ -150,49 +151,52 @@ def slice_mesh(
         device.program("walk.cl")
         device_name = device.name
         timings["device"] = time.perf_counter() - t
-    if not isinstance(mesh, Mesh) or placement.get("scale") is not None or placement.get("fit") is not None:
-        from ..mesh.mesh import load_mesh
+    # the device's shared drivers (crossings to chaining hand buffers on) are this thread's until the layers are
+    # nested: another thread's slice waits (device.Device.exclusive)
+    with device.exclusive() if device is not None else contextlib.nullcontext():
+        if not isinstance(mesh, Mesh) or placement.get("scale") is not None or placement.get("fit") is not None:
+            from ..mesh.mesh import load_mesh
 
-        mesh = load_mesh(mesh, device=device, **placement)  # welded on the slicing device, when there is one
-    t0 = time.perf_counter()
-    sched = schedule if schedule is not None else make_schedule(mesh, params, z, layer_thickness)
-    zs = _planes32(sched.z)
-    timings["schedule"] = time.perf_counter() - t0
-    n_layers = int(zs.size)
-    for key in ("crossings", "chaining", "nesting"):
-        timings[key] = 0.0
-    parts = []
-    n_segments = 0
-    batches, per_layer, ranges = _batches(mesh, zs, params.max_segments_per_batch) if n_layers else ([], None, None)
+            mesh = load_mesh(mesh, device=device, **placement)  # welded on the slicing device, when there is one
+        t0 = time.perf_counter()
+        sched = schedule if schedule is not None else make_schedule(mesh, params, z, layer_thickness)
+        zs = _planes32(sched.z)
+        timings["schedule"] = time.perf_counter() - t0
+        n_layers = int(zs.size)
+        for key in ("crossings", "chaining", "nesting"):
+            timings[key] = 0.0
+        parts = []
+        n_segments = 0
+        batches, per_layer, ranges = _batches(mesh, zs, params.max_segments_per_batch) if n_layers else ([], None, None)
 
-    def chained():  # crossings and chaining of each batch (on the prefetch thread when there are several)
-        for a, b in batches:
+        def chained():  # crossings and chaining of each batch (on the prefetch thread when there are several)
+            for a, b in batches:
+                t = time.perf_counter()
+                if device is not None:
+                    seg = compute_crossings(mesh, zs[a:b], device, read_back=False,
+                                             layers=_batch_layers(ranges, a, b, n_layers))
+                    device.queue.finish()  # so the kernels' time counts here, not in the next stage
+                else:
+                    seg = compute_crossings(mesh, zs[a:b])
+                timings["crossings"] += time.perf_counter() - t
+                count = len(seg)
+                t = time.perf_counter()
+                loops = chain_segments(seg, mesh, zs[a:b], b - a, max_gap=params.max_gap, device=device,
+                                       layer_counts=per_layer[a:b])
+                del seg
+                timings["chaining"] += time.perf_counter() - t
+                yield a, b, loops, count
+
+        # several batches: batch k + 1 is cut and chained (device kernels, GEOS and numpy, which release the GIL) while
+        # batch k is nested; the stages' times then overlap and add up to more than the wall time
+        for a, b, loops, count in prefetch(chained(), 1 if len(batches) > 1 else 0):
+            n_segments += count
             t = time.perf_counter()
-            if device is not None:
-                seg = compute_crossings(mesh, zs[a:b], device, read_back=False,
-                                         layers=_batch_layers(ranges, a, b, n_layers))
-                device.queue.finish()  # so the kernels' time counts here, not in the next stage
-            else:
-                seg = compute_crossings(mesh, zs[a:b])
-            timings["crossings"] += time.perf_counter() - t
-            count = len(seg)
-            t = time.perf_counter()
-            loops = chain_segments(seg, mesh, zs[a:b], b - a, max_gap=params.max_gap, device=device,
-                                   layer_counts=per_layer[a:b])
-            del seg
-            timings["chaining"] += time.perf_counter() - t
-            yield a, b, loops, count
-
-    # several batches: batch k + 1 is cut and chained (device kernels, GEOS and numpy, which release the GIL) while
-    # batch k is nested; the stages' times then overlap and add up to more than the wall time
-    for a, b, loops, count in prefetch(chained(), 1 if len(batches) > 1 else 0):
-        n_segments += count
-        t = time.perf_counter()
-        nested = nest_loops(loops, b - a, params.fill_rule)
-        timings["nesting"] += time.perf_counter() - t
-        parts.append((a, nested, loops.repairs))
-        del loops
-    result = _assemble(parts, sched, n_layers)
+            nested = nest_loops(loops, b - a, params.fill_rule)
+            timings["nesting"] += time.perf_counter() - t
+            parts.append((a, nested, loops.repairs))
+            del loops
+        result = _assemble(parts, sched, n_layers)
     result.segment_exact = _segment_exact(parts, result, n_layers)
     if getattr(sched, "info", None):
         result.meta["adaptive"] = sched.info
