@@ -32,7 +32,7 @@ def test_threads_slicing_at_once_get_what_each_gets_alone(device):
     for _ in range(4):
         out: list = [None, None]
 
-        def work(i: int) -> None:
+        def work(i: int, out: list = out) -> None:
             try:
                 out[i] = slice_mesh(jobs[i][0], thickness=jobs[i][1], device=device)
             except Exception as exc:  # noqa: BLE001 - reported by the assertion below

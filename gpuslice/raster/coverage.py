@@ -145,6 +145,7 @@ class RasterKernel(KernelDriver):
         self._acc = prog.raster_accumulate
         self._resolve = prog.raster_resolve
         self._acc_size = 0
+        self._acc_clean = True  # False between the two kernels of a call (see run)
 
     @locked
     def run(self, le: LayerEdges, batch: range, lut: np.ndarray) -> list[np.ndarray]:
@@ -171,8 +172,8 @@ class RasterKernel(KernelDriver):
         edge_tile = np.repeat(np.arange(len(t), dtype=np.int32), counts)
         row_tile = np.repeat(np.arange(len(t), dtype=np.int32), t[:, 2])
         need = total_px * 4
-        if "acc" not in self._buffers:  # never made, or dropped by release_scratch: the next one is zeroed whole
-            self._acc_size = 0
+        if "acc" not in self._buffers or not self._acc_clean:  # never made, dropped by release_scratch, or left
+            self._acc_size = 0  # with sums in it by a call stopped between its two kernels: zeroed whole
         if need > self._acc_size:
             self._acc_size = max(need, int(self._acc_size * 1.5) // 4 * 4)
             acc = self._fill("acc", self._acc_size, np.int32(0))
@@ -185,11 +186,13 @@ class RasterKernel(KernelDriver):
             b_edges = self._put("edges", le.edges[e0:e1].astype(np.float32))
             b_et = self._put("edge_tile", edge_tile)
             g, loc = self._grid(n_edges)
+            self._acc_clean = False  # (raster_resolve zeroes what raster_accumulate added)
             self._acc(q, g, loc, np.int32(n_edges), b_edges, b_et, b_tiles, acc)
         b_rt = self._put("row_tile", row_tile)
         g, loc = self._grid(n_rows)
         self._resolve(q, g, loc, np.int32(n_rows), b_rt, b_tiles, acc, b_lut, b_out)
         cl.enqueue_copy(q, out, b_out, is_blocking=True)
+        self._acc_clean = True
         return [out[px_off[i] : px_off[i + 1]].reshape(t[i, 2], t[i, 3]) for i in range(len(t))]
 
 

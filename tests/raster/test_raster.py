@@ -386,6 +386,28 @@ def test_opencl_runs_equal_the_bitmap_kernel(torus, device, gamma):
     assert [(t.row0, t.col0, t.data.shape) for t in tiles] == [(t.row0, t.col0, t.data.shape) for t in ref]
 
 
+def test_bitmap_kernel_after_a_call_stopped_between_its_kernels(torus, device):
+    """The bitmap kernel's accumulator is cleared by its second kernel; a call stopped after the first (Ctrl-C, an
+    error) left sums in it for every later call of the process (masks differing by up to 255)."""
+    from gpuslice.raster.coverage import RasterKernel
+
+    spec = RasterSpec(resolution=SMALL.resolution, pixel=SMALL.pixel, gamma=1.0)
+    want = masks(torus, spec, backend="opencl-bitmap", device=device)
+    kern = RasterKernel.of(device)
+    resolve = kern._resolve
+
+    def stop(*args):
+        raise KeyboardInterrupt
+
+    kern._resolve = stop
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            masks(torus, spec, backend="opencl-bitmap", device=device)
+    finally:
+        kern._resolve = resolve
+    assert np.array_equal(masks(torus, spec, backend="opencl-bitmap", device=device), want)
+
+
 def test_png_level_is_honoured_on_the_runs_path(tmp_path, device):
     """The default OpenCL rasteriser deflates PNGs straight from runs; another --png-level goes through tiles and
     that level: the files change size, the pixels do not."""
