@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import difflib
 import functools
+import hashlib
 import json
 import math
 import os
@@ -269,7 +270,7 @@ def _canonical(name: str) -> str:
 
 
 @functools.lru_cache(maxsize=32)
-def _load_cached(path: str, mtime_ns: int, size: int) -> Printer:
+def _load_cached(path: str, digest: bytes) -> Printer:
     return load_printer_file(path)
 
 
@@ -279,11 +280,12 @@ def find_printer(name: str) -> Printer:
     if name in PRINTERS:
         return PRINTERS[name]
     if name.lower().endswith((".toml", ".json")):
-        try:  # read once per version of the file: a job asks for its preset many times (display, settings, format)
-            st = os.stat(name)
+        try:  # parsed once per content of the file: a job asks for its preset many times (display, settings,
+            with open(name, "rb") as f:  # format); by content, not time and size (a rewrite within the clock's
+                data = f.read()  # step with as many bytes was missed)
         except OSError:
             return load_printer_file(name)  # its one-line error
-        return _load_cached(os.path.abspath(name), st.st_mtime_ns, st.st_size)
+        return _load_cached(os.path.abspath(name), hashlib.sha256(data).digest())
     key = _canonical(name)
     if key in PRINTERS:
         return PRINTERS[key]

@@ -4,6 +4,7 @@ errors before any work (a format the printer cannot read, a broken preset)."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import zipfile
@@ -127,6 +128,19 @@ def test_user_presets_toml_json_and_inherits(tmp_path):
                                                                        parent.pixel_y, parent.formats, parent.machine)
     assert c.build_height == 250 and c.settings["exposure"] == 2.4
     assert ResinOptions(printer=str(child)).settings(bottom_layers=3).exposure == 2.4
+
+
+def test_a_preset_file_rewritten_with_as_many_bytes_at_the_same_time_is_read_again(tmp_path):
+    """The parsed preset is kept per content of the file: a rewrite with the same size and modification time (two
+    writes within the file system's clock step) was served from the old parse."""
+    own = tmp_path / "mine.toml"
+    own.write_text("resolution = [11520, 5120]\npixel = 0.019\nbuild_height = 250\n")
+    st = own.stat()
+    assert find_printer(str(own)).build_height == 250
+    own.write_text("resolution = [11520, 5120]\npixel = 0.019\nbuild_height = 190\n")
+    os.utime(own, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert own.stat().st_size == st.st_size and own.stat().st_mtime_ns == st.st_mtime_ns
+    assert find_printer(str(own)).build_height == 190
 
 
 @pytest.mark.parametrize(("name", "text", "message"), [
