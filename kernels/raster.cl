@@ -6,7 +6,9 @@
 // (the signed area to the right of the edge). Summed along a row, the accumulator gives the winding-weighted
 // coverage of each pixel: exact area coverage for resolved polygons (winding 0 or 1). Pieces left of the tile give
 // all of dy to column 0; pieces right of it are dropped. Sums are 16.16 fixed-point integers (order-independent
-// atomics, so results are deterministic). The numpy twin is gpuslice.raster.coverage_numpy.
+// atomics, so results are deterministic); a piece adds to the running sum its exact share rounded once at every
+// cell, rint(S(c)) - rint(S(c - 1)) with S(c) = (a - umin) * slope + d * (1 - xm), not one rounding per cell
+// (which drifted along long edges nearly parallel to the rows). The float64 twin is gpuslice.raster.coverage_numpy.
 #pragma OPENCL FP_CONTRACT OFF
 
 #ifndef LOCAL_SIZE
@@ -15,8 +17,8 @@
 
 #define RASTER_ONE 65536.0f
 
-inline void raster_add(__global int *acc, const int base, const int w, const int r, const int c, const float a) {
-    if (c < w) atomic_add(acc + base + r * w + c, (int)rint(a * RASTER_ONE));
+inline void raster_add(__global int *acc, const int base, const int w, const int r, const int c, const int a) {
+    if (c < w) atomic_add(acc + base + r * w + c, a);
 }
 
 // tiles[t] = (pixel offset of the tile, cols, rows, first global row)
@@ -41,26 +43,30 @@ void raster_accumulate(const int n_edges, __global const float4 *edges, __global
         const float xs = u0 + (ys - v0) * dudv, xe = u0 + (ye - v0) * dudv;
         const float dy = (ye - ys) * sgn;
         const float umin = fmin(xs, xe), umax = fmax(xs, xe);
-        if (umax <= 0.0f) { raster_add(acc, base, w, r, 0, dy); continue; }
+        if (umax <= 0.0f) { raster_add(acc, base, w, r, 0, (int)rint(dy * RASTER_ONE)); continue; }
         if (umin >= (float)w) continue;
         if (umin == umax) {
             const int c = (int)floor(umin);
             const float xm = umin - (float)c;
-            raster_add(acc, base, w, r, c, dy * (1.0f - xm));
-            raster_add(acc, base, w, r, c + 1, dy * xm);
+            const int own = (int)rint(dy * (1.0f - xm) * RASTER_ONE);
+            raster_add(acc, base, w, r, c, own);
+            raster_add(acc, base, w, r, c + 1, (int)rint(dy * RASTER_ONE) - own);
             continue;
         }
+        // the piece's share of the row's running sum after cell c, rounded once (see the file's head)
         const float slope = dy / (umax - umin);
-        if (umin < 0.0f) raster_add(acc, base, w, r, 0, (0.0f - umin) * slope);
         const int ca = max(0, (int)floor(umin));
         const int cb = min(w - 1, (int)ceil(umax) - 1);
+        int done = 0;
         for (int c = ca; c <= cb; ++c) {
             const float a = fmax(umin, (float)c), b = fmin(umax, (float)(c + 1));
             const float d = (b - a) * slope;
             const float xm = (a + b) * 0.5f - (float)c;
-            raster_add(acc, base, w, r, c, d * (1.0f - xm));
-            raster_add(acc, base, w, r, c + 1, d * xm);
+            const int s = (int)rint(((a - umin) * slope + d * (1.0f - xm)) * RASTER_ONE);
+            raster_add(acc, base, w, r, c, s - done);
+            done = s;
         }
+        raster_add(acc, base, w, r, cb + 1, (int)rint(dy * RASTER_ONE) - done);
     }
 }
 

@@ -180,7 +180,9 @@ def _records_numpy(e: np.ndarray, edge_h: np.ndarray, edge_w: np.ndarray, edge_g
 
 def _piece_records(g: np.ndarray, w: np.ndarray, xs: np.ndarray, xe: np.ndarray, dy: np.ndarray):
     """The (global row, tile column, int contribution) records of row pieces: row ``g``, tile ``w`` columns wide,
-    u from ``xs`` to ``xe`` and signed height ``dy`` (float32, pixels), as ``raster_accumulate`` computes them."""
+    u from ``xs`` to ``xe`` and signed height ``dy`` (float32, pixels), as ``raster_accumulate`` computes them: at
+    each cell the piece's exact share of the row's running sum, S(c) = (a - umin)·slope + d·(1 - xm), rounded once,
+    minus the previous cell's (the cell after the last gets the rest of rint(dy))."""
     umin, umax = np.minimum(xs, xe), np.maximum(xs, xe)
     out_g, out_c, out_a = [], [], []
 
@@ -190,32 +192,41 @@ def _piece_records(g: np.ndarray, w: np.ndarray, xs: np.ndarray, xe: np.ndarray,
         out_c.append(cc[keep])
         out_a.append(aa[keep])
 
+    def fixed(x):  # (float32 times a power of two: exact; rint as the kernels')
+        return np.rint(x * _ONE).astype(np.int64)
+
     left = umax <= _F0
-    add(g[left], np.zeros(int(left.sum()), np.int64), dy[left], w[left])
+    add(g[left], np.zeros(int(left.sum()), np.int64), fixed(dy[left]), w[left])
     live = ~left & (umin < w.astype(np.float32))
     g, w, dy, umin, umax = g[live], w[live], dy[live], umin[live], umax[live]
     vert = umin == umax
     c = np.floor(umin[vert]).astype(np.int64)
     xm = umin[vert] - c.astype(np.float32)
-    add(g[vert], c, dy[vert] * (_F1 - xm), w[vert])
-    add(g[vert], c + 1, dy[vert] * xm, w[vert])
+    own = fixed(dy[vert] * (_F1 - xm))
+    add(g[vert], c, own, w[vert])
+    add(g[vert], c + 1, fixed(dy[vert]) - own, w[vert])
     sl = ~vert
     g, w, dy, umin, umax = g[sl], w[sl], dy[sl], umin[sl], umax[sl]
     slope = dy / (umax - umin)
-    part = umin < _F0
-    add(g[part], np.zeros(int(part.sum()), np.int64), (_F0 - umin[part]) * slope[part], w[part])
     ca = np.maximum(np.floor(umin).astype(np.int64), 0)
     cb = np.minimum(w - 1, np.ceil(umax).astype(np.int64) - 1)
-    pi, c = expand_ranges(ca, np.maximum(cb - ca + 1, 0))
+    n = np.maximum(cb - ca + 1, 0)
+    pi, c = expand_ranges(ca, n)
     cf = c.astype(np.float32)
     a = np.maximum(umin[pi], cf)
     b = np.minimum(umax[pi], (c + 1).astype(np.float32))
     d = (b - a) * slope[pi]
     xm = (a + b) * _FH - cf
-    add(g[pi], c, d * (_F1 - xm), w[pi])
-    add(g[pi], c + 1, d * xm, w[pi])
-    vals = np.rint(np.concatenate(out_a) * _ONE).astype(np.int64)
-    return np.concatenate(out_g), np.concatenate(out_c), vals
+    run = fixed((a - umin[pi]) * slope[pi] + d * (_F1 - xm))  # the piece's running share after each of its cells
+    step = run.copy()
+    step[1:] -= run[:-1]
+    first = np.cumsum(n) - n  # each piece's first cell (pieces have at least one)
+    step[first[n > 0]] = run[first[n > 0]]
+    add(g[pi], c, step, w[pi])
+    last = first + n - 1
+    has = n > 0
+    add(g[has], cb[has] + 1, fixed(dy[has]) - run[last[has]], w[has])
+    return np.concatenate(out_g), np.concatenate(out_c), np.concatenate(out_a)
 
 
 def runs_numpy(le: LayerEdges, lut: np.ndarray, shape: tuple[int, int], batch: range | None = None,

@@ -117,12 +117,13 @@ def _ridge_wedge(h: float, dx: float = 0.0, dy: float = 0.0) -> np.ndarray:
 def test_a_ridge_on_a_sub_plane(device):
     """A horizontal ridge lying exactly on a sub-plane, both its facets below: a loop of two points there, which
     nesting drops and whose points lie outside the other sub-planes' boxes. Its layer goes the polygon way, the
-    others from their segments: the job's runs equal the polygon path's at every placement tried, where the raw
-    segment edges of that layer give other runs at some (a wider tile: other float32 roundings)."""
-    from gpuslice.raster.edges import iter_layer_edges, splice_layers
+    others from their segments: the job's runs equal the polygon path's at every placement tried. (The raw segment
+    edges of that layer, in a wider tile, gave other runs at 3 of these 10 placements while each cell's share was
+    rounded apart, before the tenth session; with the running share rounded once, the two-point loop's pieces cancel
+    exactly and the tile's other float32 origin moves no grey here: the splice stays, as what is proven.)"""
+    from gpuslice.raster.edges import iter_layer_edges
 
     k, bounds = 4, (-10.0, -10.0, 10.0, 10.0)  # a fixed centring: the wedge's moves move its pixels
-    raw_differs = 0
     for dx, dy in np.random.default_rng(0).uniform(-3.0, 3.0, (10, 2)):
         mesh = mesh_from_triangles(_ridge_wedge(1.3125, dx, dy))  # 1.0 + 2.5 * 0.5 / k: a sub-plane of layer 2
         res = slice_mesh(mesh, z=np.array([0.25, 0.75, 1.25]), layer_thickness=0.5, backend="opencl")
@@ -136,11 +137,6 @@ def test_a_ridge_on_a_sub_plane(device):
         assert sub.repairs["degenerate_loops"].sum() >= 1  # the two-point loop: the case is exercised
         ((_, want),) = iter_layer_edges(sub, SPEC, bounds, k=k, dtype=np.float32)
         assert not np.array_equal(raw.tiles[2], want.tiles[2])  # the raw segments' box: wider than the polygons'
-        unspliced = splice_layers(want, [2], raw, [2])
-        runs = Runs.concat(list(iter_runs(None, SPEC, device=device, bounds=bounds, z_samples=k, merged=unspliced)),
-                           SPEC.shape)
-        raw_differs += not _same_runs(runs, poly)
-    assert raw_differs  # what the layer's own slicing is there for
 
 
 @pytest.mark.parametrize("display", ["mirror_x", "portrait"])
@@ -259,8 +255,9 @@ def test_a_sliver_one_ulp_under_a_ridge(device):
     """A case scripts/fuzz_z_samples.py found (seed 1, case 1911): a wedge whose ridge lies one float32 ulp above a
     sub-plane. That sub-plane cuts a sliver narrower than float32 can hold: its crossings round onto each other,
     nesting drops the loop as unfilled and its points would widen the tile. The kernel flags the layer's short
-    segments, the layer goes the polygon way, and the runs equal the polygon path's (from the raw segments they do
-    not)."""
+    segments, the layer goes the polygon way, and the runs equal the polygon path's. (From the raw segments they
+    differed while each cell's share was rounded apart, before the tenth session; rounded once, they agree here
+    too: the guard stays, as what is proven.)"""
     f = np.float32
     a, b, c = [f(1.5729523), f(-9.3100605), f(0.11500001)], [f(5.223868), f(-11.811739), f(0.11500001)], [
         f(3.726411), f(-9.339488), f(0)]
@@ -276,9 +273,6 @@ def test_a_sliver_one_ulp_under_a_ridge(device):
     poly, got, raw, twin = _both_paths(mesh, res, spec, 2, device, chunk=6, bounds=bounds)
     assert _same_runs(got, poly)
     _same_edges(raw, twin)
-    from_raw = Runs.concat(list(iter_runs(None, spec, device=device, bounds=bounds, z_samples=2, merged=raw)),
-                           spec.shape)
-    assert not _same_runs(from_raw, poly)  # what the guard is for
 
 
 @pytest.mark.parametrize("ulps", [1, 2, 3])

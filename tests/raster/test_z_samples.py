@@ -23,16 +23,32 @@ def _masks(res, spec, k, backend, device=None):
 
 @pytest.mark.parametrize("gamma", [1.0, 0.0])
 def test_vertical_walls_give_the_same_greys(device, gamma):
-    """A prism's K sub-planes cut the same polygon: K samples must give exactly the single plane's greys."""
+    """A prism's K sub-planes cut the same polygon: K samples give the single plane's greys, but where the covered
+    fraction c of a pixel lies within one 16.16 unit of a grey's edge (256·c within 1/256 of a whole number): each
+    sub-plane's polygon has other float32 points along the walls' diagonal edges, so its pieces are rounded at other
+    places (exact equality held here only by chance while each cell's share was rounded apart)."""
+    import shapely
+    from shapely import affinity
+
+    from gpuslice.raster.edges import result_bounds
+
     spec = RasterSpec(resolution=SPEC.resolution, pixel=SPEC.pixel, gamma=gamma)
     poly = np.array([[0, 0], [30.3, 1.7], [24.1, 22.9], [3.3, 17.2]])
     res = slice_mesh(mesh_from_triangles(shapes.prism(poly, 0.0, 2.0)), thickness=0.5, backend="numpy")
     z, th = z_sample_planes(res, 4)
     sub = slice_mesh(mesh_from_triangles(shapes.prism(poly, 0.0, 2.0)), z=z, layer_thickness=th, backend="numpy")
     one = _masks(res, spec, 1, "opencl", device)
+    a = spec.affine(result_bounds(res))
+    pixels = [affinity.affine_transform(g, [a[0, 0], a[0, 1], a[1, 0], a[1, 1], a[0, 2], a[1, 2]])
+              for g in res.to_shapely()]
     for backend in ("numpy", "opencl"):
         four = _masks(sub, spec, 4, backend, device)
-        assert np.array_equal(four, one)
+        diff = np.argwhere(four != one)
+        assert len(diff) <= 8, (backend, len(diff))
+        for lay, r, c in diff.tolist():
+            assert abs(int(four[lay, r, c]) - int(one[lay, r, c])) <= (1 if gamma else 255)
+            k = 256 * shapely.area(shapely.intersection(shapely.box(c, r, c + 1, r + 1), pixels[lay]))
+            assert abs(k - round(k)) < 1 / 256 and (gamma or round(k) == 128), (backend, lay, r, c, k)
     assert one.max() == 255 and 0 < (one[0] == 255).sum()
 
 
