@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import importlib
 import os
+import shutil
 import signal
 import sys
 import threading
@@ -224,8 +225,21 @@ def exit_now(code: int) -> None:
         except (OSError, ValueError):  # a closed pipe (``| head``): nothing more can be said on it
             flushed = False
     if flushed and _nothing_pending():
+        _remove_multiprocessing_tempdir()
         os._exit(code)
     sys.exit(code)
+
+
+def _remove_multiprocessing_tempdir() -> None:
+    """Remove the ``pymp-*`` folder :mod:`multiprocessing` made in ``$TMPDIR`` for this process (a forkserver's
+    socket: ``batch -j N``, the PNG encoder processes), as its exit handler would: :func:`os._exit` skips that handler,
+    and every such command left an empty folder behind."""
+    process = sys.modules.get("multiprocessing.process")
+    if process is None:
+        return
+    tempdir = getattr(process.current_process(), "_config", {}).get("tempdir")
+    if tempdir:
+        shutil.rmtree(tempdir, ignore_errors=True)
 
 
 def _nothing_pending() -> bool:

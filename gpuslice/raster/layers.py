@@ -6,12 +6,14 @@ so a writer never asks which it got.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterable, Iterator, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from dataclasses import dataclass
 
 import numpy as np
 
+from ..prefetch import beside
 from ..ragged import expand_ranges
 from .coverage import Tile
 from .png import PngEncoder
@@ -132,9 +134,11 @@ class HeightMap:
     layer above it does not cover it), every other layer written there is lower, so the maximum is the same as over
     every covered pixel of every layer, at the cost of the part's sides instead of its volume.
 
-    A batch of runs is added on a thread of the map's own (one, so the batches' maxima never race), off the
-    writer's thread that feeds the encoders, at most :data:`PENDING` batches behind it (their memory is held until
-    then); :attr:`img` waits for the batches given so far. Tiles are added on the caller's thread, after them."""
+    A batch of runs is added on a thread of its own (:func:`gpuslice.prefetch.beside`; one batch at a time under the
+    map's lock, so the batches' maxima never race), off the writer's thread that feeds the encoders, at most
+    :data:`PENDING` batches behind it (their memory is held until then); :attr:`img` waits for the batches given so
+    far. Tiles are added on the caller's thread, after them. The threads end with their batch: a writer that fails
+    leaves none behind, also while its exception is kept (a pool of the map's own stayed as long as the map)."""
 
     #: batches of runs waiting for the map's thread before :meth:`add` waits for the oldest
     PENDING = 2
@@ -145,7 +149,7 @@ class HeightMap:
         self.n = max(n_layers - 1, 1)
         self._img = np.zeros((-(-rows // self.step), -(-cols // self.step)), np.uint8)
         self._batch: Runs | None = None
-        self._pool: ThreadPoolExecutor | None = None
+        self._lock = threading.Lock()
         self._pending: list[Future] = []
 
     @property
@@ -156,15 +160,10 @@ class HeightMap:
         return self._img
 
     def _drain(self) -> None:
-        """Wait for the batches given so far and end the map's thread (raising a batch's error)."""
+        """Wait for the batches given so far (raising a batch's error)."""
         pending, self._pending = self._pending, []
-        try:
-            for f in pending:
-                f.result()
-        finally:  # the thread ends here, also after an error
-            if self._pool is not None:
-                self._pool.shutdown()
-                self._pool = None
+        for f in pending:
+            f.result()
 
     def add(self, item: Tile | RunLayer) -> None:
         """Raise the map where the layer (a tile, or runs: then every layer of its batch) covers a sampled pixel."""
@@ -174,13 +173,11 @@ class HeightMap:
                 self._batch = item.runs
                 # the batch's layers as the result's indices: a caller may number them from elsewhere (the z-sampled
                 # layers come a chunk at a time, each numbered from 0), by a constant shift
-                if self._pool is None:
-                    self._pool = ThreadPoolExecutor(1, thread_name_prefix=f"gpuslice-heightmap-{id(self):x}")
                 self._pending = [f for f in self._pending if not f.done() or f.exception() is not None]
                 if len(self._pending) >= self.PENDING:
                     self._pending[0].result()  # (raises a batch's error here; it stays pending for img)
-                self._pending.append(self._pool.submit(self._add_runs, item.runs,
-                                                       item.index - int(item.runs.layers[item.j])))
+                self._pending.append(beside(self._add_runs, item.runs, item.index - int(item.runs.layers[item.j]),
+                                            name="gpuslice-heightmap"))
             return
         if self._pending:  # (never with one writer's layers, all tiles or all runs: the map is not shared)
             self._drain()
@@ -190,6 +187,10 @@ class HeightMap:
             flat[cells] = np.maximum(flat[cells], np.uint8(1 + (254 * item.index) // self.n))
 
     def _add_runs(self, runs: Runs, shift: int) -> None:
+        with self._lock:
+            self._add_runs_locked(runs, shift)
+
+    def _add_runs_locked(self, runs: Runs, shift: int) -> None:
         idx, r, first, end = _sampled_intervals(runs, 0, runs.n_runs, self.step, 128)
         if not idx.size:
             return

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..mesh.graph import connected_labels
+from ..prefetch import beside as _beside
 from ..ragged import expand_ranges
 
 __all__ = ["Nested", "signed_areas", "filled", "cycle_labels", "beside", "in_halves", "node_lines", "move_chains"]
@@ -22,23 +23,9 @@ _WORKER = "gpuslice-nest"
 
 
 def beside(fn, *args) -> Future:
-    """``fn(*args)`` started on a thread of its own; its :class:`Future`. Used for steps independent of what the
-    caller does meanwhile, so that a second core works on them. (A daemon thread per call, ~0.1 ms, rather than a
-    pool: nothing outlives the call's result, a forked child has nothing to rebuild, and an idle pool's threads would
-    keep the command line from ending without the interpreter's teardown: ``gpuslice.cli.main.exit_now``.)"""
-    import threading
-
-    fut: Future = Future()
-
-    def run() -> None:
-        if fut.set_running_or_notify_cancel():
-            try:
-                fut.set_result(fn(*args))
-            except BaseException as exc:  # noqa: BLE001 - handed to whoever waits on the future
-                fut.set_exception(exc)
-
-    threading.Thread(target=run, name=_WORKER, daemon=True).start()
-    return fut
+    """``fn(*args)`` on a daemon thread of its own named ``gpuslice-nest`` (:func:`gpuslice.prefetch.beside`): for
+    steps independent of what the caller does meanwhile, so that a second core works on them."""
+    return _beside(fn, *args, name=_WORKER)
 
 
 def in_halves(fn, work: np.ndarray, *arrays: np.ndarray) -> np.ndarray:

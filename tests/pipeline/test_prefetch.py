@@ -78,3 +78,58 @@ def test_early_close_stops_the_producer():
     time.sleep(0.1)
     assert len(made) == n < 10_000
     assert not [t for t in threading.enumerate() if t.name == "gpuslice-prefetch"]
+
+
+def test_a_source_stopped_early_is_closed_also_while_an_exception_keeps_the_consumer():
+    """An interrupt inside the consumer (Ctrl-C while it waits for an item) whose exception is kept keeps the
+    consumer's frame, and so the source generator: its clean-up (the runs' lane threads) must not wait for that
+    exception to go. The producer closes the source itself when it stops early."""
+    closed = threading.Event()
+
+    def items():
+        try:
+            yield from range(10_000)
+        finally:
+            closed.set()
+
+    it = prefetch(items())
+    assert next(it) == 0
+    kept = []
+    try:
+        it.throw(KeyboardInterrupt)  # (lands in the consumer, as a signal would)
+    except KeyboardInterrupt as exc:
+        kept.append(exc)  # its traceback holds the consumer's frame, hence the source
+    assert closed.wait(5)
+    assert kept and not [t for t in threading.enumerate() if t.name == "gpuslice-prefetch"]
+
+
+@pytest.mark.parametrize("fmt", ["goo", "sl1", "pwmx"])
+def test_a_failed_resin_job_leaves_no_thread_while_its_exception_is_kept(tmp_path, device, fmt):
+    """A resin job stopped by its progress callback (Ctrl-C, a server cancelling it): a caller that keeps the
+    exception (a job table, a future) kept the preview's thread and its arrays alive with it, one per failure."""
+    from gpuslice import Placement, SliceParams
+    from gpuslice.mesh import shapes
+    from gpuslice.pipeline import Job, ResinOutput, run_job
+    from gpuslice.raster import RasterSpec, ResinOptions
+
+    model = tmp_path / "torus.stl"
+    shapes.write_stl(shapes.torus(15.0, 5.0, 40, 20), model)
+
+    def stop(k: int, n: int) -> None:
+        if k >= 5:
+            raise RuntimeError("cancelled")
+
+    spec = RasterSpec(resolution=(1920, 1080), pixel=0.05)
+    kept = []
+    for i in range(3):
+        job = Job(source=str(model), placement=Placement(fit=30.0), params=SliceParams(thickness=0.2),
+                  resin=ResinOutput(str(tmp_path / f"out{i}.{fmt}"), fmt, spec, ResinOptions()))
+        with pytest.raises(RuntimeError, match="cancelled") as info:
+            run_job(job, device=device, progress=stop)
+        kept.append(info.value)
+    ours = ("gpuslice-heightmap", "gpuslice-runs-lane", "gpuslice-prefetch")
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline and [t for t in threading.enumerate() if t.name.startswith(ours)]:
+        time.sleep(0.05)
+    assert not [t.name for t in threading.enumerate() if t.name.startswith(ours)]
+    assert len(kept) == 3 and not list(tmp_path.glob("out*"))

@@ -129,3 +129,23 @@ def test_overlapping_blocks_and_a_broken_pool(device):
         assert [png for png, _ in png_procs.encode_group(pool, group, *spec.png_size)] == want
         assert png_procs.process_pool(2) is not pool  # a new one for the next group
     assert png_procs._POOLS == {} and png_procs.process_pool(2) is None
+
+
+def test_the_command_line_leaves_no_multiprocessing_folder(tmp_path, torus_stl, device):
+    """The encoder processes' forkserver keeps its socket in a ``pymp-*`` folder of ``$TMPDIR``; the command line
+    ends with ``os._exit`` (no interpreter teardown), which skipped multiprocessing's own removal of it: every such
+    command left an empty folder behind."""
+    import os
+    import subprocess
+    import sys
+
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    env = {**os.environ, "TMPDIR": str(tmp), "GPUSLICE_PNG_PROCESSES": "1"}
+    env.pop("GPUSLICE_SLOW_EXIT", None)
+    proc = subprocess.run([sys.executable, "-m", "gpuslice.cli", "raster", str(torus_stl), "-o",
+                           str(tmp_path / "x.sl1"), "-t", "0.5", "--resolution", "1200x800", "--pixel", "0.05",
+                           "--workers", "2", "--no-progress", "-q"], env=env, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "x.sl1").exists()
+    assert not list(tmp.iterdir())
