@@ -177,7 +177,7 @@ inline uchar runs_grey(__global const uchar *lut, const uint lut_max, const int 
 // running sum after cell c is S(c) = (a - umin) * slope + d * (1 - xm) (its steps before c, then its own part). Each
 // cell gets rint(S(c)) - rint(S(c - 1)) in 16.16 fixed point, the next cell after the last the rest of rint(dy):
 // the running sum is the piece's exact share rounded once, never the sum of one rounding per cell (along a long
-// edge nearly parallel to the rows every cell rounded the same way: greys drifted by up to 14 levels over 10,000
+// edge nearly parallel to the rows every cell rounded the same way: greys drifted by up to 27 levels over 10,500
 // columns; BENCHMARKS, tenth session). A macro: EMIT either resolves the cell or adds into a buffer.
 #define RUNS_PIECE(v_, w_, EMIT)                                                                 \
     do {                                                                                         \
