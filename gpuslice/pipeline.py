@@ -320,10 +320,10 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
         if k > 1:  # anti-aliasing in Z: k sub-planes per layer, sliced a chunk of layers at a time
             layers = _z_sampled_layers(job, out, r.spec, dev, bounds, k)
         else:
-            layers = iter_run_layers(out.result, r.spec, device=dev, bounds=bounds)
+            layers = iter_run_layers(out.result, r.spec, device=dev, bounds=bounds, clip=True)  # (checked above)
     else:
         layers = iter_tiles(out.result, r.spec, backend=backend, device=dev, bounds=bounds,
-                            supersample=r.options.supersample)
+                            supersample=r.options.supersample, clip=True)
     # (a file name's bytes that are not UTF-8, kept by Python as surrogates, become U+FFFD in the archive's fields)
     name = utf8(r.options.job_name or Path(job.model_name).stem).decode("utf-8")
     n = out.result.n_layers
@@ -384,7 +384,7 @@ def _z_sampled_layers(job: Job, out: JobResult, spec, dev, bounds, k: int):
             t = time.perf_counter()
             sub = slice_mesh(out.mesh, job.params, z=z[a * k : b * k], layer_thickness=th[a * k : b * k])
             out.timings["z_samples"] = out.timings.get("z_samples", 0.0) + time.perf_counter() - t
-            yield a, iter_run_layers(sub, spec, device=dev, bounds=bounds, z_samples=k)
+            yield a, iter_run_layers(sub, spec, device=dev, bounds=bounds, z_samples=k, clip=True)  # (in the mesh's)
 
     for a, chunk in chunks():
         try:

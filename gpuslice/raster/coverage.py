@@ -45,7 +45,7 @@ from ..device import KernelDriver, locked
 from ..errors import ParameterError
 from ..ragged import expand_ranges
 from ..slicing.result import SliceResult
-from .edges import LayerEdges, check_raster_args, layer_edges
+from .edges import LayerEdges, check_fits, check_raster_args, layer_edges
 from .spec import BACKENDS, RasterSpec, gamma_lut
 
 __all__ = ["Tile", "coverage_numpy", "RasterKernel", "iter_tiles", "iter_masks", "masks", "choose_backend",
@@ -225,17 +225,22 @@ def iter_tiles(
     layers: Sequence[int] | None = None,
     supersample: int = 8,
     max_batch_pixels: int = 1 << 24,
+    clip: bool = False,
 ) -> Iterator[Tile]:
     """Yield every layer's :class:`Tile` in order (the masks' non-blank part), ``layers`` (default all) only.
 
     backend : ``auto``, ``opencl``, ``numpy`` or ``gl`` (:func:`choose_backend`); device : the OpenCL device
     (default :func:`gpuslice.device.get_device`). bounds : the (xmin, ymin, xmax, ymax) mm centred on the bed
     (default: the result's points; the CLI gives the mesh's). supersample : GL samples per pixel side (8: 64
-    samples; thresholded IoU with the exact backends >= 0.999).
+    samples; thresholded IoU with the exact backends >= 0.999). clip : keep only what lies on the display of a
+    layer that reaches outside it (default: :class:`~gpuslice.errors.ParameterError` "does not fit", as the
+    command line says; a cropped mask was returned silently before).
     """
     spec = spec or RasterSpec()
     backend = choose_backend(backend, device)
     le = layer_edges(result, spec, bounds, layers)
+    if not clip:
+        check_fits(result, spec, bounds, layers=layers)
     index = np.arange(result.n_layers) if layers is None else np.asarray(layers, dtype=np.int64)
     lut = gamma_lut(spec.gamma)
     if backend == "numpy":
@@ -266,7 +271,7 @@ def iter_tiles(
     from .runs import iter_runs
 
     k = 0
-    for runs in iter_runs(result, spec, backend="opencl", device=dev, layers=layers, edges=le):
+    for runs in iter_runs(result, spec, backend="opencl", device=dev, layers=layers, edges=le, clip=True):
         for j in range(len(runs.layers)):
             r0, c0, h, w = (int(x) for x in le.tiles[k])
             yield Tile(int(index[k]), r0, c0, tile_from_runs(runs, j, r0, c0, h, w))

@@ -14,6 +14,7 @@ import numpy as np
 
 from ..errors import ParameterError
 from ..formats.numbers import point_bounds
+from ..ragged import expand_ranges
 from ..slicing.result import SliceResult
 from .spec import RasterSpec
 
@@ -62,10 +63,20 @@ def check_points_fit(xy: np.ndarray, spec: RasterSpec, bounds, name: str = "mode
                              f"({bx:.2f} x {by:.2f} mm) at this placement")
 
 
-def check_fits(result: SliceResult, spec: RasterSpec, bounds=None, name: str = "model") -> None:
-    """Raise :class:`ParameterError` when any layer reaches outside the display."""
-    if result.points.shape[0]:
-        check_points_fit(result.points, spec, bounds if bounds is not None else result_bounds(result), name)
+def check_fits(result: SliceResult, spec: RasterSpec, bounds=None, name: str = "model",
+               layers: Sequence[int] | None = None) -> None:
+    """Raise :class:`ParameterError` when any layer (of ``layers``, default all) reaches outside the display, placed
+    by ``bounds`` (default: the result's points)."""
+    if not result.points.shape[0]:
+        return
+    bounds = bounds if bounds is not None else result_bounds(result)
+    if layers is None:
+        check_points_fit(result.points, spec, bounds, name)
+        return
+    lo = np.asarray(result.loop_offsets)[np.asarray(result.layer_offsets)]
+    sel = np.asarray(layers, dtype=np.int64)
+    _, idx = expand_ranges(lo[sel], lo[sel + 1] - lo[sel])
+    check_points_fit(np.asarray(result.points)[idx], spec, bounds, name)
 
 
 def _to_pixels(spec: RasterSpec, pc: np.ndarray, bounds) -> tuple[np.ndarray, np.ndarray]:

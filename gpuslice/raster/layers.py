@@ -38,15 +38,15 @@ PREFETCH = 1
 
 
 def iter_run_layers(result, spec, *, device=None, bounds=None, layers: Sequence[int] | None = None,
-                    z_samples: int = 1, merged=None) -> Iterator[RunLayer]:
+                    z_samples: int = 1, merged=None, clip: bool = False) -> Iterator[RunLayer]:
     """Every selected layer's runs, in order (:func:`gpuslice.raster.runs.iter_runs` on the OpenCL device, on a
     thread of its own :data:`PREFETCH` batches ahead of the caller; ``z_samples``: ``result`` holds that many
-    sub-layers per layer, averaged; ``merged``: their edges given instead, see ``iter_runs``)."""
+    sub-layers per layer, averaged; ``merged``: their edges given instead; ``clip``: see ``iter_runs``)."""
     from ..prefetch import prefetch
     from .runs import iter_runs
 
     batches = prefetch(iter_runs(result, spec, backend="opencl", device=device, bounds=bounds, layers=layers,
-                                 z_samples=z_samples, merged=merged), PREFETCH)
+                                 z_samples=z_samples, merged=merged, clip=clip), PREFETCH)
     try:
         for runs in batches:
             for j in range(len(runs.layers)):

@@ -40,7 +40,7 @@ from ..device import KernelDriver, aligned_empty, get_device
 from ..errors import ParameterError
 from ..prefetch import prefetch
 from ..ragged import expand_ranges, group_ranks
-from .edges import LayerEdges, check_raster_args, iter_layer_edges
+from .edges import LayerEdges, check_fits, check_raster_args, iter_layer_edges
 from .runs_twin import Runs, _cells_to_runs, _piece_records, _rows, _sum_cells, runs_numpy, runs_to_mask
 from .spec import RasterSpec, gamma_lut
 
@@ -325,6 +325,7 @@ def iter_runs(
     z_samples: int = 1,
     merged: LayerEdges | None = None,
     lanes: int | None = None,
+    clip: bool = False,
 ) -> Iterator[Runs]:
     """Yield one :class:`Runs` per batch of consecutive layers (``layers``, default all, in order).
 
@@ -339,11 +340,15 @@ def iter_runs(
     merged : instead of ``result``'s polygons, every layer's edges with its K sub-planes' already merged (its
         tile the union of theirs, :func:`~gpuslice.raster.edges.merge_layer_groups`): the segment-buffer shortcut of
         :mod:`gpuslice.raster.segment_edges`; ``result`` is then not read.
+    clip : keep only what lies on the display of a layer that reaches outside it (default: ``ParameterError`` "does
+        not fit", as :func:`~gpuslice.raster.iter_tiles`; not checked with ``edges`` or ``merged``: their maker's).
     """
     if backend not in BACKENDS:
         raise ParameterError(f"unknown runs backend '{backend}' (use {', '.join(BACKENDS)})")
     if merged is None and edges is None:
         check_raster_args(result, spec, layers, bounds)
+        if not clip:
+            check_fits(result, spec or RasterSpec(), bounds, layers=layers)
     spec = spec or RasterSpec()
     k = int(z_samples)
     if merged is not None:

@@ -158,7 +158,7 @@ def raster_masks(
     layers = list(range(0, result.n_layers, every))
     png: dict[int, bytes] = {}
     origin: dict[int, tuple[int, int]] = {}
-    for tile in iter_tiles(result, spec, layers=layers, bounds=bounds, backend=backend, device=device):
+    for tile in iter_tiles(result, spec, layers=layers, bounds=bounds, backend=backend, device=device, clip=True):
         if tile.data.size == 0:
             continue
         buf = io.BytesIO()

@@ -259,18 +259,20 @@ def test_version_default_switch_and_errors(tmp_path, torus):
     an unknown version and a non-ASCII machine name are refused, naming the file, and nothing is left."""
     spec = RasterSpec(resolution=(900, 700), pixel=0.05, gamma=0.0)
     out = tmp_path / "d.ctb"
-    write_target(iter_tiles(torus, spec, backend="numpy"), _target(out, spec, torus, settings=PrintSettings()))
+    write_target(iter_tiles(torus, spec, backend="numpy", clip=True),
+                 _target(out, spec, torus, settings=PrintSettings()))
     f = read_ctb(out)
     assert (f.header["version"], f.machine, f.slicer["aa_level"], f.slicer["aa_flag"]) == (3, "", 1, 0x07)
     assert f.header["bed_z"] == pytest.approx(10.0) and f.params["light_off"] == 0.0  # no preset: the part's height
     options = ResinOptions(printer=_preset(tmp_path, None))
     on = PrintSettings(per_layer_settings=True)
-    write_target(iter_tiles(torus, spec, backend="numpy"), _target(out, spec, torus, settings=on, options=options))
+    write_target(iter_tiles(torus, spec, backend="numpy", clip=True),
+                 _target(out, spec, torus, settings=on, options=options))
     assert (read_ctb(out).header["version"], read_ctb(out).slicer["per_layer"]) == (3, 0x30)
     options = ResinOptions(printer=_preset(tmp_path, 5))
     with pytest.raises(ParameterError, match=r"x\.ctb: CTB version 5 is not written"):
-        write_target(iter_tiles(torus, spec, backend="numpy"), _target(tmp_path / "x.ctb", spec, torus,
-                                                                       options=options))
+        write_target(iter_tiles(torus, spec, backend="numpy", clip=True),
+                     _target(tmp_path / "x.ctb", spec, torus, options=options))
     options = ResinOptions(printer=_preset(tmp_path, 4, machine='"Märs"'))
     with pytest.raises(ParameterError, match="ASCII"):
         write_target(iter(()), _target(tmp_path / "x.ctb", spec, torus, options=options))
@@ -490,6 +492,7 @@ def test_writer_with_the_kernels_writes_the_twins_file(tmp_path, torus, device):
         files = []
         for dev in (device, None):
             out = tmp_path / f"t{gamma:g}{dev is None}.ctb"
-            write_target(iter_run_layers(torus, spec, device=device), replace(_target(out, spec, torus), device=dev))
+            write_target(iter_run_layers(torus, spec, device=device, clip=True), replace(_target(out, spec, torus),
+                                                                                      device=dev))
             files.append(out.read_bytes())
         assert files[0] == files[1]

@@ -28,6 +28,7 @@ from gpuslice.raster import (
 )
 from gpuslice.raster.png import PngEncoder
 from gpuslice.raster.pngstack import write_png_stack
+from gpuslice.raster.runs import layer_runs
 from gpuslice.raster.sl1 import read_sl1_config, write_sl1
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
@@ -150,13 +151,30 @@ def test_opencl_matches_numpy_twin(device, torus):
 
 
 def test_opencl_batches_and_clipping(device, torus):
-    # tiny batches (one layer each) and a display smaller than the part: clipped the same way as the twin
+    # tiny batches (one layer each) and a display smaller than the part: clipped the same way as the twin, when asked
     spec = RasterSpec(resolution=(500, 300), pixel=0.05)
-    a = masks(torus, spec, backend="numpy")
-    b = masks(torus, spec, backend="opencl", device=device, max_batch_pixels=1)
+    a = masks(torus, spec, backend="numpy", clip=True)
+    b = masks(torus, spec, backend="opencl", device=device, max_batch_pixels=1, clip=True)
     assert np.abs(a.astype(int) - b).max() <= 1
     with pytest.raises(ParameterError, match="does not fit"):
         check_fits(torus, spec)
+    # not asked: the library says so, as the command line does (a cropped mask came back silently before)
+    for call in (lambda: masks(torus, spec, layers=[3]), lambda: layer_runs(torus, spec),
+                 lambda: next(iter_masks(torus, spec, backend="numpy"))):
+        with pytest.raises(ParameterError, match="does not fit"):
+            call()
+
+
+def test_only_the_layers_asked_for_must_fit(device):
+    """A cone wider than the display at its foot: its top layers are rasterised as asked, its foot's refused (the
+    same placement either way: the whole result's box is centred)."""
+    res = slice_mesh(mesh_from_triangles(shapes.cone(radius=20.0, height=10.0, n=64)), thickness=1.0)
+    spec = RasterSpec(resolution=(600, 600), pixel=0.05)  # 30 x 30 mm
+    top = res.n_layers - 1
+    np.testing.assert_array_equal(masks(res, spec, layers=[top], device=device),
+                                  masks(res, spec, layers=[top], device=device, clip=True))
+    with pytest.raises(ParameterError, match="does not fit"):
+        masks(res, spec, layers=[0, top], device=device)
 
 
 def test_gl_matches_opencl(device, torus):

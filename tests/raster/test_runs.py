@@ -41,10 +41,10 @@ def assert_well_formed(r: Runs) -> None:
 
 def check_against_raster(res, spec, layers, device, backends=("numpy", "opencl"), **kw):
     """Masks from runs of every backend == the OpenCL raster masks byte for byte; OpenCL runs == numpy runs."""
-    ref = masks(res, spec, backend="opencl-bitmap", device=device, layers=layers, bounds=kw.get("bounds"))
+    ref = masks(res, spec, backend="opencl-bitmap", device=device, layers=layers, bounds=kw.get("bounds"), clip=True)
     got = {}
     for be in backends:
-        r = layer_runs(res, spec, backend=be, device=device, layers=layers, **kw)
+        r = layer_runs(res, spec, backend=be, device=device, layers=layers, clip=True, **kw)
         assert_well_formed(r)
         assert list(r.layers) == list(layers)
         for k in range(len(layers)):
