@@ -79,8 +79,10 @@ def _coarse_spec(bounds, grid: float):
     from ..raster.spec import RasterSpec
 
     xmin, ymin, xmax, ymax = bounds
-    nx = int(math.ceil((xmax - xmin) / grid)) + 4
-    ny = int(math.ceil((ymax - ymin) / grid)) + 4
+    # (a span of a whole number of cells stays one: float32 bounds are a few ulps wide of a round size, and one cell
+    # more would centre the model half a cell off the grid, every wall cell then half solid and counted so)
+    nx = int(math.ceil((xmax - xmin) / grid - 1e-6)) + 4
+    ny = int(math.ceil((ymax - ymin) / grid - 1e-6)) + 4
     if nx * ny > 2**31 - 1:
         raise ParameterError(f"trap_grid {grid:g} mm is too fine for a {xmax - xmin:.0f} x {ymax - ymin:.0f} mm model",
                              param="trap_grid")

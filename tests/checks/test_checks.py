@@ -574,3 +574,17 @@ def test_check_command_does_not_import_scipy_sparse(tmp_path):
             f"rc = main(['check', {str(stl)!r}, '-t', '1', '--backend', 'numpy', '-q']); "
             "assert rc == 0 and 'scipy.sparse' not in sys.modules, sorted(m for m in sys.modules if 'scipy' in m)")
     subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, timeout=120)
+
+
+def test_a_round_sized_model_sits_on_the_trap_grid():
+    """A 1.2 mm box with a 0.4 mm cubic cavity on a 0.2 mm grid: the cavity's walls fall on cell edges, so its
+    volume is exact (0.064 mm³). Its float32 bounds (1.2000000477 mm) asked one cell more, which centred the model
+    half a cell off the grid and counted every half-covered wall cell as solid: 0.016 mm³."""
+    from gpuslice import mesh_from_triangles
+    from gpuslice.checks import CheckOptions, run_checks
+    from gpuslice.mesh import shapes
+
+    res = slice_mesh(mesh_from_triangles(shapes.hollow_box(1.2, 0.4)), thickness=0.05)
+    cav = run_checks(res, options=CheckOptions(trap_grid=0.2)).cavities
+    assert sorted(cav.kind.tolist()) == [0, 1]
+    np.testing.assert_allclose(cav.volume, 0.064, rtol=1e-9)
