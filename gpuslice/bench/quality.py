@@ -177,7 +177,8 @@ def schedule_quality(mesh: Mesh, result: SliceResult, reference: SliceResult | N
     if reference is None and ref_thickness is not None:
         from ..slicing.slicer import slice_mesh
 
-        reference = slice_mesh(mesh, params, thickness=ref_thickness, adaptive=None)
+        # (uniform, mid-slab planes, no first layer of its own: the fine reference, whatever params' schedule)
+        reference = slice_mesh(mesh, params, thickness=ref_thickness, adaptive=None, first_layer=None, z_mode="mid")
     if reference is not None:
         q.update(volume_deviation(result, reference))
     return q

@@ -156,7 +156,7 @@ def run_bench(
         typical = min(float(np.percentile(results[r["setting"]].thickness, 1)) for r in rows)
         h_ref = ref_thickness or reference_thickness(mesh.height, typical)
         tick("reference", 0)
-        ref = slice_mesh(mesh, params, thickness=h_ref, adaptive=None)
+        ref = slice_mesh(mesh, params, thickness=h_ref, adaptive=None, first_layer=None, z_mode="mid")  # (plain)
         ref_geoms = layer_geometries(ref)
         context["reference_thickness_mm"] = h_ref
         context["reference_layers"] = ref.n_layers

@@ -282,7 +282,7 @@ def cusp_schedule(
                              f"/ 400000), got {min_height:g}", param="min_height")
     if not (delta > 0 and delta <= min_height):
         raise ParameterError(f"adaptive resolution must be in (0, min_height], got {resolution}", param="min_height")
-    n_min = max(1, int(round(min_height / delta)))
+    n_min = max(1, int(np.ceil(min_height / delta - 1e-9)))  # (never under min_height: bins of height / 400000)
     n_max = max(n_min, int(np.floor(max_height / delta + 1e-9)))
     n_bins = int(np.ceil(height / delta - 1e-9))
     edges = np.arange(n_bins + 1, dtype=np.float64) * delta

@@ -95,6 +95,12 @@ class SliceParams:
                                  param="device")
         if self.adaptive not in (None, *ADAPTIVE_MODES):
             raise ParameterError(f"unknown adaptive mode '{self.adaptive}' (use roi, cusp or area)")
+        if self.adaptive is not None and self.first_layer is not None:  # (they were ignored, silently)
+            raise ParameterError(f"first_layer applies to uniform layers, not to adaptive ones ({self.adaptive})",
+                                 param="first_layer")
+        if self.adaptive is not None and self.z_mode != "mid":  # (adaptive layers are cut at their slab's middle)
+            raise ParameterError(f"z_mode '{self.z_mode}' applies to uniform layers, not to adaptive ones "
+                                 f"({self.adaptive}: each cut at its slab's middle)", param="z_mode")
         if self.fill_rule not in FILL_RULES:
             raise ParameterError(f"unknown fill rule '{self.fill_rule}' (use {', '.join(FILL_RULES)})",
                                  param="fill_rule")

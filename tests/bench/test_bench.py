@@ -97,6 +97,32 @@ def test_schedule_quality_keys(sphere, sphere_ref):
     assert uni["volume_deviation_mm3"] < q["volume_deviation_mm3"] < 4 * uni["volume_deviation_mm3"]
 
 
+def test_the_fine_reference_is_plain_whatever_the_params(sphere, sphere_ref):
+    """The reference a quality figure is measured against is uniform, mid-slab and without a first layer of its own:
+    params with ``first_layer`` 1.5 mm (or paper planes) gave it a 1.5 mm first layer (or paper planes), and a
+    volume deviation off by a third on this sphere."""
+    from gpuslice import SliceParams
+
+    res = slice_mesh(sphere, thickness=0.3, first_layer=1.5, backend="numpy")
+    want = schedule_quality(sphere, res, sphere_ref)
+    for params in (SliceParams(thickness=0.3, first_layer=1.5, backend="numpy"),
+                   SliceParams(thickness=0.3, z_mode="paper", backend="numpy")):
+        got = schedule_quality(sphere, res, ref_thickness=0.01, params=params)
+        assert got["volume_deviation_mm3"] == pytest.approx(want["volume_deviation_mm3"], rel=1e-9)
+
+
+def test_first_layer_and_paper_planes_are_refused_with_adaptive_layers():
+    """They were ignored, silently (the report still listed first_layer 0.3)."""
+    from gpuslice import SliceParams
+    from gpuslice.errors import ParameterError
+
+    with pytest.raises(ParameterError, match="first_layer applies to uniform layers") as info:
+        SliceParams(adaptive="cusp", first_layer=0.3)
+    assert info.value.params == ("first_layer",)
+    with pytest.raises(ParameterError, match="z_mode 'paper' applies to uniform layers"):
+        SliceParams(adaptive="roi", z_mode="paper")
+
+
 # ---- bench ----------------------------------------------------------------------------------------------------
 
 

@@ -191,6 +191,19 @@ def test_min_height_clamp_is_counted():
     assert np.all(ok.thickness[:-1] <= C * np.sqrt(2) + 1e-9)
 
 
+def test_layers_of_a_tall_model_are_never_under_min_height():
+    """550 mm tall: the bins are height / 400000 = 0.001375 mm wide, and min_height 0.01 mm is 7.27 of them;
+    rounded to 7, every layer came out 0.009625 mm, under the clamp it promises."""
+    from gpuslice.mesh.shapes import prism
+
+    tri = prism([(0, 0), (1, 0), (0.2, 1)], 0.0, 550.0)
+    tri[..., 0] += tri[..., 2] * 0.01  # leaning walls: |n_z| > 0, so the cusp bound wants thin layers
+    tall = mesh_from_triangles(tri)
+    sched = cusp_schedule(tall, max_cusp=0.00002, min_height=0.01, max_height=0.3)
+    assert sched.thickness[:-1].min() >= 0.01 - 1e-12
+    assert sched.info["bound_violations"] > 0  # the clamp is what set them
+
+
 @pytest.mark.parametrize("kw", [{"max_cusp": 0}, {"min_height": 0}, {"min_height": 0.3, "max_height": 0.1},
                                 {"smooth": -1}, {"mode": "nope"}])
 def test_bad_parameters_raise(sphere, kw):
