@@ -99,8 +99,8 @@ def test_schedule_quality_keys(sphere, sphere_ref):
 
 def test_the_fine_reference_is_plain_whatever_the_params(sphere, sphere_ref):
     """The reference a quality figure is measured against is uniform, mid-slab and without a first layer of its own:
-    params with ``first_layer`` 1.5 mm (or paper planes) gave it a 1.5 mm first layer (or paper planes), and a
-    volume deviation off by a third on this sphere."""
+    params with ``first_layer`` 1.5 mm (or paper planes) gave it a 1.5 mm first layer (or paper planes), and
+    another volume deviation."""
     from gpuslice import SliceParams
 
     res = slice_mesh(sphere, thickness=0.3, first_layer=1.5, backend="numpy")
