@@ -416,7 +416,7 @@ def run_case(case: Case, device, verbose: bool = False) -> dict:
     spec, bounds, k = case.spec, case.bounds, case.k
     z, th = z_sample_planes(res, k)
     sub = slice_mesh(mesh, z=z, layer_thickness=th, backend="opencl")
-    poly = Runs.concat(list(iter_runs(sub, spec, device=device, bounds=bounds, z_samples=k)), spec.shape)
+    poly = Runs.concat(list(iter_runs(sub, spec, device=device, bounds=bounds, z_samples=k, clip=True)), spec.shape)
 
     def cut(sel):
         return slice_mesh(mesh, z=z[sel], layer_thickness=th[sel], backend="opencl")
