@@ -117,12 +117,14 @@ class MaskLayers:
     to_mm : (2, 3) float64 affine map from display pixel coordinates (u = column, v = row) to model mm, so the page
         draws each tile under the layer's contours; None: the tiles are shown only beside the drawing.
     label : a caption, e.g. ``"3840×2400 px, 0.05 mm"``.
+    blank : layers rasterised without a lit pixel (no PNG: the page says "blank mask", not "no mask stored").
     """
 
     png: dict[int, bytes]
     origin: dict[int, tuple[int, int]] = field(default_factory=dict)
     to_mm: np.ndarray | None = None
     label: str = ""
+    blank: tuple[int, ...] = ()
 
 
 def raster_masks(
@@ -158,15 +160,17 @@ def raster_masks(
     layers = list(range(0, result.n_layers, every))
     png: dict[int, bytes] = {}
     origin: dict[int, tuple[int, int]] = {}
+    blank: list[int] = []
     for tile in iter_tiles(result, spec, layers=layers, bounds=bounds, backend=backend, device=device, clip=True):
-        if tile.data.size == 0:
+        if tile.data.size == 0 or not tile.data.any():
+            blank.append(int(tile.index))
             continue
         buf = io.BytesIO()
         Image.fromarray(np.ascontiguousarray(tile.data), mode="L").save(buf, format="PNG")
         png[tile.index] = buf.getvalue()
         origin[tile.index] = (tile.row0, tile.col0)
     label = f"{spec.nx}×{spec.ny} px, {spec.px:g} mm"
-    return MaskLayers(png, origin, to_mm, label)
+    return MaskLayers(png, origin, to_mm, label, tuple(blank))
 
 
 def build_view_html(
@@ -196,11 +200,17 @@ def build_view_html(
     fill_rule = str(meta.get("params", {}).get("fill_rule", "nonzero"))
     n_layers, n_points = result.n_layers, int(result.points.shape[0])
     thickness = np.asarray(result.thickness)
-    uniform = n_layers < 2 or float(np.ptp(thickness)) <= 1e-9
-    t_text = f"{thickness[0]:g} mm layers" if uniform and n_layers else "adaptive layers"
+    # uniform: one thickness, but for a first layer of its own (--first-layer), which is said apart
+    uniform = n_layers < 3 or float(np.ptp(thickness[1:])) <= 1e-9
+    t_text = "adaptive layers"
+    if n_layers and uniform:
+        rest = float(thickness[1] if n_layers > 1 else thickness[0])
+        t_text = f"{rest:g} mm layers" + (f" (the first {float(thickness[0]):g} mm)"
+                                          if abs(float(thickness[0]) - rest) > 1e-9 else "")
     data: dict[str, Any] = {
         "version": 1,
-        "summary": f"{n_layers:,} layers · {t_text} · {result.n_loops:,} loops · {n_points:,} points",
+        "summary": f"{n_layers:,} layer{'' if n_layers == 1 else 's'} · {t_text} · {result.n_loops:,} loop"
+                   f"{'' if result.n_loops == 1 else 's'} · {n_points:,} points",
         "fill_rule": fill_rule,
         "bbox": _bbox(result.points),
         "info": _info(result),
@@ -228,14 +238,16 @@ def build_view_html(
             "png": {str(int(i)): base64.b64encode(bytes(p)).decode("ascii") for i, p in sorted(placed.png.items())},
             "origin": {str(int(i)): [int(r), int(c)] for i, (r, c) in sorted(placed.origin.items())},
             "to_mm": [float(v) for v in to_mm] if to_mm is not None else None,
+            "blank": sorted(int(i) for i in placed.blank),
         }
     # JSON inside <script>: no "<" may appear raw (a "</script>" would end the element)
     blob = json.dumps(data, separators=(",", ":"), ensure_ascii=True).replace("<", "\\u003c").replace(">", "\\u003e")
-    page = _template().replace(_TITLE_MARK, html.escape(title))
-    head, mark, tail = page.partition(_DATA_MARK)
+    # (the template is cut at the data mark first: a title holding the mark's text must not be taken for it)
+    head, mark, tail = _template().partition(_DATA_MARK)
     if not mark:  # pragma: no cover - the template ships with the package
         raise RuntimeError("viewer.html has no data mark")
-    return head + blob + tail
+    safe = html.escape(title)
+    return head.replace(_TITLE_MARK, safe) + blob + tail.replace(_TITLE_MARK, safe)
 
 
 def write_view(result: SliceResult, path: str | os.PathLike, **kwargs: Any) -> int:

@@ -99,6 +99,21 @@ def test_page_is_self_contained_and_escapes_the_title(torus):
     assert "default-src 'none'" in page  # the page's CSP forbids every fetch but data: images
     assert page.count("</script>") == 2  # the data block and the code; nothing in the data ended the element
 
+    # a title holding the data mark's text: the page's data are still where they belong (it broke the whole page)
+    page = build_view_html(torus, title="x /*__GPUSLICE_DATA__*/ y")
+    assert read_view_data(page)["summary"] == read_view_data(build_view_html(torus))["summary"]
+    assert "<title>x /*__GPUSLICE_DATA__*/ y" in page
+
+
+def test_a_first_layer_of_its_own_is_not_called_adaptive(tmp_path):
+    """``--first-layer`` gives a first layer of its own, the others uniform: the page said "adaptive layers"."""
+    res = gpuslice.slice_mesh(gpuslice.mesh_from_triangles(shapes.box((0, 0, 0), (10, 10, 10))), thickness=0.05,
+                              first_layer=0.2)
+    summary = read_view_data(build_view_html(res))["summary"]
+    assert "0.05 mm layers (the first 0.2 mm)" in summary and "adaptive" not in summary
+    one = gpuslice.slice_mesh(gpuslice.mesh_from_triangles(shapes.box((0, 0, 0), (10, 10, 0.05))), thickness=0.05)
+    assert read_view_data(build_view_html(one))["summary"].startswith("1 layer ·")
+
 
 def test_masks_and_limits(torus, tmp_path, monkeypatch):
     png = b"\x89PNG fake"
@@ -241,6 +256,25 @@ def test_browser_slider_keys_and_shown_values(browser, torus, tmp_path):
     v.check_layer_text(k)
     assert int(v.text("outer-holes").split("/")[1]) == torus.loop_is_hole[torus.layer(k).loops].sum() == 1
     assert v.text("repairs") == "none" and v.text("open") == "0"
+    # PageUp on the focused slider: ten layers, as elsewhere (the slider's own step was a tenth of all the layers)
+    v.page.evaluate("gpusliceViewer.setLayer(2)")
+    v.page.focus("#layer")
+    v.page.keyboard.press("PageUp")
+    v.check_layer_text(12)
+    # keys with Ctrl, Alt or Meta are the browser's: no layer step, not prevented (Ctrl+P printed nothing before)
+    prevented = v.page.evaluate("""() => ["p", "n", "ArrowLeft"].map((key) => {
+        const e = new KeyboardEvent("keydown", {key, ctrlKey: key !== "ArrowLeft", altKey: key === "ArrowLeft",
+                                                 bubbles: true, cancelable: true});
+        document.body.dispatchEvent(e);
+        return e.defaultPrevented;
+    })""")
+    assert prevented == [False, False, False]
+    v.check_layer_text(12)
+    # the layer is in the address (a link to it), and a #layer=N followed later goes there
+    assert v.page.evaluate("location.hash") == "#layer=12"
+    v.page.evaluate("location.hash = '#layer=3'")
+    v.page.wait_for_function("gpusliceViewer.layer === 3")
+    v.check_layer_text(3)
     v.close()
 
 
@@ -301,6 +335,26 @@ def test_browser_adaptive_thickness_and_masks(browser, tmp_path):
             assert v.page.is_visible("#mask") and not v.page.is_visible("#mask-none")
         else:
             assert v.page.is_visible("#mask-none") and not v.page.is_visible("#mask")
+    v.close()
+
+
+def test_browser_says_blank_mask_for_a_layer_with_no_pixel(browser, tmp_path):
+    """Two boxes one above the other with empty layers between: every layer was rasterised (``every=1``), and the
+    empty ones have no PNG; the page said "no mask stored for this layer" as if they had not been."""
+    from gpuslice.raster import RasterSpec
+    from gpuslice.view.page import raster_masks
+
+    tri = np.concatenate([shapes.box((0, 0, 0), (5, 5, 1)), shapes.box((0, 0, 2), (5, 5, 3))])
+    res = _slice(tri, z=np.arange(0.25, 3.0, 0.5))
+    empty = [i for i in range(res.n_layers) if res.area[i] == 0]
+    assert empty == [2, 3]
+    masks = raster_masks(res, RasterSpec(resolution=(200, 200), pixel=0.05), every=1)
+    assert sorted(masks.blank) == empty and not set(masks.png) & set(empty)
+    v = Page(browser, res, tmp_path, masks=masks)
+    v.page.evaluate("gpusliceViewer.setLayer(2)")
+    assert v.page.is_visible("#mask-none") and "blank mask" in v.text("mask-none")
+    v.page.evaluate("gpusliceViewer.setLayer(0)")
+    assert v.page.is_visible("#mask") and not v.page.is_visible("#mask-none")
     v.close()
 
 
