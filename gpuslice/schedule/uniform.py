@@ -108,6 +108,7 @@ def uniform(
         raise ParameterError(f"object height must be finite and non-negative, got {shown(height)}")
     if not (first_layer is None or (is_real(first_layer) and np.isfinite(first_layer) and first_layer > 0)):
         raise ParameterError(f"first layer thickness must be a positive number of mm, got {shown(first_layer)}")
+    thickness = float(thickness)  # (an int gave an int array below, which cut a first layer of 1.5 mm to 1)
     h0 = thickness if first_layer is None else float(first_layer)
     if height / thickness > 5e7:
         raise ParameterError(f"{height:g} mm at {thickness:g} mm would make more than 5e7 layers")

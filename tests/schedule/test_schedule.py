@@ -25,6 +25,11 @@ def test_first_layer_and_tiling():
     np.testing.assert_allclose(s.bottom[1:], 0.3 + 0.2 * np.arange(len(s) - 1))
     # every plane lies inside its own slab
     assert np.all((s.z > s.bottom) & (s.z < s.top))
+    # a whole-number thickness (a Python int) keeps its first layer: it was cut to the int (1.5 mm became 1)
+    s = uniform(5.0, 1, first_layer=1.5)
+    np.testing.assert_array_equal(s.thickness, [1.5, 1.0, 1.0, 1.0])  # (the plane at 5.0 is the top: none)
+    assert s.thickness.dtype == np.float64 and s.z[0] == 0.75 and s.z[1] == 2.0
+    assert np.array_equal(uniform(3.0, 1, first_layer=0.3).thickness, [0.3, 1.0, 1.0, 1.0])  # (was an error)
 
 
 def test_paper_planes():
