@@ -186,8 +186,8 @@ class ResinOptions:
     png_level: int = option(1, "Deflate level of each layer's non-blank rows (0-9); at 1 the OpenCL rasteriser "
                              "deflates straight from its runs (fastest, smaller files)")
     job_name: str | None = option(None, "SL1 jobDir and PNG prefix (default: the model's file name)")
-    workers: int | None = option(None, "Layer encoding threads, and processes for PNG layers made from runs "
-                                       "(default: the CPUs; 1: one thread, no process)")
+    workers: int | None = option(None, "Layer encoding threads (and, with GPUSLICE_PNG_PROCESSES=1, processes "
+                                       "for PNG layers made from runs) (default: the CPUs; 1: one thread)")
     z_samples: int = option(1, "Anti-aliasing in Z: each layer's greys averaged over this many planes inside its "
                             "slab (1: off; needs the OpenCL rasteriser)")
 
