@@ -186,6 +186,16 @@ def browser():
         b.close()
 
 
+def _until(ok, timeout: float = 5.0) -> None:
+    """Wait until ``ok()`` is true (the page's CSP forbids the string evaluation of ``wait_for_function``)."""
+    import time
+
+    end = time.monotonic() + timeout
+    while not ok():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.02)
+
+
 class Page:
     """One viewer page open in Chromium, with the URLs it requested and the errors it raised."""
 
@@ -271,9 +281,9 @@ def test_browser_slider_keys_and_shown_values(browser, torus, tmp_path):
     assert prevented == [False, False, False]
     v.check_layer_text(12)
     # the layer is in the address (a link to it), and a #layer=N followed later goes there
-    assert v.page.evaluate("location.hash") == "#layer=12"
+    _until(lambda: v.page.evaluate("location.hash") == "#layer=12")  # (written once the layer has settled)
     v.page.evaluate("location.hash = '#layer=3'")
-    v.page.wait_for_function("gpusliceViewer.layer === 3")
+    _until(lambda: v.page.evaluate("gpusliceViewer.layer") == 3)
     v.check_layer_text(3)
     v.close()
 
