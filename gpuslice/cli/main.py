@@ -233,7 +233,7 @@ def exit_now(code: int) -> None:
 def _remove_multiprocessing_tempdir() -> None:
     """Remove the ``pymp-*`` folder :mod:`multiprocessing` made in ``$TMPDIR`` for this process (a forkserver's
     socket: ``batch -j N``, the PNG encoder processes), as its exit handler would: :func:`os._exit` skips that handler,
-    and every such command left an empty folder behind."""
+    and every such command left the folder behind, with its dead socket."""
     process = sys.modules.get("multiprocessing.process")
     if process is None:
         return

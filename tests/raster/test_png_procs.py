@@ -134,7 +134,7 @@ def test_overlapping_blocks_and_a_broken_pool(device):
 def test_the_command_line_leaves_no_multiprocessing_folder(tmp_path, torus_stl, device):
     """The encoder processes' forkserver keeps its socket in a ``pymp-*`` folder of ``$TMPDIR``; the command line
     ends with ``os._exit`` (no interpreter teardown), which skipped multiprocessing's own removal of it: every such
-    command left an empty folder behind."""
+    command left the folder behind, with its dead socket."""
     import os
     import subprocess
     import sys
