@@ -92,8 +92,10 @@ _M = Machine
 #: by suffix. Names as Photon Workshop 2.x writes them in MACHINE (checked on its .pwmx/.pwma/.pm3 files); displays,
 #: Z and versions from UVtools (AnycubicFile.cs: display mm, machine Z, versions each suffix accepts; its PrusaSlicer
 #: printer profiles: resolution, FILEVERSION), the highest version UVtools accepts for the suffix, except where a
-#: lower one is known to print: .pwmb 516 (UVtools' Mono X 6K profile; photonic-etcher's files), .pm3n 516 (Mono 2
-#: prints M3 files, photonic-etcher #20). .pm4n: no public source names its version; 516, the family's base, assumed.
+#: lower one is known to print: .pwmb 516 (UVtools' Mono X 6K profile; photonic-etcher's files). .pm3n 517, as UVtools
+#: writes it (the only version it accepts for the suffix, and its Mono 2 profile's FILEVERSION_517; 516 was taken from
+#: an unmerged photonic-etcher pull request, #20, while its issue #23 reports a converted .pm3 drawn wrong on a Mono 2).
+#: .pm4n: no public source names its version; 516, the family's base, assumed.
 MACHINES: dict[str, Machine] = {
     m.suffix: m
     for m in (
@@ -104,7 +106,7 @@ MACHINES: dict[str, Machine] = {
         _M("pmsq", "Anycubic Photon Mono SQ", (2400, 2560), (120.0, 128.0), 200.0, 516),
         _M("pm3", "Anycubic Photon M3", (4096, 2560), (163.84, 102.4), 180.0, 516),
         _M("pm3m", "Anycubic Photon M3 Max", (6480, 3600), (298.08, 165.6), 300.0, 516),
-        _M("pm3n", "Anycubic Photon Mono 2", (4096, 2560), (143.36, 89.6), 165.0, 516),
+        _M("pm3n", "Anycubic Photon Mono 2", (4096, 2560), (143.36, 89.6), 165.0, 517),
         _M("pm4n", "Anycubic Photon Mono 4", (9024, 5120), (153.408, 87.04), 165.0, 516),
         _M("pwmb", "Anycubic Photon Mono X 6K", (5760, 3600), (198.15, 123.84), 245.0, 516),
         _M("pmx2", "Anycubic Photon Mono X2", (4096, 2560), (196.61, 122.88), 200.0, 517),

@@ -291,3 +291,24 @@ def test_an_output_that_is_the_model_is_refused(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and "is the model" in err, err
     assert stl.read_bytes() == before
+
+
+def test_a_preset_writes_the_file_version_its_source_cites():
+    """Where a preset's source names a FILEVERSION (UVtools' profiles), that is the version written: the Photon Mono 2
+    said FILEVERSION_517 and wrote 516."""
+    import re
+
+    from gpuslice.raster.photon import MACHINES
+    from gpuslice.raster.printers import PRINTERS
+
+    cited = 0
+    for p in PRINTERS.values():
+        m = re.search(r"FILEVERSION_(\d+)", p.source or "")
+        if m is None:
+            continue
+        cited += 1
+        assert p.format_version == int(m.group(1)), p.name
+        native = p.formats[0]
+        if native in MACHINES:
+            assert MACHINES[native].version == p.format_version, (p.name, native)
+    assert cited >= 5
