@@ -14,9 +14,10 @@ layers as ``1.png`` upward (no leading zeros, 8-bit; on a mono display one byte 
 * ``meta.json``: ``FormatVersion`` 2, ``Distro`` generic, ``Program`` gpuslice and its version, ``Profile`` false:
   NanoDLP keeps the printer's own resin profile (its G-code templates), so the exposures below are a record.
 * ``profile.json``: ``Title``, ``Depth``/``SupportDepth`` (layer and first-layer thickness, µm), ``CureTime``,
-  ``SupportCureTime`` (s), ``SupportLayerNumber``, ``TransitionalLayer``, ``WaitHeight``/``SupportWaitHeight`` (lift,
-  mm), ``TopWait``/``SupportTopWait`` (wait after the lift, s), ``WaitBeforePrint``/``WaitAfterPrint`` (waits before
-  and after the exposure, s; the ``Support*`` ones are the bottom layers' values), ``CustomValues.UvPwmValue``
+  ``SupportCureTime`` (s), ``SupportLayerNumber``, ``TransitionalLayer``, ``WaitHeight``/``SupportWaitHeight`` (the
+  lift's total, both stages, mm: the profile has one lift), ``TopWait``/``SupportTopWait`` (wait after the lift,
+  s), ``WaitBeforePrint``/``WaitAfterPrint`` (waits before and after the exposure, s; the ``Support*`` ones are the
+  bottom layers' values), ``CustomValues.UvPwmValue``
   (the normal layers' light PWM / 255, 2 decimals: the profile has no bottom PWM field), colours; field meanings
   as UVtools maps them.
 * ``options.json`` = ``slicer.json``: ``PWidth``/``PHeight`` (the PNG's size), ``XPixelSize``/``YPixelSize`` (mm
@@ -160,8 +161,8 @@ def write_nanodlp(
     profile = {"ResinID": 0, "ProfileID": 0, "Title": title or "gpuslice", "Desc": "", "Depth": um(depth),
                "SupportDepth": um(first), "CureTime": s.exposure, "SupportCureTime": s.bottom_exposure,
                "SupportLayerNumber": s.bottom_layers, "TransitionalLayer": s.transition_layers,
-               "WaitHeight": s.lift_height,
-               "SupportWaitHeight": bot["lift_height"],
+               "WaitHeight": s.lift_height + s.lift_height2,  # (one lift: the total, as CTB v3 and Photon fold it)
+               "SupportWaitHeight": bot["lift_height"] + bot["lift_height2"],
                "TopWait": s.wait_after_lift, "SupportTopWait": bot["wait_after_lift"], **waits, "Updated": stamp,
                "CustomValues": {"UvPwmValue": f"{round(s.light_pwm / 255, 2):g}"}, "FillColor": "#ffffff",
                "BlankColor": "#000000", "IgnoreMask": 1}

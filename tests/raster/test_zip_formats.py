@@ -274,10 +274,11 @@ def _check_nanodlp(path, result, spec, settings, backend="numpy", device=None):
         settings.exposure, settings.bottom_exposure, settings.bottom_layers, settings.transition_layers)
     assert prof["Depth"] == pytest.approx(th * 1000) and opt["Thickness"] == pytest.approx(th * 1000)
     assert (prof["WaitHeight"], prof["TopWait"], prof["WaitBeforePrint"]) == (
-        settings.lift_height, settings.wait_after_lift, settings.wait_before_cure)
+        settings.lift_height + settings.lift_height2, settings.wait_after_lift, settings.wait_before_cure)
+    bot = settings.group(True)
     assert (prof["SupportWaitHeight"], prof["SupportTopWait"], prof["SupportWaitBeforePrint"],
             prof["SupportWaitAfterPrint"], prof["WaitAfterPrint"]) == (
-        settings.group(True)["lift_height"], settings.group(True)["wait_after_lift"],
+        bot["lift_height"] + bot["lift_height2"], settings.group(True)["wait_after_lift"],
         settings.group(True)["wait_before_cure"], settings.group(True)["wait_after_cure"], settings.wait_after_cure)
     assert float(prof["CustomValues"]["UvPwmValue"]) == pytest.approx(settings.light_pwm / 255, abs=0.005)
     cols, rows = spec.png_size
@@ -307,6 +308,17 @@ def test_nanodlp_reads_back(tmp_path, nested):
     t2 = replace(t, path=tmp_path / "p2.zip")
     _write("nanodlp", t2)
     assert t2.path.read_bytes() == t.path.read_bytes()
+
+
+def test_nanodlp_lift_is_the_total_of_both_stages(tmp_path, nested):
+    """NanoDLP's profile has one lift: a two-stage lift (3.1 mm, then 4.2 mm) is written as its 7.3 mm total, as CTB v3
+    and Photon Workshop fold it (only the first stage was written, a lift 4.2 mm short)."""
+    two = replace(SETTINGS, lift_height=3.1, lift_height2=4.2, lift_speed2=100.0, bottom_lift_height=5.0,
+                  bottom_lift_height2=2.5, bottom_lift_speed2=80.0)
+    t = replace(_target(tmp_path, "l.nanodlp", nested, SMALL, printer=None), settings=two)
+    _write("nanodlp", t)
+    prof = zr.read_nanodlp(t.path).manifests["profile.json"]
+    assert prof["WaitHeight"] == pytest.approx(7.3) and prof["SupportWaitHeight"] == pytest.approx(7.5)
 
 
 def test_nanodlp_benchy_runs(tmp_path, device, benchy):
