@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import difflib
 import functools
-import hashlib
 import json
 import math
 import os
@@ -253,6 +252,15 @@ def load_printer_file(path: str | os.PathLike) -> Printer:
         text = p.read_bytes()
     except OSError as exc:
         raise ParameterError(f"{p}: cannot read printer preset ({exc.strerror or exc})") from None
+    return _printer_from_bytes(str(p), text)
+
+
+@functools.lru_cache(maxsize=32)
+def _printer_from_bytes(path: str, text: bytes) -> Printer:
+    """The preset file ``path`` of contents ``text``, parsed once per (path, contents): a job asks for its preset
+    many times (display, settings, format); by contents, not modification time and size (a rewrite within the clock's
+    step with as many bytes was missed)."""
+    p = Path(path)
     try:
         source = text.decode("utf-8")
         data = _parse_toml(source) if p.suffix.lower() == ".toml" else json.loads(source)
@@ -269,23 +277,13 @@ def _canonical(name: str) -> str:
     return re.sub(r"[\s_]+", "-", name.strip().lower())
 
 
-@functools.lru_cache(maxsize=32)
-def _load_cached(path: str, digest: bytes) -> Printer:
-    return load_printer_file(path)
-
-
 def find_printer(name: str) -> Printer:
     """The preset ``name`` (:data:`PRINTERS`; case, spaces and underscores do not matter), or a user's preset when
     ``name`` is a path to a ``.toml`` or ``.json`` file; :class:`ParameterError` otherwise."""
     if name in PRINTERS:
         return PRINTERS[name]
     if name.lower().endswith((".toml", ".json")):
-        try:  # parsed once per content of the file: a job asks for its preset many times (display, settings,
-            with open(name, "rb") as f:  # format); by content, not time and size (a rewrite within the clock's
-                data = f.read()  # step with as many bytes was missed)
-        except OSError:
-            return load_printer_file(name)  # its one-line error
-        return _load_cached(os.path.abspath(name), hashlib.sha256(data).digest())
+        return load_printer_file(os.path.abspath(name))
     key = _canonical(name)
     if key in PRINTERS:
         return PRINTERS[key]

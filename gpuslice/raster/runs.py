@@ -347,9 +347,9 @@ def iter_runs(
         raise ParameterError(f"unknown runs backend '{backend}' (use {', '.join(BACKENDS)})")
     if merged is None and edges is None:
         check_raster_args(result, spec, layers, bounds)
-        if not clip:
-            check_fits(result, spec or RasterSpec(), bounds, layers=layers)
     spec = spec or RasterSpec()
+    if merged is None and edges is None and not clip:
+        check_fits(result, spec, bounds, layers=layers)
     k = int(z_samples)
     if merged is not None:
         if layers is not None or edges is not None:

@@ -220,12 +220,11 @@ def _piece_records(g: np.ndarray, w: np.ndarray, xs: np.ndarray, xe: np.ndarray,
     run = fixed((a - umin[pi]) * slope[pi] + d * (_F1 - xm))  # the piece's running share after each of its cells
     step = run.copy()
     step[1:] -= run[:-1]
-    first = np.cumsum(n) - n  # each piece's first cell (pieces have at least one)
-    step[first[n > 0]] = run[first[n > 0]]
-    add(g[pi], c, step, w[pi])
-    last = first + n - 1
+    first = np.cumsum(n) - n  # each piece's first cell
     has = n > 0
-    add(g[has], cb[has] + 1, fixed(dy[has]) - run[last[has]], w[has])
+    step[first[has]] = run[first[has]]
+    add(g[pi], c, step, w[pi])
+    add(g[has], cb[has] + 1, fixed(dy[has]) - run[(first + n - 1)[has]], w[has])
     return np.concatenate(out_g), np.concatenate(out_c), np.concatenate(out_a)
 
 
