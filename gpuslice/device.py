@@ -1,9 +1,10 @@
 """OpenCL devices: which one is used, and kernel programs built once per context.
 
-The default device is the first GPU of any platform, else the first CPU device of a PoCL platform, else any
-device. ``--device`` or the ``GPUSLICE_DEVICE`` environment variable override it with PyOpenCL's ``PYOPENCL_CTX``
-syntax: ``"P"`` or ``"P:D"`` (platform and device indices as ``gpuslice devices`` lists them), or a case-insensitive
-piece of the device or platform name (``"pocl"``, ``"nvidia"``). Nothing here prompts.
+The default device is the first GPU of any platform, else the first CPU device of a PoCL platform that can build
+for this CPU (see :func:`cpu_unknown_to_pocl`), else any device. ``--device`` or the ``GPUSLICE_DEVICE`` environment
+variable override it with PyOpenCL's ``PYOPENCL_CTX`` syntax: ``"P"`` or ``"P:D"`` (platform and device indices as
+``gpuslice devices`` lists them), or a case-insensitive piece of the device or platform name (``"pocl"``,
+``"nvidia"``). Nothing here prompts.
 
 Programs are built from ``kernels/*.cl`` (shipped inside the package as ``gpuslice.kernels``) with
 ``-D LOCAL_SIZE=…`` and memoised per (context, file, options). Later processes load the program's binary instead
@@ -333,6 +334,9 @@ def _build(dev: Device, local_size: int):
     except cl.RuntimeError as exc:  # pragma: no cover - a broken kernel or driver
         first = str(exc).splitlines()[0]
         names = ", ".join(p.name for p in files)
+        if "unknown target CPU" in str(exc):  # see cpu_unknown_to_pocl
+            first = ("this PoCL's LLVM does not know this CPU (unknown target CPU 'generic'); install a newer PoCL, "
+                     "e.g. Debian's pocl-opencl-icd (scripts/setup-system.sh), and it is chosen by default")
         raise DeviceError(f"kernels ({names}): OpenCL build failed on {dev.name}: {first}") from None
     if path is not None:
         _store_binary(path, prg)
@@ -371,9 +375,18 @@ def list_devices() -> list[dict]:
                     "compute_units": int(d.max_compute_units),
                     "global_mem_mib": int(d.global_mem_size // 2**20),
                     "driver": d.driver_version.strip(),
+                    "version": d.version.strip(),
                 }
             )
     return out
+
+
+def cpu_unknown_to_pocl(entry: dict) -> bool:
+    """Whether ``entry`` (from :func:`list_devices`) is a PoCL CPU device whose LLVM does not know the host CPU: its
+    version string's target is ``generic``, which PoCL before 3.1 passes to clang as the target CPU and x86 clang
+    refuses, so every kernel build fails with "unknown target CPU 'generic'" (pocl/pocl#1049). Seen with the PoCL 3.0
+    (LLVM 14) that PyOpenCL's wheels bundle on AMD Zen 5; Debian's PoCL 3.1 picks a CPU by its features instead."""
+    return "portable computing language" in entry["platform"].lower() and entry.get("version", "").endswith("-generic")
 
 
 def _default_choice(devices: list[dict]) -> dict:
@@ -381,8 +394,9 @@ def _default_choice(devices: list[dict]) -> dict:
     if gpus:
         return gpus[0]
     pocl = [d for d in devices if "portable computing language" in d["platform"].lower() and "CPU" in d["type"]]
-    if pocl:
-        return pocl[0]
+    usable = [d for d in pocl if not cpu_unknown_to_pocl(d)]
+    if usable or pocl:
+        return (usable or pocl)[0]
     return devices[0]
 
 
