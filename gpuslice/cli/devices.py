@@ -16,7 +16,7 @@ __all__ = ["devices"]
 @click.option("--device", default=None, help="Show which device this spec selects.")
 def devices(as_json: bool, device: str | None) -> None:
     """List OpenCL platforms and devices, and which one gpuslice uses."""
-    from ..device import list_devices, resolve
+    from ..device import cpu_unknown_to_pocl, list_devices, resolve
 
     found = list_devices()
     chosen = resolve(device)["id"] if found else None
@@ -26,7 +26,8 @@ def devices(as_json: bool, device: str | None) -> None:
     for d in found:
         mark = "*" if d["id"] == chosen else " "
         click.echo(f"{mark} {d['id']}  {d['platform']} | {d['device']} | {d['type']} | {d['compute_units']} CU | "
-                   f"{d['global_mem_mib']} MiB | {d['platform_version']}")
+                   f"{d['global_mem_mib']} MiB | {d['platform_version']}"
+                   + (" | cannot build for this CPU (its LLVM does not know it)" if cpu_unknown_to_pocl(d) else ""))
     if not found:
         fail("no OpenCL device found (pip install pocl-binary-distribution)")
     click.echo("(* = used by default; override with --device or GPUSLICE_DEVICE)")

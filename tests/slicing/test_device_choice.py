@@ -54,3 +54,16 @@ def test_the_default_device_of_this_machine_builds_the_kernels():
     usable = [d for d in devices if not cpu_unknown_to_pocl(d)]
     if usable:
         assert not cpu_unknown_to_pocl(chosen)
+
+
+def test_devices_command_marks_the_pocl_that_cannot_build(monkeypatch, capsys):
+    from gpuslice.cli import main
+
+    monkeypatch.delenv(devmod.ENV_VAR, raising=False)
+    monkeypatch.setattr(devmod, "list_devices", lambda: [GENERIC, KNOWN])
+    assert main(["devices"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    generic = next(x for x in lines if "dev0" in x)
+    known = next(x for x in lines if "dev1" in x)
+    assert "cannot build for this CPU" in generic and not generic.startswith("*")
+    assert "cannot build" not in known and known.startswith("*")
