@@ -17,8 +17,8 @@ Every command is ``gpuslice raster STL --fit F -t 0.05 --resolution R --pixel P 
 SL1 export of the same STL at the same display (once: it takes minutes) as the reference of the same run.
 
 Usage: ``python scripts/bench_resin.py [--jobs armadillo,nefertiti] [--displays 12k,16k]
-[--formats goo,ctb,pwmx,sl1,png] [--gammas 0,1] [--repeat 3] [--prusa] [--json out.json]``. Markdown on stdout,
-progress on stderr.
+[--formats goo,ctb,pwmx,sl1,png] [--gammas 0,1] [--repeat 3] [--prusa] [--json out.json] [--out-dir DIR]``.
+Markdown on stdout, progress on stderr.
 """
 
 from __future__ import annotations
@@ -107,6 +107,8 @@ def main(argv=None) -> int:
     ap.add_argument("--prusa", action="store_true")
     ap.add_argument("--cache", default=str(Path(tempfile.gettempdir()) / "gpuslice-bench"))
     ap.add_argument("--json", default=None)
+    ap.add_argument("--out-dir", default=None, help="where the outputs are written (default: the temp directory); "
+                    "/dev/shm keeps the file system's own cost out (BENCHMARKS: a PNG stack on ext4 without a journal)")
     a = ap.parse_args(argv)
     cache = Path(a.cache)
     cache.mkdir(parents=True, exist_ok=True)
@@ -119,7 +121,7 @@ def main(argv=None) -> int:
                     runs.append((job, display, fmt, float(g), 1))
             if a.z4:
                 runs.append((job, display, formats[0], 1.0, 4))
-    work = Path(tempfile.mkdtemp(prefix="bench-resin-"))
+    work = Path(tempfile.mkdtemp(prefix="bench-resin-", dir=a.out_dir))
     results: dict[tuple, list] = {r: [] for r in runs}
     try:
         for rep in range(a.repeat):
