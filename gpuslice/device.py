@@ -3,8 +3,8 @@
 The default device is the first GPU of any platform, else the first CPU device of a PoCL platform that can build
 for this CPU (see :func:`cpu_unknown_to_pocl`), else any device. ``--device`` or the ``GPUSLICE_DEVICE`` environment
 variable override it with PyOpenCL's ``PYOPENCL_CTX`` syntax: ``"P"`` or ``"P:D"`` (platform and device indices as
-``gpuslice devices`` lists them), or a case-insensitive piece of the device or platform name (``"pocl"``,
-``"nvidia"``). Nothing here prompts.
+``gpuslice devices`` lists them), or a case-insensitive piece of the device's or platform's name or version
+(``"pocl"``, ``"nvidia"``). Nothing here prompts.
 
 Programs are built from ``kernels/*.cl`` (shipped inside the package as ``gpuslice.kernels``) with
 ``-D LOCAL_SIZE=…`` and memoised per (context, file, options). Later processes load the program's binary instead
@@ -416,9 +416,10 @@ def resolve(spec: str | None) -> dict:
                 return d
         raise DeviceError(f"device '{spec}' not found (see gpuslice devices)")
     needle = spec.lower()
-    for d in devices:
-        if needle in d["device"].lower() or needle in d["platform"].lower():
-            return d
+    named = [d for d in devices if any(needle in d.get(key, "").lower()
+                                       for key in ("device", "platform", "platform_version", "version"))]
+    if named:  # the first that can build for this CPU ("pocl" with two PoCLs installed)
+        return next((d for d in named if not cpu_unknown_to_pocl(d)), named[0])
     raise DeviceError(f"device '{spec}' not found (see gpuslice devices)")
 
 

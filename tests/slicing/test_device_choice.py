@@ -54,6 +54,9 @@ def test_the_default_device_of_this_machine_builds_the_kernels():
     usable = [d for d in devices if not cpu_unknown_to_pocl(d)]
     if usable:
         assert not cpu_unknown_to_pocl(chosen)
+    pocl = [d for d in devices if "portable computing language" in d["platform"].lower()]
+    if pocl:  # the documented name piece finds a PoCL device (its platform is called "Portable Computing Language")
+        assert resolve("pocl") in pocl
 
 
 def test_devices_command_marks_the_pocl_that_cannot_build(monkeypatch, capsys):
@@ -67,3 +70,10 @@ def test_devices_command_marks_the_pocl_that_cannot_build(monkeypatch, capsys):
     known = next(x for x in lines if "dev1" in x)
     assert "cannot build for this CPU" in generic and not generic.startswith("*")
     assert "cannot build" not in known and known.startswith("*")
+
+
+def test_a_name_picks_the_device_of_that_name_that_can_build(monkeypatch):
+    monkeypatch.setattr(devmod, "list_devices", lambda: [GENERIC, KNOWN, OTHER])
+    assert resolve("pocl")["id"] == "1:0"
+    assert resolve("dev0")["id"] == "0:0"  # named alone: taken (its build error then says why)
+    assert resolve("intel")["id"] == "2:0"
