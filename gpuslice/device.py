@@ -383,7 +383,7 @@ def list_devices() -> list[dict]:
 
 def cpu_unknown_to_pocl(entry: dict) -> bool:
     """Whether ``entry`` (from :func:`list_devices`) is a PoCL CPU device whose LLVM does not know the host CPU: its
-    version string's target is ``generic``, which PoCL before 3.1 passes to clang as the target CPU and x86 clang
+    version string's target is ``generic``, which PoCL 3.0 (and older) passes to clang as the target CPU and x86 clang
     refuses, so every kernel build fails with "unknown target CPU 'generic'" (pocl/pocl#1049). Seen with the PoCL 3.0
     (LLVM 14) that PyOpenCL's wheels bundle on AMD Zen 5; Debian's PoCL 3.1 picks a CPU by its features instead."""
     return "portable computing language" in entry["platform"].lower() and entry.get("version", "").endswith("-generic")
