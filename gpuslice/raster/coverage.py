@@ -29,10 +29,11 @@ Backends: ``"opencl"`` (run-length runs, :mod:`gpuslice.raster.runs` + ``kernels
 ``kernels/raster.cl`` byte for byte, 10x faster, never a display-sized bitmap; tiles are filled from the runs),
 ``"opencl-bitmap"`` (``kernels/raster.cl``, :class:`RasterKernel`: the bitmap accumulator the runs replaced, kept for
 benchmarks), ``"numpy"`` (:func:`coverage_numpy`, the bitmap kernel's float64 twin; it may differ from it by one grey
-level on a few pixels, 1 in 10^4 to 10^5 of those covered, so at gamma 0 a pixel within a level of 50 % may fall on
-the other side), ``"gl"`` (moderngl/EGL, :mod:`gpuslice.raster.gl`, supersampled). ``"auto"`` is the runs (OpenCL):
-GL is the optional GPU pass, taken only when asked (probing EGL for a hardware GPU costs 0.1 s at start-up; llvmpipe,
-Mesa's software GL, is 50-135x slower than the runs on a CPU: docs/BENCHMARKS.md).
+level: on the shared meshes up to 0.8 % of the pixels covered (most models 0.01-0.1 %), and at gamma 0 a pixel within
+a level of 50 % then falls on the other side, up to a few tens of pixels a model), ``"gl"`` (moderngl/EGL,
+:mod:`gpuslice.raster.gl`, supersampled). ``"auto"`` is the runs (OpenCL): GL is the optional GPU pass, taken only
+when asked (probing EGL for a hardware GPU costs 0.1 s at start-up; llvmpipe, Mesa's software GL, is 50-135x slower
+than the runs on a CPU: docs/BENCHMARKS.md).
 """
 
 from __future__ import annotations
