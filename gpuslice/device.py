@@ -389,15 +389,18 @@ def cpu_unknown_to_pocl(entry: dict) -> bool:
     return "portable computing language" in entry["platform"].lower() and entry.get("version", "").endswith("-generic")
 
 
+def _first_usable(entries: list[dict]) -> dict:
+    """The first of ``entries`` (not empty) that can build for this CPU (:func:`cpu_unknown_to_pocl`), else the
+    first."""
+    return next((d for d in entries if not cpu_unknown_to_pocl(d)), entries[0])
+
+
 def _default_choice(devices: list[dict]) -> dict:
     gpus = [d for d in devices if "GPU" in d["type"]]
     if gpus:
         return gpus[0]
     pocl = [d for d in devices if "portable computing language" in d["platform"].lower() and "CPU" in d["type"]]
-    usable = [d for d in pocl if not cpu_unknown_to_pocl(d)]
-    if usable or pocl:
-        return (usable or pocl)[0]
-    return devices[0]
+    return _first_usable(pocl) if pocl else devices[0]
 
 
 def resolve(spec: str | None) -> dict:
@@ -418,8 +421,8 @@ def resolve(spec: str | None) -> dict:
     needle = spec.lower()
     named = [d for d in devices if any(needle in d.get(key, "").lower()
                                        for key in ("device", "platform", "platform_version", "version"))]
-    if named:  # the first that can build for this CPU ("pocl" with two PoCLs installed)
-        return next((d for d in named if not cpu_unknown_to_pocl(d)), named[0])
+    if named:  # ("pocl" with two PoCLs installed: the one that can build)
+        return _first_usable(named)
     raise DeviceError(f"device '{spec}' not found (see gpuslice devices)")
 
 
