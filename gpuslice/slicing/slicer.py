@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import time
-from dataclasses import asdict, fields
+from dataclasses import asdict, fields, replace
 from typing import Any
 
 import numpy as np
@@ -189,14 +189,18 @@ def slice_mesh(
 
         # several batches: batch k + 1 is cut and chained (device kernels, GEOS and numpy, which release the GIL) while
         # batch k is nested; the stages' times then overlap and add up to more than the wall time
+        points = _PointsBuffer(int(per_layer.sum()) if len(batches) > 1 else 0)
         for a, b, loops, count in prefetch(chained(), 1 if len(batches) > 1 else 0):
             n_segments += count
             t = time.perf_counter()
             nested = nest_loops(loops, b - a, params.fill_rule)
+            if len(batches) > 1:  # the batch's points join the others' now, and its own array goes
+                points.append(nested.points)
+                nested = replace(nested, points=_GATHERED)
             timings["nesting"] += time.perf_counter() - t
             parts.append((a, nested, loops.repairs))
-            del loops
-        result = _assemble(parts, sched, n_layers)
+            del loops, nested
+        result = _assemble(parts, sched, n_layers, points.array() if len(batches) > 1 else None)
     result.segment_exact = _segment_exact(parts, result, n_layers)
     if getattr(sched, "info", None):
         result.meta["adaptive"] = sched.info
@@ -234,7 +238,36 @@ def _segment_exact(parts, result: SliceResult, n_layers: int) -> np.ndarray:
     return exact
 
 
-def _assemble(parts, sched: Schedule, n_layers: int) -> SliceResult:
+#: a batch's points once :class:`_PointsBuffer` holds them (its ``loop_offsets`` still count them)
+_GATHERED = np.zeros((0, 2), np.float32)
+
+
+class _PointsBuffer:
+    """Several batches' points gathered into one (P, 2) float32 array as the batches are nested, so that a batch's
+    own points can go at once and the result's points are not a second copy of them all at the end (peak memory:
+    the model's points once, not twice). Sized for ``hint`` points (the segments: a closed loop has as many points
+    as segments); grown by half when loops rebuilt from crossings need more."""
+
+    def __init__(self, hint: int) -> None:
+        self.buf = np.empty((max(int(hint), 0), 2), np.float32)  # (pages are only touched as they are written)
+        self.used = 0
+
+    def append(self, pts: np.ndarray) -> None:
+        k = pts.shape[0]
+        if self.used + k > self.buf.shape[0]:
+            grown = np.empty((max(self.used + k, self.buf.shape[0] * 3 // 2), 2), np.float32)
+            grown[: self.used] = self.buf[: self.used]
+            self.buf = grown
+        self.buf[self.used : self.used + k] = pts
+        self.used += k
+
+    def array(self) -> np.ndarray:
+        return self.buf[: self.used]
+
+
+def _assemble(parts, sched: Schedule, n_layers: int, points: np.ndarray | None = None) -> SliceResult:
+    """The result from the batches' nested layers ``parts`` ((first layer, Nested, repairs)); ``points``: all their
+    points, when :class:`_PointsBuffer` gathered them (each part's ``points`` is then :data:`_GATHERED`)."""
     if not parts:
         return SliceResult(
             points=np.zeros((0, 2), np.float32), loop_offsets=np.zeros(1, np.int64),
@@ -256,7 +289,8 @@ def _assemble(parts, sched: Schedule, n_layers: int) -> SliceResult:
     repairs: dict[str, list] = {}
     p_base = r_base = 0
     for a, nd, rep in parts:
-        pts.append(nd.points)
+        if points is None:
+            pts.append(nd.points)
         loff.append(nd.loop_offsets[1:] + p_base)
         lay.append(nd.loop_layer + a)
         hole.append(nd.loop_is_hole)
@@ -265,13 +299,14 @@ def _assemble(parts, sched: Schedule, n_layers: int) -> SliceResult:
         area.append(nd.area)
         for k, v in {**rep, "unfilled_loops": nd.unfilled_loops, "overlaps_resolved": nd.overlaps_resolved}.items():
             repairs.setdefault(k, []).append(v)
-        p_base += nd.points.shape[0]
+        p_base += int(nd.loop_offsets[-1])
         r_base += nd.loop_layer.size
     loop_layer = np.concatenate(lay).astype(np.int32)
     layer_offsets = np.zeros(n_layers + 1, np.int64)
     np.cumsum(np.bincount(loop_layer, minlength=n_layers), out=layer_offsets[1:])
     return SliceResult(
-        np.concatenate(pts), np.concatenate(loff), layer_offsets, loop_layer, np.concatenate(hole),
+        np.concatenate(pts) if points is None else points, np.concatenate(loff), layer_offsets, loop_layer,
+        np.concatenate(hole),
         np.concatenate(par).astype(np.int32), np.concatenate(closed), sched.z, sched.thickness,
         np.concatenate(area), {k: np.concatenate(v) for k, v in repairs.items()},
     )

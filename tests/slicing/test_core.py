@@ -393,3 +393,29 @@ def test_loop_crossing_itself_with_cancelling_lobes(backend):
     bowtie = np.array([[0.0, 0.0], [10.0, 6.0], [10.0, 0.0], [0.0, 6.0]])  # two lobes of 15 mm^2
     res = slice_mesh(mesh_from_triangles(S.prism(bowtie, 0.0, 2.0)), thickness=1.0, backend=backend, max_gap=0.0)
     np.testing.assert_allclose(res.area, 30.0, rtol=1e-6)
+
+
+def test_layer_batches_with_rebuilt_overlaps_give_the_same_result(backend):
+    # batches gather their points into one buffer sized by the segments; loops rebuilt where bodies overlap have
+    # points of their own (the crossings of the two outlines): the result must still equal the one-batch slice
+    tri = np.concatenate([S.box((0, 0, 0), (20, 20, 20)), S.box((10, 5, 0), (30, 15, 20)),
+                          S.box((5, -5, 2), (15, 25, 18))])
+    mesh = mesh_from_triangles(tri)
+    whole = slice_mesh(mesh, thickness=0.5, backend=backend)
+    parts = slice_mesh(mesh, thickness=0.5, backend=backend, max_segments_per_batch=60)
+    assert parts.meta["batches"] > 5 and whole.meta["batches"] == 1
+    assert whole.repairs["overlaps_resolved"].sum() > 0
+    for name in ("points", "loop_offsets", "layer_offsets", "loop_layer", "loop_is_hole", "loop_parent", "area"):
+        np.testing.assert_array_equal(getattr(parts, name), getattr(whole, name))
+
+
+def test_points_buffer_grows_past_its_hint():
+    from gpuslice.slicing.slicer import _PointsBuffer
+
+    rng = np.random.default_rng(3)
+    pieces = [rng.random((k, 2), dtype=np.float32) for k in (5, 0, 17, 3, 40)]
+    for hint in (0, 10, 65, 1000):
+        buf = _PointsBuffer(hint)
+        for p in pieces:
+            buf.append(p)
+        np.testing.assert_array_equal(buf.array(), np.concatenate(pieces))
