@@ -245,6 +245,9 @@ def mesh_from_triangles(
 
     ``scale`` multiplies every coordinate; ``fit`` scales so the longest bounding-box side is ``fit`` mm (give one
     or neither). The result always stands on the bed: its lowest point is moved to z = 0; X and Y are kept.
+    Corners are stored as float32: float32 values (an STL's) are welded bit for bit as given, then placed; finer
+    values (float64, integers beyond 2^24) are placed in float64 first and rounded once (a model far above the bed
+    loses nothing to the rounding of its own frame).
     ``device`` (a :class:`gpuslice.device.Device`): weld and number edges with ``kernels/weld.cl`` (the same ids
     as the numpy path) for meshes of more than :data:`DEVICE_WELD_MIN_FACETS` facets.
     """
@@ -260,10 +263,20 @@ def mesh_from_triangles(
             raise ParameterError(f"{name}: normals must have shape ({tri.shape[0]}, 3), one per facet, got "
                                  f"{normals.shape}")
     # float32 is the precision of STL; the weld reads -0.0 as 0.0, so both weld together (no normalised copy)
-    corners = np.ascontiguousarray(tri.reshape(-1, 3), dtype=np.float32)
+    flat = tri.reshape(-1, 3)
+    corners = np.ascontiguousarray(flat, dtype=np.float32)
+    placed = None
+    if flat.dtype != np.float32 and np.isfinite(flat).all() and not np.array_equal(corners, flat):
+        # finer than float32 (float64 arrays, OBJ, PLY, 3MF): scaled and put on the bed in float64 first, rounded
+        # once after, so a model far from z = 0 (or large, then fitted) loses nothing to the rounding of its own
+        # far-away frame. Sources whose values are float32 already (an STL's, a Trimesh loaded from one) are
+        # welded as stored, then placed: the same mesh as their binary STL.
+        placed = _placement(flat, name, scale, fit)
+        factor, offset = placed
+        corners = np.ascontiguousarray(flat.astype(np.float64) * factor + offset, dtype=np.float32)
     return _from_corners(
         corners, normals, name=name, source_format=source_format, scale=scale, fit=fit, solids=solids,
-        device=device if tri.shape[0] > DEVICE_WELD_MIN_FACETS else None,
+        device=device if tri.shape[0] > DEVICE_WELD_MIN_FACETS else None, placed=placed,
     )
 
 
@@ -288,7 +301,9 @@ def _placement(verts: np.ndarray, name: str, scale: float | None, fit: float | N
     return factor, np.array([0.0, 0.0, -lo[2] * factor])
 
 
-def _from_corners(corners, normals, *, name, source_format, scale, fit, solids, device=None) -> Mesh:
+def _from_corners(corners, normals, *, name, source_format, scale, fit, solids, device=None, placed=None) -> Mesh:
+    """The mesh of float32 ``corners`` (3 a facet): welded bit for bit, then scaled and put on the bed
+    (:func:`_placement`) unless ``placed`` = (factor, offset) says the caller did that already."""
     n_faces = corners.shape[0] // 3
 
     # bit-identical as stored (-0.0 as 0.0), before any transform
@@ -299,8 +314,11 @@ def _from_corners(corners, normals, *, name, source_format, scale, fit, solids, 
     del first
     if not np.all(np.isfinite(verts)):  # every corner is one of the vertices, bit for bit
         raise InvalidGeometryError(f"{name}: NaN or infinite vertex coordinates")
-    factor, offset = _placement(verts, name, scale, fit)
-    if factor != 1.0 or offset[2] != 0.0:
+    if placed is not None:
+        factor, offset = placed
+    else:
+        factor, offset = _placement(verts, name, scale, fit)
+    if placed is None and (factor != 1.0 or offset[2] != 0.0):
         verts = (verts.astype(np.float64) * factor + offset).astype(np.float32) + np.float32(0.0)
     faces = vid.reshape(n_faces, 3)
     good = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])
@@ -355,8 +373,9 @@ def load_mesh(
         (:mod:`gpuslice.mesh.sources`): a ``trimesh.Trimesh``, a ``trimesh.Scene`` (concatenated, transforms
         applied), ``(vertices, faces)`` arrays, the ``bytes`` of a mesh file or a binary file object (format from
         ``name``'s suffix, else a zip is a 3MF and anything else an STL), or a :class:`Mesh` (returned as it is
-        unless ``scale``/``fit`` are given, which then apply to its current coordinates). A ``Trimesh`` gives the
-        same mesh as its binary STL export (corners rounded to float32 the same way).
+        unless ``scale``/``fit`` are given, which then apply to its current coordinates). A ``Trimesh`` of float32
+        values (loaded from an STL) gives the same mesh as its binary STL export; finer float64 coordinates are
+        scaled and put on the bed before they are rounded to float32 (:func:`mesh_from_triangles`).
     scale : multiply every coordinate by this factor (file units to mm).
     fit : instead, scale so the longest bounding-box side is ``fit`` mm.
     device : optional OpenCL :class:`~gpuslice.device.Device` to weld on (see :func:`mesh_from_triangles`).

@@ -3,8 +3,9 @@ triangle soup without a temporary file.
 
 Sources (besides a path, read by :func:`gpuslice.io.meshfile.read_mesh_file`):
 
-* a ``trimesh.Trimesh``: its ``vertices[faces]`` (float64, rounded to float32 as an STL export does), so slicing it
-  gives the same result as slicing its binary STL; a ``trimesh.Scene``: its geometry with the scene graph's
+* a ``trimesh.Trimesh``: its ``vertices[faces]`` (float64); one whose values are float32 values (loaded from an
+  STL) gives the same result as slicing its binary STL, finer ones are placed on the bed before they are rounded to
+  float32 (:func:`gpuslice.mesh.mesh.mesh_from_triangles`); a ``trimesh.Scene``: its geometry with the scene graph's
   transforms applied, concatenated into one mesh (``Scene.to_mesh()``);
 * ``(vertices, faces)``: (V, 3) coordinates and (F, 3) vertex indices, counter-clockwise seen from outside;
   any other object with ``vertices`` and ``faces`` attributes is read the same way;

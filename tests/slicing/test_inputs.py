@@ -45,6 +45,24 @@ def test_trimesh_slices_as_its_binary_stl(shared_meshes, tmp_path, name):
         assert_same(gpuslice.slice_mesh(fh, thickness=0.1, fit=60), ref)
 
 
+@pytest.mark.parametrize("offset", [1e5, 1e6, 1e7])
+def test_float64_source_far_above_the_bed_is_placed_before_rounding(offset):
+    # float64 vertices finer than float32: moved to the bed (and scaled) in float64, rounded once after; rounding
+    # them in their own far-away frame first cost 7 % of a layer's area at 1e6 mm, 75 % at 1e7 (a helper's probe)
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=10.0)
+    v = sphere.vertices + (0.1234567, -0.7654321, 0.0)  # (values off the float32 grid)
+    near = gpuslice.slice_mesh((v, sphere.faces), thickness=0.5)
+    far = gpuslice.slice_mesh((v + (0.0, 0.0, offset), sphere.faces), thickness=0.5)
+    assert near.n_layers == 40
+    for name in ("loop_offsets", "layer_offsets", "z"):
+        np.testing.assert_array_equal(getattr(far, name), getattr(near, name))
+    # (only the float64 sum v + offset - offset rounds: an ulp of 1e7 is 2e-9 mm, a float32 ulp at 10 mm 1e-6 mm)
+    np.testing.assert_allclose(far.points, near.points, rtol=0, atol=2e-6)
+    np.testing.assert_allclose(far.area, near.area, rtol=1e-6)
+    fitted = gpuslice.slice_mesh((v * 1e3 + (0.0, 0.0, offset * 1e3), sphere.faces), thickness=0.5, fit=20.0)
+    np.testing.assert_allclose(fitted.area, near.area, rtol=1e-5)
+
+
 def test_scene_is_concatenated_with_its_transforms(tmp_path):
     a = trimesh.creation.box((10, 10, 10))
     b = trimesh.creation.icosphere(subdivisions=2, radius=4)
@@ -53,7 +71,13 @@ def test_scene_is_concatenated_with_its_transforms(tmp_path):
     scene.add_geometry(b, transform=trimesh.transformations.translation_matrix([20, 0, 3]))
     merged = scene.to_mesh()
     res = gpuslice.slice_mesh(scene, thickness=0.5)
-    assert_same(res, gpuslice.slice_mesh(_stl_bytes(merged), thickness=0.5))
+    assert_same(res, gpuslice.slice_mesh((merged.vertices, merged.faces), thickness=0.5))
+    # the transforms make float64 coordinates off the float32 grid: placed before rounding, within a float32
+    # rounding of the STL export's layers (which round first)
+    stl = gpuslice.slice_mesh(_stl_bytes(merged), thickness=0.5)
+    for name in ("loop_offsets", "layer_offsets", "z"):
+        np.testing.assert_array_equal(getattr(res, name), getattr(stl, name))
+    np.testing.assert_allclose(res.points, stl.points, rtol=0, atol=4e-6)
     assert res.layer(len(res) // 2).to_shapely().geoms.__len__() == 2  # both bodies, placed apart
 
 
