@@ -170,6 +170,18 @@ def load_job_mesh(job: Job, device=None, timings: dict[str, float] | None = None
     return mesh
 
 
+def _too_thin(mesh: Mesh | None, job: Job) -> str:
+    """Why a job has no layers, for its error: the model's height against the layer, and a hint at the units when
+    the model is under a millimetre across and was not scaled (a file drawn in metres)."""
+    if mesh is None or mesh.n_faces == 0:
+        return "(the model is thinner than one layer)"
+    size = float(np.max(mesh.vertices.max(axis=0) - mesh.vertices.min(axis=0)))
+    why = f"(the model is {float(mesh.height):.3g} mm tall, thinner than one layer"
+    if size < 1.0 and job.placement.scale is None and job.placement.fit is None:
+        why += f"; it is {size:.3g} units across: if they are metres, give --scale 1000"
+    return why + ")"
+
+
 def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | None = None) -> JobResult:
     """Run ``job``: the device, the mesh, the slices, then every output it names (see the module docstring).
 
@@ -207,7 +219,7 @@ def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | Non
     if result.n_layers == 0 and (job.contours is not None or job.checks is not None or job.view is not None):
         from .errors import ParameterError
 
-        raise ParameterError(f"{job.model_name}: no layers to write (the model is thinner than one layer)")
+        raise ParameterError(f"{job.model_name}: no layers to write {_too_thin(mesh, job)}")
     if job.contours is not None:
         from .formats import export
 
@@ -308,7 +320,7 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
     if out.result.n_layers == 0:
         from .errors import ParameterError
 
-        raise ParameterError(f"{job.model_name}: no layers to write (the model is thinner than one layer)")
+        raise ParameterError(f"{job.model_name}: no layers to write {_too_thin(out.mesh, job)}")
     check_fits(out.result, r.spec, bounds, name=job.model_name)
     if k > 1 and backend != "opencl":
         from .errors import ParameterError

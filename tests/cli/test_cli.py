@@ -153,3 +153,19 @@ def test_unraisable_reports_are_kept_unless_interrupted(monkeypatch):
     cli_main._INTERRUPTED.set()
     cli_main._unraisable("second")
     assert seen == ["first"]
+
+
+def test_a_model_drawn_in_metres_gets_a_hint_at_the_units(tmp_path, capsys):
+    from gpuslice.mesh import shapes as S
+
+    small, big = tmp_path / "part_in_metres.stl", tmp_path / "part_in_mm.stl"
+    S.write_stl(S.box((0, 0, 0), (0.02, 0.01, 0.02)), small)  # a 20 mm part saved in metres
+    S.write_stl(S.box((0, 0, 0), (20, 10, 0.02)), big)  # a 0.02 mm film, drawn in mm
+    for path, hint in ((small, True), (big, False)):
+        out = tmp_path / "x.svg"
+        assert main(["slice", str(path), "-t", "0.1", "-o", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "0.02 mm tall, thinner than one layer" in err
+        assert ("if they are metres, give --scale 1000" in err) is hint
+        assert not out.exists()
+    assert main(["slice", str(small), "-t", "0.1", "--scale", "1000", "-o", str(tmp_path / "ok.svg")]) == 0
