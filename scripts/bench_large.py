@@ -240,7 +240,7 @@ def plot_scaling(series: list[dict], others: list[dict], stem: Path, env: dict) 
     ax_m.set(xlabel="segments", ylabel="MiB", title="peak RSS")
     for ax in (ax_t, ax_ns, ax_m):
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=6, loc="upper left" if ax is not ax_ns else "upper right")
     fig.suptitle(f"time against segment count; {env.get('machine', '')}", fontsize=9)
     fig.tight_layout()
     return _save(fig, stem)
