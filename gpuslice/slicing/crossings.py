@@ -62,12 +62,16 @@ class DeviceSegments:
         return seg
 
 
-def _planes32(z: np.ndarray) -> np.ndarray:
+def _planes32(z: np.ndarray, name: str | None = None) -> np.ndarray:
+    """The cutting planes as the kernels cut them (float32), refused where two coincide (``name``: the model's, for
+    the message)."""
     zs = np.ascontiguousarray(z, dtype=np.float32)
     if zs.size > 1 and not np.all(np.diff(zs) > 0):
         from ..errors import ParameterError
 
-        raise ParameterError("layers closer than float32 resolution: cutting planes coincide")
+        where = f"{name}: " if name else ""
+        raise ParameterError(f"{where}layers closer than float32 resolution: cutting planes coincide (from "
+                             f"z = {float(zs[np.flatnonzero(np.diff(zs) <= 0)[0]]):.6g} mm)")
     return zs
 
 

@@ -160,7 +160,7 @@ def slice_mesh(
             mesh = load_mesh(mesh, device=device, **placement)  # welded on the slicing device, when there is one
         t0 = time.perf_counter()
         sched = schedule if schedule is not None else make_schedule(mesh, params, z, layer_thickness)
-        zs = _planes32(sched.z)
+        zs = _planes32(sched.z, mesh.name)
         timings["schedule"] = time.perf_counter() - t0
         n_layers = int(zs.size)
         for key in ("crossings", "chaining", "nesting"):

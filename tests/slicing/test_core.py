@@ -12,6 +12,7 @@ import pytest
 from scipy.spatial import ConvexHull
 
 from gpuslice import mesh_from_arrays, mesh_from_triangles, slice_mesh
+from gpuslice.errors import ParameterError
 from gpuslice.mesh import shapes as S
 from gpuslice.schedule.uniform import uniform
 from gpuslice.slicing.chain import link_segments, order_chains
@@ -419,3 +420,9 @@ def test_points_buffer_grows_past_its_hint():
         for p in pieces:
             buf.append(p)
         np.testing.assert_array_equal(buf.array(), np.concatenate(pieces))
+
+
+def test_planes_that_coincide_in_float32_are_refused_naming_the_model():
+    mesh = mesh_from_triangles(S.box((0, 0, 0), (10, 10, 10)), name="block.stl")
+    with pytest.raises(ParameterError, match=r"^block\.stl: layers closer than float32 resolution.*z = 4 mm"):
+        slice_mesh(mesh, z=[1.0, 4.0, 4.0 + 1e-9, 6.0])
