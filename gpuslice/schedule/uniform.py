@@ -92,7 +92,8 @@ def uniform(
         Thickness of the first layer h0, mm (default h). Mode ``mid`` only.
     z_mode : {"mid", "paper"}
         ``mid``: cut each layer at the middle of its slab, ``z_i = (i + 0.5)·h`` (Slic3r, CuraEngine), keeping
-        layers whose plane is below the top. ``paper``: the paper's ``Z_i = i·h`` for i = 1, 2, … below the top;
+        layers whose plane is below the top (compared in float32, as the planes are cut: a plane that rounds onto
+        the top is not kept). ``paper``: the paper's ``Z_i = i·h`` for i = 1, 2, … below the top;
         layer i then spans ``[(i - 1)·h, i·h]`` and is cut at its top.
 
     Examples
@@ -125,7 +126,10 @@ def uniform(
         t = np.full(z.size, thickness)
     else:
         raise ParameterError(f"unknown z mode '{z_mode}' (use 'mid' or 'paper')")
-    keep = z < height
+    # below the top as the kernels cut: the float32 plane against the float32 top (a mesh's height is float32);
+    # in float64 a plane that rounds onto the top was kept or dropped by how i·h happened to round (paper mode:
+    # a 0.4 and a 0.5 mm box both gave 4 layers)
+    keep = z.astype(np.float32) < np.float32(height)
     return Schedule(z[keep], t[keep], mode=f"uniform-{z_mode}")
 
 
