@@ -176,7 +176,7 @@ def _too_thin(mesh: Mesh | None, job: Job) -> str:
     if mesh is None or mesh.n_faces == 0:
         return "(the model is thinner than one layer)"
     size = float(np.max(mesh.vertices.max(axis=0) - mesh.vertices.min(axis=0)))
-    why = f"(the model is {float(mesh.height):.3g} mm tall, thinner than one layer"
+    why = f"(the model is {float(mesh.height):.3g} mm tall: no cutting plane lies below its top"
     if size < 1.0 and job.placement.scale is None and job.placement.fit is None:
         why += f"; it is {size:.3g} units across: if they are metres, give --scale 1000"
     return why + ")"

@@ -27,6 +27,7 @@ slope of the segment stages (1: linear).
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import re
@@ -148,7 +149,8 @@ def report_large(rows: list[dict], env: dict, repeat: int) -> str:
         cells = [r["mesh"], f"{r['facets']:,}", f"{r['thickness']:g}", f"{r['layers']:,}", f"{r['segments']:,}",
                  f"{r['median_s']:.2f}", f"{r['peak_rss_max_mib']:,.0f}"]
         cells += [f"{1000 * r['stages_s'][k]:.0f}" for k in STAGES]
-        cells.append(f"{1000 * r['report_timings_s'].get('cusp', 0.0):.0f}")
+        cusp = r["report_timings_s"].get("cusp")
+        cells.append(f"{1000 * cusp:.0f}" if cusp is not None else "–")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -204,7 +206,7 @@ def scaling_fit(series: list[dict]) -> dict:
     b, a = np.polyfit(seg, wall, 1)
     residual = float(np.max(np.abs(wall - (a + b * seg)) / wall))
     part = np.array([_segment_stages(r) for r in series])
-    slope = float(np.polyfit(np.log(seg), np.log(part), 1)[0])
+    slope = float(np.polyfit(np.log(seg), np.log(np.maximum(part, 1e-9)), 1)[0])
     ns = part / seg * 1e9
     return {"a_s": float(a), "b_ns": float(b * 1e9), "residual": residual, "slope": slope,
             "ns_min": float(ns.min()), "ns_max": float(ns.max())}
@@ -227,9 +229,8 @@ def plot_scaling(series: list[dict], others: list[dict], stem: Path, env: dict) 
     ax_t.loglog(seg, part[-1] * seg / seg[-1], "--", color="grey", lw=1, label="slope 1 (linear)")
     ax_ns.semilogx(seg, part / seg * 1e9, "s-", color="tab:orange", label=label)
     ax_m.loglog(seg, [r["peak_rss_max_mib"] for r in series], "o-", color="tab:blue", label=label)
-    for r, marker in zip(others, "^vD<>pP*", strict=False):
-        if r["mesh"] == SCALING_MESH and r["thickness"] in SCALING_THICKNESS:
-            continue
+    extra = [r for r in others if not (r["mesh"] == SCALING_MESH and r["thickness"] in SCALING_THICKNESS)]
+    for r, marker in zip(extra, itertools.cycle("^vD<>pP*"), strict=False):
         name = f"{r['mesh']} ({r['facets']:,} facets) -t {r['thickness']:g}"
         ax_t.loglog(r["segments"], r["median_s"], marker, color="tab:green", label=name)
         ax_ns.semilogx(r["segments"], _segment_stages(r) / r["segments"] * 1e9, marker, color="tab:green", label=name)

@@ -199,5 +199,7 @@ def _read_with_trimesh(name: str, file_type: str, data: bytes | None = None) -> 
     if len(triangles) == 0:
         raise EmptyMeshError(f"{name}: no facets ({file_type.upper()} file read by trimesh)")
     check_coordinates(triangles, name)
-    return RawMesh(triangles=np.ascontiguousarray(triangles, dtype=np.float32), normals=None,
+    # float64 as trimesh read them: the mesh is placed on the bed before its one rounding to float32
+    # (mesh.mesh_from_triangles), as the same file loaded by trimesh and handed over would be
+    return RawMesh(triangles=np.ascontiguousarray(triangles, dtype=np.float64), normals=None,
                    source_format=file_type, solids=1, header=b"", path=name)

@@ -78,7 +78,9 @@ class RawMesh:
     Attributes
     ----------
     triangles : numpy.ndarray
-        ``(F, 3, 3)`` float32, C-contiguous: ``triangles[f, k]`` is corner ``k`` (x, y, z) of facet ``f``, in
+        ``(F, 3, 3)`` C-contiguous, float32 for STL (as stored) and float64 for the formats read through trimesh
+        (OBJ, PLY, OFF, 3MF: placed before they are rounded, :func:`gpuslice.mesh.mesh.mesh_from_triangles`):
+        ``triangles[f, k]`` is corner ``k`` (x, y, z) of facet ``f``, in
         file order and file units (millimetres by 3D-printing convention; STL itself has no units). Every
         coordinate is finite with magnitude at most :data:`MAX_COORDINATE`; ``F >= 1``.
     normals : numpy.ndarray or None

@@ -264,9 +264,11 @@ def mesh_from_triangles(
                                  f"{normals.shape}")
     # float32 is the precision of STL; the weld reads -0.0 as 0.0, so both weld together (no normalised copy)
     flat = tri.reshape(-1, 3)
-    corners = np.ascontiguousarray(flat, dtype=np.float32)
+    with np.errstate(over="ignore"):  # (beyond float32: inf, refused below with its one-line error)
+        corners = np.ascontiguousarray(flat, dtype=np.float32)
     placed = None
-    if flat.dtype != np.float32 and np.isfinite(flat).all() and not np.array_equal(corners, flat):
+    # (values beyond float32's range, or NaN, take the float32 path: its one-line error as before)
+    if flat.dtype != np.float32 and np.isfinite(corners).all() and not np.array_equal(corners, flat):
         # finer than float32 (float64 arrays, OBJ, PLY, 3MF): scaled and put on the bed in float64 first, rounded
         # once after, so a model far from z = 0 (or large, then fitted) loses nothing to the rounding of its own
         # far-away frame. Sources whose values are float32 already (an STL's, a Trimesh loaded from one) are

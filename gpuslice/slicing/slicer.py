@@ -96,7 +96,8 @@ def slice_mesh(
     ----------
     mesh : a :class:`~gpuslice.mesh.Mesh` (mm, standing on the bed), or anything :func:`~gpuslice.load_mesh`
         takes: a path, a ``trimesh.Trimesh`` or ``Scene``, ``(vertices, faces)`` arrays, the bytes of a mesh file
-        or a binary file object (loaded first, in memory; a ``Trimesh`` slices exactly as its binary STL).
+        or a binary file object (loaded first, in memory; a ``Trimesh`` of float32 values, one loaded from an
+        STL, slices exactly as its binary STL; finer coordinates are placed before they are rounded).
     params : a :class:`SliceParams`; keyword ``overrides`` replace its fields (e.g. ``thickness=0.2``; ``device`` may
         also be a :class:`~gpuslice.device.Device`, e.g. ``get_device()``); the
         overrides ``scale``, ``fit`` (mm) and ``name`` go to :func:`~gpuslice.load_mesh` instead (any source but
@@ -189,7 +190,7 @@ def slice_mesh(
 
         # several batches: batch k + 1 is cut and chained (device kernels, GEOS and numpy, which release the GIL) while
         # batch k is nested; the stages' times then overlap and add up to more than the wall time
-        points = _PointsBuffer(int(per_layer.sum()) if len(batches) > 1 else 0)
+        points = _PointsBuffer(2 * int(per_layer.sum()) if len(batches) > 1 else 0)
         for a, b, loops, count in prefetch(chained(), 1 if len(batches) > 1 else 0):
             n_segments += count
             t = time.perf_counter()
@@ -245,8 +246,9 @@ _GATHERED = np.zeros((0, 2), np.float32)
 class _PointsBuffer:
     """Several batches' points gathered into one (P, 2) float32 array as the batches are nested, so that a batch's
     own points can go at once and the result's points are not a second copy of them all at the end (peak memory:
-    the model's points once, not twice). Sized for ``hint`` points (the segments: a closed loop has as many points
-    as segments); grown by half when loops rebuilt from crossings need more."""
+    the model's points once, not twice). Sized for ``hint`` points (twice the segments: a closed loop has as many
+    points as segments, an open chain one more, rebuilt overlaps and soups more again, and pages never written cost
+    nothing), grown by half beyond that, and cut to what was used at the end (``realloc``: no copy)."""
 
     def __init__(self, hint: int) -> None:
         self.buf = np.empty((max(int(hint), 0), 2), np.float32)  # (pages are only touched as they are written)
@@ -262,7 +264,9 @@ class _PointsBuffer:
         self.used += k
 
     def array(self) -> np.ndarray:
-        return self.buf[: self.used]
+        # (no view of the buffer was handed out: append copies in)
+        self.buf.resize((self.used, 2), refcheck=False)
+        return self.buf
 
 
 def _assemble(parts, sched: Schedule, n_layers: int, points: np.ndarray | None = None) -> SliceResult:

@@ -165,7 +165,7 @@ def test_a_model_drawn_in_metres_gets_a_hint_at_the_units(tmp_path, capsys):
         out = tmp_path / "x.svg"
         assert main(["slice", str(path), "-t", "0.1", "-o", str(out)]) == 2
         err = capsys.readouterr().err
-        assert err.count("\n") == 1 and "0.02 mm tall, thinner than one layer" in err
+        assert err.count("\n") == 1 and "0.02 mm tall: no cutting plane lies below its top" in err
         assert ("if they are metres, give --scale 1000" in err) is hint
         assert not out.exists()
     assert main(["slice", str(small), "-t", "0.1", "--scale", "1000", "-o", str(tmp_path / "ok.svg")]) == 0

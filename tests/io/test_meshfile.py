@@ -439,7 +439,7 @@ EXPECTED_TWO = np.array([[[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 0, 0], [1, 0, 0
 def test_trimesh_formats(tmp_path: Path, suffix: str, data: bytes, fmt_name: str) -> None:
     mesh = read_mesh_file(write(tmp_path, "m" + suffix, data))
     assert mesh.source_format == fmt_name
-    assert mesh.triangles.dtype == np.float32 and mesh.triangles.flags.c_contiguous
+    assert mesh.triangles.dtype == np.float64 and mesh.triangles.flags.c_contiguous  # (placed before rounding)
     np.testing.assert_array_equal(mesh.triangles, EXPECTED_TWO)
     assert mesh.normals is None and mesh.header == b"" and mesh.solids == 1
 

@@ -63,6 +63,28 @@ def test_float64_source_far_above_the_bed_is_placed_before_rounding(offset):
     np.testing.assert_allclose(fitted.area, near.area, rtol=1e-5)
 
 
+def test_obj_far_above_the_bed_from_a_path_or_bytes_is_placed_before_rounding(tmp_path):
+    # OBJ, PLY, 3MF are read in float64 (trimesh) and placed before their one rounding, like the same file loaded by
+    # trimesh and handed over: a path, bytes and the Trimesh give one result (a review found the files rounded first)
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
+    near = gpuslice.slice_mesh((sphere.vertices + (0.1234567, 0.0, 0.0), sphere.faces), thickness=0.5)
+    far = trimesh.Trimesh(sphere.vertices + (0.1234567, 0.0, 1e6), sphere.faces, process=False)
+    path = tmp_path / "far.obj"
+    path.write_text(far.export(file_type="obj"))
+    results = [gpuslice.slice_mesh(path, thickness=0.5), gpuslice.slice_mesh(path.read_bytes(), thickness=0.5,
+               name="far.obj"), gpuslice.slice_mesh(trimesh.load(path, process=False), thickness=0.5)]
+    for res in results:
+        assert_same(res, results[0])
+    np.testing.assert_allclose(results[0].area, near.area, rtol=1e-5)  # (rounded in its own frame: 7e-3)
+
+
+@pytest.mark.parametrize("kw", [{}, {"scale": 1e-30}, {"fit": 10.0}])
+def test_float64_values_beyond_float32_keep_their_error(kw):
+    v = np.array([[0, 0, 0], [1e39, 0, 0], [0, 1, 0], [0, 0, 1]], float)
+    with pytest.raises(gpuslice.errors.InvalidGeometryError, match="NaN or infinite vertex coordinates"):
+        gpuslice.load_mesh((v, [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]), **kw)
+
+
 def test_scene_is_concatenated_with_its_transforms(tmp_path):
     a = trimesh.creation.box((10, 10, 10))
     b = trimesh.creation.icosphere(subdivisions=2, radius=4)
