@@ -141,11 +141,14 @@ class ChainKernels(KernelDriver):
         self._edge_ranges(q, *self._grid(n_edges), d_vub, d_ev, np.int32(n_edges), d_k0, d_count)
         count = np.empty(n_edges, dtype=np.int32)
         cl.enqueue_copy(q, count, d_count)
-        off = np.cumsum(count, dtype=np.int64)
-        n_slots = int(off[-1]) if n_edges else 0
+        n_slots = int(count.sum(dtype=np.int64))
         if n_slots >= 2**31 - 1:
             return None
-        off = (off - count).astype(np.int32)
+        # each edge's first slot, the exclusive prefix sum: in int32 (the total fits), one pass and no int64 copies
+        # (done per batch over every edge of the mesh: with int64 temporaries, 1.0 of 1.8 s of chaining 6.4M facets)
+        off = np.empty_like(count)
+        off[:1] = 0
+        np.cumsum(count[:-1], dtype=np.int32, out=off[1:])
         d_off = self._put("edge_off", off)
         d_starter = self._fill("starter", 4 * n_slots, np.int32(-1))
         d_enders = self._fill("n_enders", 4 * n_slots, np.int32(0))
