@@ -147,20 +147,21 @@ def order_chains(nxt: np.ndarray, layer: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def chain_segments(seg, mesh: Mesh, zs: np.ndarray, n_layers: int, *, max_gap: float = 2.0, device=None,
-                   layer_counts: np.ndarray | None = None) -> Loops:
+                   layer_counts: np.ndarray | None = None, mesh_on_device: bool = False) -> Loops:
     """Chain the segment buffer into loops (see the module docstring).
 
     ``seg``: :class:`~gpuslice.crossings.Segments` on the host, or ``DeviceSegments`` left on ``device`` by the
     crossings kernel, which are then chained on the device when the mesh allows (no slot shared by several
     segment ends, no open chain), and fetched and chained on the host otherwise. ``layer_counts``: optional (L,)
-    number of facets crossing each layer (= its segments), which spares the device counting them.
+    number of facets crossing each layer (= its segments), which spares the device counting them;
+    ``mesh_on_device``: the mesh's edges are on the device from the call before (:meth:`ChainKernels.chain_on_device`).
     """
     chain_layer = None
     gathered = None  # the segments' start points in chain order and their zero-length flags, from the device
     if not isinstance(seg, Segments):
         from .walk import chain_kernels
 
-        done = chain_kernels(device).chain_on_device(seg, mesh, zs, n_layers, layer_counts)
+        done = chain_kernels(device).chain_on_device(seg, mesh, zs, n_layers, layer_counts, mesh_on_device)
         if done is not None:
             order, coff, cclosed, chain_layer, *gathered = done
         else:

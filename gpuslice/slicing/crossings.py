@@ -139,18 +139,24 @@ class CrossingsKernel(KernelDriver):
         self._emit = prg.emit_segments
 
     def __call__(self, mesh: Mesh, z: np.ndarray, *, read_back: bool = True,
-                 layers: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> Segments | DeviceSegments:
+                 layers: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                 mesh_on_device: bool = False) -> Segments | DeviceSegments:
         """The segments of ``mesh`` cut at ``z``; ``layers``: optional (vertex_layers, first layer, count) of the
         vertices and facets for these planes (:func:`vertex_layers`, :func:`facet_layer_ranges`, int32), when the
-        host has them: uploaded instead of computed here."""
+        host has them: uploaded instead of computed here. ``mesh_on_device``: the call before uploaded this same
+        mesh and nothing has used this driver since (the slicer's later layer batches, under
+        :meth:`~gpuslice.device.Device.exclusive`): its vertices, faces and edges are not uploaded again."""
         import pyopencl as cl
 
         q = self.device.queue
         zs = _planes32(z)
         n_f, n_l = mesh.n_faces, int(zs.size)
-        d_verts = self._put("verts", mesh.vertices)
-        d_faces = self._put("faces", mesh.faces)
-        d_edges = self._put("face_edges", mesh.face_edges)
+        if mesh_on_device:
+            d_verts, d_faces, d_edges = (self.buffer(k) for k in ("verts", "faces", "face_edges"))
+        else:
+            d_verts = self._put("verts", mesh.vertices)
+            d_faces = self._put("faces", mesh.faces)
+            d_edges = self._put("face_edges", mesh.face_edges)
         d_zs = self._put("zs", zs)
         n_v = int(mesh.vertices.shape[0])
         if layers is not None:
@@ -184,12 +190,13 @@ class CrossingsKernel(KernelDriver):
         return dseg.fetch() if read_back else dseg
 
 
-def compute_crossings(mesh: Mesh, z: np.ndarray, device=None, *, read_back: bool = True, layers=None):
+def compute_crossings(mesh: Mesh, z: np.ndarray, device=None, *, read_back: bool = True, layers=None,
+                      mesh_on_device: bool = False):
     """All segments of ``mesh`` cut at the planes ``z`` (mm, increasing): on ``device``, or numpy when None.
 
-    With ``read_back=False`` (device only) the segments stay on the device as :class:`DeviceSegments`. ``layers``:
-    see :meth:`CrossingsKernel.__call__` (device only).
+    With ``read_back=False`` (device only) the segments stay on the device as :class:`DeviceSegments`. ``layers``,
+    ``mesh_on_device``: see :meth:`CrossingsKernel.__call__` (device only).
     """
     if device is None:
         return crossings_numpy(mesh, z)
-    return CrossingsKernel.of(device)(mesh, z, read_back=read_back, layers=layers)
+    return CrossingsKernel.of(device)(mesh, z, read_back=read_back, layers=layers, mesh_on_device=mesh_on_device)

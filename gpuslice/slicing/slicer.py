@@ -184,11 +184,12 @@ def slice_mesh(
         scratch = tuple(np.empty(x.shape, np.int32) for x in ranges) if len(batches) > 1 and device else None
 
         def chained():  # crossings and chaining of each batch (on the prefetch thread when there are several)
-            for a, b in batches:
+            for k, (a, b) in enumerate(batches):
                 t = time.perf_counter()
-                if device is not None:
+                if device is not None:  # (after the first batch the mesh's arrays are on the device already)
                     seg = compute_crossings(mesh, zs[a:b], device, read_back=False,
-                                             layers=_batch_layers(ranges, a, b, n_layers, scratch))
+                                             layers=_batch_layers(ranges, a, b, n_layers, scratch),
+                                             mesh_on_device=k > 0)
                     device.queue.finish()  # so the kernels' time counts here, not in the next stage
                 else:
                     seg = compute_crossings(mesh, zs[a:b])
@@ -196,7 +197,7 @@ def slice_mesh(
                 count = len(seg)
                 t = time.perf_counter()
                 loops = chain_segments(seg, mesh, zs[a:b], b - a, max_gap=params.max_gap, device=device,
-                                       layer_counts=per_layer[a:b])
+                                       layer_counts=per_layer[a:b], mesh_on_device=k > 0)
                 del seg
                 timings["chaining"] += time.perf_counter() - t
                 yield a, b, loops, count

@@ -118,9 +118,12 @@ class ChainKernels(KernelDriver):
         order, offsets, closed, _ = canonical_chain_order(order, flag, off)
         return order, offsets, closed
 
-    def chain_on_device(self, dseg, mesh, zs: np.ndarray, n_layers: int, layer_counts: np.ndarray | None = None):
+    def chain_on_device(self, dseg, mesh, zs: np.ndarray, n_layers: int, layer_counts: np.ndarray | None = None,
+                        mesh_on_device: bool = False):
         """Chain the segments left on the device by the crossings kernel (``layer_counts``: the number of segments
-        of each layer when known, i.e. of facets crossing it, as ``slicer._batches`` counts them; else counted here).
+        of each layer when known, i.e. of facets crossing it, as ``slicer._batches`` counts them; else counted here;
+        ``mesh_on_device``: the call before uploaded this mesh's edges and nothing has used this driver since, as in
+        the slicer's later layer batches under :meth:`~gpuslice.device.Device.exclusive`).
 
         Returns (order, chain_offsets, chain_closed, chain_layer, starts, zero_length, resident): the chains and, per
         position of ``order``, its segment's start point ((S,) complex64, x + iy mm) and whether that segment has
@@ -135,7 +138,7 @@ class ChainKernels(KernelDriver):
         n = dseg.n
         n_edges = int(mesh.edge_vertices.shape[0])
         d_vub = dseg.kernel.buffer("vub")
-        d_ev = self._put("edge_vertices", mesh.edge_vertices)
+        d_ev = self.buffer("edge_vertices") if mesh_on_device else self._put("edge_vertices", mesh.edge_vertices)
         d_k0 = self._buffer("k0", 4 * n_edges)
         d_count = self._buffer("edge_count", 4 * n_edges)
         self._edge_ranges(q, *self._grid(n_edges), d_vub, d_ev, np.int32(n_edges), d_k0, d_count)

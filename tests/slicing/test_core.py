@@ -426,3 +426,16 @@ def test_planes_that_coincide_in_float32_are_refused_naming_the_model():
     mesh = mesh_from_triangles(S.box((0, 0, 0), (10, 10, 10)), name="block.stl")
     with pytest.raises(ParameterError, match=r"^block\.stl: layers closer than float32 resolution.*z = 4 mm"):
         slice_mesh(mesh, z=[1.0, 4.0, 4.0 + 1e-9, 6.0])
+
+
+def test_batches_of_one_mesh_after_another_use_each_its_own_arrays(backend):
+    # after its first batch a slice keeps the mesh's arrays on the device (not uploaded again): the next mesh's
+    # first batch must replace them, whatever the sizes
+    a = mesh_from_triangles(S.hollow_box(20, 10, core=6))
+    b = mesh_from_triangles(np.concatenate([S.box((0, 0, 0), (8, 8, 12)), S.box((3, 3, 2), (14, 6, 9))]))
+    ref_a, ref_b = (slice_mesh(m, thickness=0.25, backend=backend) for m in (a, b))
+    for m, ref in ((a, ref_a), (b, ref_b), (a, ref_a)):
+        got = slice_mesh(m, thickness=0.25, backend=backend, max_segments_per_batch=100)
+        assert got.meta["batches"] > 5
+        for name in ("points", "loop_offsets", "layer_offsets", "loop_is_hole", "area"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(ref, name))
