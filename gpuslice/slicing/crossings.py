@@ -75,6 +75,29 @@ def _planes32(z: np.ndarray, name: str | None = None) -> np.ndarray:
     return zs
 
 
+#: the largest error of a float32 cutting plane, as a share of the thinnest layer, that a slice accepts
+PLANE_ERROR_MAX = 0.05
+
+
+def check_plane_spacing(z: np.ndarray, zs: np.ndarray, name: str | None = None) -> None:
+    """Refuse layers so thin for their height that float32 planes ``zs`` (as cut) stray from the schedule's ``z``
+    (mm) by more than :data:`PLANE_ERROR_MAX` of the thinnest layer, i.e. layers under about 10 float32 steps of
+    their height (0.0003 mm at 300 mm, 0.00002 mm at 20 mm), which would come out unevenly thick without a word (a
+    helper's probe: planes off by 30 % of a layer at 0.00005 mm over 300 mm)."""
+    z = np.asarray(z, np.float64)
+    if z.size < 2:
+        return
+    gap = float(np.min(np.diff(z)))
+    err = np.abs(zs.astype(np.float64) - z)
+    k = int(np.argmax(err))
+    if gap > 0 and err[k] > PLANE_ERROR_MAX * gap:
+        from ..errors import ParameterError
+
+        where = f"{name}: " if name else ""
+        raise ParameterError(f"{where}layers of {gap:.3g} mm are too thin for float32 planes at z = {z[k]:.6g} mm "
+                             f"(a plane off by {100 * err[k] / gap:.0f} % of a layer); use thicker layers")
+
+
 def vertex_layers(mesh: Mesh, zs: np.ndarray) -> np.ndarray:
     """(V,) int32: for each vertex the first layer whose plane is above it (``upper_bound`` of its z)."""
     return np.searchsorted(zs, mesh.vertices[:, 2], side="right").astype(np.int32)

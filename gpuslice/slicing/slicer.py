@@ -20,7 +20,7 @@ from ..prefetch import prefetch
 from ..schedule.adaptive import AdaptiveSchedule
 from ..schedule.uniform import Schedule, from_z, uniform
 from .chain import REPAIR_KINDS, chain_segments
-from .crossings import _planes32, compute_crossings, facet_layer_ranges, vertex_layers
+from .crossings import _planes32, check_plane_spacing, compute_crossings, facet_layer_ranges, vertex_layers
 from .nest import nest_loops
 from .params import SliceParams
 from .result import SliceResult
@@ -172,6 +172,7 @@ def slice_mesh(
         t0 = time.perf_counter()
         sched = schedule if schedule is not None else make_schedule(mesh, params, z, layer_thickness)
         zs = _planes32(sched.z, mesh.name)
+        check_plane_spacing(sched.z, zs, mesh.name)
         timings["schedule"] = time.perf_counter() - t0
         n_layers = int(zs.size)
         for key in ("crossings", "chaining", "nesting"):
