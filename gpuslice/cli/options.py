@@ -66,6 +66,8 @@ def check_output_file(*paths: str | None, creates: str | None = None) -> None:
         path = Path(out)
         if path.is_dir():
             fail(f"{out}: is a folder; name the file to write")
+        if path.exists() and not path.is_file():
+            fail(f"{out}: not a regular file (a device, FIFO or socket); gpuslice writes files: name one")
         parent = path.parent
         if made is not None and parent.resolve() == made and not made.exists():
             continue  # (made by the command before the file is written)
@@ -82,7 +84,8 @@ def check_distinct_outputs(output: str | None, report: str | None) -> None:
 
     if output is None or report is None:
         return
-    a, b = (os.path.normcase(os.path.abspath(x.rstrip("/\\") or ".")) for x in (output, report))
+    # (real paths: a folder reached through a symbolic link is the same folder)
+    a, b = (os.path.normcase(os.path.realpath(x.rstrip("/\\") or ".")) for x in (output, report))
     if a == b:
         fail(f"{report}: --report names the output itself; name another file")
 

@@ -22,7 +22,8 @@ if TYPE_CHECKING:
 
 PathLike = str | os.PathLike
 
-__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_text", "atomic_write_tree", "remove_path", "utf8"]
+__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_text", "atomic_write_tree", "remove_path",
+           "refuse_special", "utf8"]
 
 
 def remove_path(path: Path) -> None:
@@ -57,6 +58,21 @@ def _fsync_dir(path: Path) -> None:
 #: the encoder threads, and every system call makes it wait for the GIL again behind them (with the default 8 KiB
 #: buffer, one wait per layer: the armadillo 12K GOO job ran 1.10x longer)
 WRITE_BUFFER = 1 << 22
+
+
+def refuse_special(path: str | os.PathLike) -> None:
+    """:class:`ParameterError` when ``path`` exists (through symbolic links) and is neither a regular file nor a
+    folder: a device such as ``/dev/null``, a FIFO or a socket, which an atomic write would replace by a regular file
+    (for every program on the machine, in ``/dev``'s case)."""
+    p = Path(os.fspath(path))
+    try:
+        mode = p.stat().st_mode
+    except OSError:  # does not exist (or a dangling link, replaced as a file is): nothing to protect
+        return
+    import stat
+
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        raise ParameterError(f"{p}: not a regular file (a device, FIFO or socket); gpuslice writes files: name one")
 
 
 @contextlib.contextmanager
@@ -109,11 +125,13 @@ def atomic_path(path: PathLike, *, fsync: bool = True) -> Iterator[Path]:
     directory = final.parent
     if not directory.is_dir():
         raise ParameterError(f"{final}: directory {directory} does not exist")
+    refuse_special(final)
     tmp = directory / f".{final.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}{final.suffix}"
     try:
         yield tmp
         if not tmp.exists() and not tmp.is_symlink():
             raise FileNotFoundError(f"{final}: nothing was written to the temporary path {tmp}")
+        refuse_special(final)  # (again: the path may have been made while the block ran)
         if tmp.is_dir() and not tmp.is_symlink():
             _replace_dir(tmp, final)
         else:

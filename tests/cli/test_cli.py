@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -169,3 +170,35 @@ def test_a_model_drawn_in_metres_gets_a_hint_at_the_units(tmp_path, capsys):
         assert ("if they are metres, give --scale 1000" in err) is hint
         assert not out.exists()
     assert main(["slice", str(small), "-t", "0.1", "--scale", "1000", "-o", str(tmp_path / "ok.svg")]) == 0
+
+
+def test_special_files_as_outputs_are_refused_not_replaced(torus, tmp_path, capsys):
+    # an atomic write renames a regular file over the path: over /dev/null (a helper's probe did so) or a FIFO that
+    # would replace the device or the pipe for every program. Refused, and the special file is left as it was.
+    import stat
+
+    fifo = tmp_path / "pipe.svg"
+    os.mkfifo(fifo)
+    for argv in (["slice", str(torus), "-t", "1", "-o", str(fifo)],
+                 ["slice", str(torus), "-t", "1", "-o", str(tmp_path / "ok.svg"), "--report", str(fifo)],
+                 ["shape", "cube", "-o", str(fifo)]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "not a regular file" in err and str(fifo) in err
+        assert stat.S_ISFIFO(os.stat(fifo).st_mode)
+    from gpuslice.errors import ParameterError
+    from gpuslice.io.atomic import atomic_write_bytes
+
+    with pytest.raises(ParameterError, match="not a regular file"):
+        atomic_write_bytes(fifo, b"x")
+    assert stat.S_ISFIFO(os.stat(fifo).st_mode)
+
+
+def test_report_through_a_linked_folder_is_the_output_itself(torus, tmp_path, capsys):
+    (tmp_path / "d").mkdir()
+    (tmp_path / "link").symlink_to(tmp_path / "d")
+    argv = ["slice", str(torus), "-t", "1", "-o", str(tmp_path / "d" / "x.svg"),
+            "--report", str(tmp_path / "link" / "x.svg")]
+    assert main(argv) == 2
+    assert "--report names the output itself" in capsys.readouterr().err
+    assert not (tmp_path / "d" / "x.svg").exists()
