@@ -156,6 +156,8 @@ def batch(inputs, out_dir, pattern, raster_opt, workers, threads, scheduler, tra
         check_resin_layers(opts.params)
         opts.resin()  # the resin options checked now (a job name with '/', ...), not in every model
     models = discover(inputs, pattern, opts.suffix, out_dir)
+    if report is not None:
+        _check_report_clear(report, inputs, models, out_dir)
     client = None
     if scheduler is not None:
         from ..batch import connect
@@ -188,3 +190,19 @@ def batch(inputs, out_dir, pattern, raster_opt, workers, threads, scheduler, tra
     if result["summary"]["failed"]:
         raise SystemExit(1)
 
+
+
+def _check_report_clear(report: str, inputs, models, out_dir: str) -> None:
+    """A one-line error, before any model, when ``--report`` names an input (a model, a list file) or a model's
+    output (or a path inside a PNG stack's folder): the report written at the end would replace it."""
+    import os
+
+    real = os.path.realpath
+    rep = real(report)
+    given = {real(os.fspath(x)) for x in inputs if os.path.isfile(os.fspath(x))}  # model and list files named
+    if rep in given or any(rep == real(m.path or m.src) for m in models):
+        fail(f"{report}: --report names an input of the batch; name another file")
+    for m in models:
+        out = real(os.path.join(os.fspath(out_dir), m.out))
+        if rep == out or rep.startswith(out + os.sep):
+            fail(f"{report}: --report names the output of {m.src}; name another file")

@@ -442,3 +442,26 @@ def test_cli_raster_batch_writes_what_raster_writes(tmp_path, monkeypatch):
 
     layers = [read_goo(tmp_path / d / "cube.goo").header["total_layers"] for d in "ab"]
     assert layers == [80, 40]  # a 4 mm cube at 0.05 and at 0.1 mm
+
+
+def test_batch_report_never_names_an_input_or_an_output(tmp_path, capsys):
+    # the report is written at the end: naming a model, a list file or a model's output, it replaced that file (a
+    # helper's probe); refused before any model, the files left as they were
+    from gpuslice.cli import main
+
+    models = tmp_path / "models"
+    models.mkdir()
+    for name in ("a", "b"):
+        shapes.write_stl(shapes.box(), models / f"{name}.stl")
+    lst = tmp_path / "list.txt"
+    lst.write_text(f"{models / 'a.stl'}\n")
+    out = tmp_path / "out"
+    before = {p: p.read_bytes() for p in (models / "a.stl", models / "b.stl", lst)}
+    for inputs, report, words in (([models], models / "b.stl", "an input"), ([lst], lst, "an input"),
+                                  ([models / "a.stl"], models / "a.stl", "an input"),
+                                  ([models], out / "a.npz", "the output of")):
+        rc = main(["batch", *map(str, inputs), "-o", str(out), "-t", "5", "-j", "0", "-q", "--report", str(report)])
+        err = capsys.readouterr().err
+        assert rc == 2 and err.count("\n") == 1 and words in err, err
+    assert {p: p.read_bytes() for p in before} == before
+    assert not out.exists() or not any(out.iterdir())
