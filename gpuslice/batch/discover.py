@@ -75,7 +75,13 @@ def _glob_regex(pattern: str) -> re.Pattern:
 def _walk(folder: Path, pattern: str | None) -> list[Path]:
     rx = _glob_regex(pattern) if pattern else None
     found = []
+    seen: set[str] = set()  # real folders walked: links that loop back (a/up -> ..) are followed once
     for root, dirs, files in os.walk(folder, followlinks=True):
+        real = os.path.realpath(root)
+        if real in seen:
+            dirs[:] = []
+            continue
+        seen.add(real)
         dirs[:] = sorted(d for d in dirs if not d.startswith("."))
         for name in sorted(files):
             if name.startswith("."):
@@ -151,11 +157,17 @@ def discover(inputs: Sequence[str | os.PathLike], glob: str | None = None, suffi
     base = Path(os.path.commonpath([str(r) for r in roots]))
     models: dict[str, Model] = {}
     outputs: dict[str, str] = {}
+    seen: set[Path] = set()
     for f in files:
         resolved = f.resolve()
-        rel = resolved.relative_to(base).as_posix() if resolved.is_relative_to(base) else resolved.name
-        if rel in models:
-            continue  # the same file named twice
+        if resolved in seen:
+            continue  # the same file named twice (or reached through links)
+        seen.add(resolved)
+        if resolved.is_relative_to(base):
+            rel = resolved.relative_to(base).as_posix()
+        else:  # a link to a file outside the inputs: named by the link's place, else by the file's name
+            here = Path(os.path.abspath(f))
+            rel = here.relative_to(base).as_posix() if here.is_relative_to(base) else resolved.name
         stem = rel[: -len(Path(rel).suffix)] if Path(rel).suffix else rel
         out = stem + suffix
         if out.lower() in outputs:

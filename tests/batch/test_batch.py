@@ -465,3 +465,21 @@ def test_batch_report_never_names_an_input_or_an_output(tmp_path, capsys):
         assert rc == 2 and err.count("\n") == 1 and words in err, err
     assert {p: p.read_bytes() for p in before} == before
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_discovery_follows_links_once_and_keeps_linked_models(tmp_path):
+    # two folder links looping back (d/up -> .., d/up2 -> ..) made the walk endless; a link to a model outside the
+    # inputs that shared a model's name was taken for the same file and silently dropped (a helper's probe)
+    tree = tmp_path / "m"
+    (tree / "d").mkdir(parents=True)
+    shapes.write_stl(shapes.box(), tree / "a.stl")
+    (tree / "d" / "up").symlink_to("..")
+    (tree / "d" / "up2").symlink_to("..")
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    shapes.write_stl(shapes.torus(n_major=16, n_minor=8), elsewhere / "a.stl")
+    (tree / "d" / "link.stl").symlink_to(elsewhere / "a.stl")
+    (tree / "zz.stl").symlink_to(elsewhere / "a.stl")  # the same outside file twice: sliced once
+    models = discover([tree])
+    assert sorted(m.rel for m in models) == ["a.stl", "zz.stl"]  # (the first link found names it)
+    assert {Path(m.path).resolve() for m in models} == {(tree / "a.stl").resolve(), (elsewhere / "a.stl").resolve()}
