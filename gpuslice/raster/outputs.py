@@ -154,11 +154,14 @@ def resin_format_for(path: str | os.PathLike, name: str | None = None) -> ResinF
         if names_folder and not fmt.folder:
             raise ParameterError(f"{text}: names a folder, but a {fmt.title} is one file (e.g. part{fmt.suffix})")
         return fmt
+    kind = p.suffix.lower()
     if names_folder:
+        one_file = next((f for f in RESIN_FORMATS.values() if kind and kind in f.suffixes and not f.folder), None)
+        if one_file is not None and not text.endswith(("/", "\\")):  # (an existing folder named like an archive)
+            raise ParameterError(f"{text}: is a folder, but a {one_file.title} is one file; name the file to write")
         for f in RESIN_FORMATS.values():
             if f.folder:
                 return f
-    kind = p.suffix.lower()
     for f in RESIN_FORMATS.values():
         if kind and kind in f.suffixes:
             return f

@@ -400,3 +400,16 @@ def test_thumbnails_keep_the_parts_shape_on_non_square_pixels():
         ys, xs = np.nonzero(part)
         ratio = (ys.max() - ys.min() + 1) / (xs.max() - xs.min() + 1)
         assert ratio == pytest.approx(1.0, abs=0.03), (spec.py, ratio)
+
+
+def test_an_existing_folder_named_like_an_archive_is_refused(tmp_path):
+    # `raster -o d.goo` where d.goo is a folder wrote a PNG stack into it without a word (a helper's probe)
+    from gpuslice.errors import ParameterError
+    from gpuslice.raster.outputs import resin_format_for
+
+    (tmp_path / "d.goo").mkdir()
+    with pytest.raises(ParameterError, match=r"d\.goo: is a folder, but a .* is one file"):
+        resin_format_for(tmp_path / "d.goo")
+    assert resin_format_for(str(tmp_path / "d.goo") + "/").folder  # a trailing slash says folder: a PNG stack
+    (tmp_path / "stack").mkdir()
+    assert resin_format_for(tmp_path / "stack").folder
