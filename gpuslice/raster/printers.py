@@ -243,12 +243,22 @@ def printer_names() -> list[str]:
     return sorted(PRINTERS)
 
 
+#: a printer preset file larger than this is refused (the built-in table, every preset in it, is ~20 KB)
+PRESET_MAX_BYTES = 1 << 20
+
+
 def load_printer_file(path: str | os.PathLike) -> Printer:
     """A :class:`Printer` from a TOML (``.toml``) or JSON (``.json``) file with :class:`Printer`'s keys
     (``name`` defaults to the file's stem; ``inherits`` names a built-in preset to start from);
     :class:`ParameterError` naming the file otherwise."""
     p = Path(path)
     try:
+        if not p.is_file():  # (a FIFO waits forever, /dev/zero never ends: read only regular files)
+            what = "is a folder" if p.is_dir() else "not a regular file" if p.exists() else "no such file"
+            raise ParameterError(f"{p}: cannot read printer preset ({what})")
+        if p.stat().st_size > PRESET_MAX_BYTES:
+            raise ParameterError(f"{p}: a printer preset of {p.stat().st_size} bytes is not one (at most "
+                                 f"{PRESET_MAX_BYTES})")
         text = p.read_bytes()
     except OSError as exc:
         raise ParameterError(f"{p}: cannot read printer preset ({exc.strerror or exc})") from None

@@ -14,7 +14,7 @@ import pytest
 from gpuslice.cli import main
 from gpuslice.errors import ParameterError
 from gpuslice.mesh import shapes
-from gpuslice.raster.printers import PRINTERS, Printer, find_printer, load_printer_file
+from gpuslice.raster.printers import PRESET_MAX_BYTES, PRINTERS, Printer, find_printer, load_printer_file
 from gpuslice.raster.settings import PrintSettings
 from gpuslice.raster.spec import RasterSpec, ResinOptions, with_printer
 
@@ -312,3 +312,18 @@ def test_a_preset_writes_the_file_version_its_source_cites():
         if native in MACHINES:
             assert MACHINES[native].version == p.format_version, (p.name, native)
     assert cited >= 5
+
+
+def test_a_preset_that_is_not_a_regular_file_is_refused_at_once(tmp_path):
+    # a FIFO was waited on forever and a link to /dev/zero read until memory ran out (a helper's probe)
+    fifo = tmp_path / "pipe.json"
+    os.mkfifo(fifo)
+    with pytest.raises(ParameterError, match=r"pipe\.json: cannot read printer preset \(not a regular file\)"):
+        load_printer_file(fifo)
+    (tmp_path / "zero.toml").symlink_to("/dev/zero")
+    with pytest.raises(ParameterError, match=r"zero\.toml: cannot read printer preset \(not a regular file\)"):
+        load_printer_file(tmp_path / "zero.toml")
+    big = tmp_path / "big.json"
+    big.write_bytes(b" " * (PRESET_MAX_BYTES + 1))
+    with pytest.raises(ParameterError, match="is not one"):
+        load_printer_file(big)
