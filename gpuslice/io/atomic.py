@@ -80,7 +80,8 @@ def atomic_path(path: PathLike, *, fsync: bool = True) -> Iterator[Path]:
     """Context manager giving a temporary path that replaces ``path`` when the block succeeds.
 
     The temporary path lies in the same directory as ``path`` (so the final rename never crosses file
-    systems) and is named ``.{name}.tmp-{pid}-{random}{suffix}``: hidden, unique, and ending with the final
+    systems) and is named ``.{name}.tmp-{pid}-{random}{suffix}`` (``.gpuslice.tmp-…`` for a name over 200 bytes,
+    so that the temporary's name fits where the final one does): hidden, unique, and ending with the final
     name's suffix for writers that look at it (``np.savez`` appends ``.npz`` otherwise). The block creates
     whatever it wants at that path, a file or a directory. When the block completes, the temporary is
     flushed to disk (``fsync=True``) and renamed over ``path`` with :func:`os.replace`; when the block
@@ -126,7 +127,8 @@ def atomic_path(path: PathLike, *, fsync: bool = True) -> Iterator[Path]:
     if not directory.is_dir():
         raise ParameterError(f"{final}: directory {directory} does not exist")
     refuse_special(final)
-    tmp = directory / f".{final.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}{final.suffix}"
+    stem = final.name if len(os.fsencode(final.name)) <= 200 else "gpuslice"  # (a long name fits; its temporary too)
+    tmp = directory / f".{stem}.tmp-{os.getpid()}-{secrets.token_hex(4)}{final.suffix}"
     try:
         yield tmp
         if not tmp.exists() and not tmp.is_symlink():
@@ -142,6 +144,12 @@ def atomic_path(path: PathLike, *, fsync: bool = True) -> Iterator[Path]:
             os.replace(tmp, final)
         if fsync:
             _fsync_dir(directory)
+    except OSError as exc:
+        remove_path(tmp)
+        if exc.errno is not None and (exc.filename is None or os.fspath(exc.filename).startswith(os.fspath(tmp))):
+            # (named after the output, not its hidden temporary: "No space left on device" said no file at all)
+            raise type(exc)(exc.errno, exc.strerror or str(exc), os.fspath(final)) from None
+        raise
     except BaseException:
         remove_path(tmp)
         raise

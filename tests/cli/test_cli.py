@@ -202,3 +202,18 @@ def test_report_through_a_linked_folder_is_the_output_itself(torus, tmp_path, ca
     assert main(argv) == 2
     assert "--report names the output itself" in capsys.readouterr().err
     assert not (tmp_path / "d" / "x.svg").exists()
+
+
+def test_write_errors_name_the_output_not_its_temporary(torus, tmp_path, capsys):
+    # a long valid name failed ("File name too long") on its longer hidden temporary, and the messages named the
+    # temporary (a helper's probe)
+    long = tmp_path / ("a" * 240 + ".svg")
+    assert main(["slice", str(torus), "-t", "1", "-o", str(long), "-q"]) == 0 and long.is_file()
+    from gpuslice.io.atomic import atomic_path
+
+    with pytest.raises(OSError) as info, atomic_path(tmp_path / "x.bin") as tmp:
+        raise OSError(28, "No space left on device")  # (a writer's error without a file name)
+    assert info.value.filename == str(tmp_path / "x.bin") and not tmp.exists()
+    with pytest.raises(OSError) as info, atomic_path(tmp_path / "y.bin") as tmp:
+        open(tmp / "sub", "wb")  # noqa: SIM115 - fails: no such folder (the error names the temporary)
+    assert info.value.filename == str(tmp_path / "y.bin")
