@@ -176,4 +176,11 @@ def discover(inputs: Sequence[str | os.PathLike], glob: str | None = None, suffi
             raise BatchError(f"{f}: its output would replace it; give another output folder")
         outputs[out.lower()] = str(f)
         models[rel] = Model(src=str(f), rel=rel, out=out, path=str(resolved))
+    if not suffix:  # folder outputs (PNG stacks): a.stl's out/a/ must not hold a/b.stl's out/a/b/
+        for b in sorted(outputs):
+            parts = b.split("/")
+            for k in range(1, len(parts)):
+                a = "/".join(parts[:k])
+                if a in outputs:
+                    raise BatchError(f"{outputs[b]}: its output {b} would lie inside that of {outputs[a]} ({a}/)")
     return [models[k] for k in sorted(models)]

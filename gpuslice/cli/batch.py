@@ -199,6 +199,8 @@ def _check_report_clear(report: str, inputs, models, out_dir: str) -> None:
 
     real = os.path.realpath
     rep = real(report)
+    if rep == real(os.fspath(out_dir)):
+        fail(f"{report}: --report names the output folder; name a file")
     given = {real(os.fspath(x)) for x in inputs if os.path.isfile(os.fspath(x))}  # model and list files named
     if rep in given or any(rep == real(m.path or m.src) for m in models):
         fail(f"{report}: --report names an input of the batch; name another file")

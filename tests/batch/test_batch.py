@@ -483,3 +483,20 @@ def test_discovery_follows_links_once_and_keeps_linked_models(tmp_path):
     models = discover([tree])
     assert sorted(m.rel for m in models) == ["a.stl", "zz.stl"]  # (the first link found names it)
     assert {Path(m.path).resolve() for m in models} == {(tree / "a.stl").resolve(), (elsewhere / "a.stl").resolve()}
+
+
+def test_folder_outputs_inside_one_another_and_a_report_on_the_output_folder_are_refused(tmp_path, capsys):
+    # with PNG stacks a.stl's out/a/ held a/b.stl's out/a/b/ (a re-run with --force then failed); --report naming
+    # the output folder failed only after every model (a helper's probe)
+    from gpuslice.cli import main
+
+    tree = tmp_path / "m"
+    (tree / "a").mkdir(parents=True)
+    shapes.write_stl(shapes.box(), tree / "a.stl")
+    shapes.write_stl(shapes.box(), tree / "a" / "b.stl")
+    with pytest.raises(BatchError, match=r"its output a/b would lie inside that of .*a\.stl \(a/\)"):
+        discover([tree], suffix="")
+    assert len(discover([tree], suffix=".npz")) == 2  # (files: a.npz beside a/b.npz)
+    out = tmp_path / "out"
+    assert main(["batch", str(tree), "-o", str(out), "-t", "5", "-j", "0", "-q", "--report", str(out)]) == 2
+    assert "--report names the output folder" in capsys.readouterr().err and not out.exists()
