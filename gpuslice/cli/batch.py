@@ -198,13 +198,13 @@ def _check_report_clear(report: str, inputs, models, out_dir: str) -> None:
     import os
 
     real = os.path.realpath
-    rep = real(report)
-    if rep == real(os.fspath(out_dir)):
+    rep, root = real(report), real(os.fspath(out_dir))
+    if rep == root:
         fail(f"{report}: --report names the output folder; name a file")
     given = {real(os.fspath(x)) for x in inputs if os.path.isfile(os.fspath(x))}  # model and list files named
-    if rep in given or any(rep == real(m.path or m.src) for m in models):
+    if rep in given or any(rep == m.path for m in models):  # (a model's path is resolved by discover)
         fail(f"{report}: --report names an input of the batch; name another file")
     for m in models:
-        out = real(os.path.join(os.fspath(out_dir), m.out))
+        out = os.path.join(root, m.out)
         if rep == out or rep.startswith(out + os.sep):
             fail(f"{report}: --report names the output of {m.src}; name another file")

@@ -59,6 +59,8 @@ def check_output_file(*paths: str | None, creates: str | None = None) -> None:
     command makes itself (batch's output folder, a PNG stack), where a file may go although it does not exist yet."""
     from pathlib import Path
 
+    from ..io.atomic import refuse_special
+
     made = Path(creates.rstrip("/\\") or ".").resolve() if creates is not None else None
     for out in paths:
         if out is None:
@@ -66,8 +68,7 @@ def check_output_file(*paths: str | None, creates: str | None = None) -> None:
         path = Path(out)
         if path.is_dir():
             fail(f"{out}: is a folder; name the file to write")
-        if path.exists() and not path.is_file():
-            fail(f"{out}: not a regular file (a device, FIFO or socket); gpuslice writes files: name one")
+        refuse_special(path)  # (a device, FIFO or socket: the atomic rename would replace it)
         parent = path.parent
         if made is not None and parent.resolve() == made and not made.exists():
             continue  # (made by the command before the file is written)

@@ -316,12 +316,12 @@ def _from_corners(corners, normals, *, name, source_format, scale, fit, solids, 
     del first
     if not np.all(np.isfinite(verts)):  # every corner is one of the vertices, bit for bit
         raise InvalidGeometryError(f"{name}: NaN or infinite vertex coordinates")
-    if placed is not None:
+    if placed is not None:  # (the corners came placed and rounded once)
         factor, offset = placed
     else:
         factor, offset = _placement(verts, name, scale, fit)
-    if placed is None and (factor != 1.0 or offset[2] != 0.0):
-        verts = (verts.astype(np.float64) * factor + offset).astype(np.float32) + np.float32(0.0)
+        if factor != 1.0 or offset[2] != 0.0:
+            verts = (verts.astype(np.float64) * factor + offset).astype(np.float32) + np.float32(0.0)
     faces = vid.reshape(n_faces, 3)
     good = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])
     dropped = int(n_faces - good.sum())

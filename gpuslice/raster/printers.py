@@ -33,6 +33,7 @@ import json
 import math
 import os
 import re
+import stat
 from collections.abc import Iterator, Mapping
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -253,11 +254,12 @@ def load_printer_file(path: str | os.PathLike) -> Printer:
     :class:`ParameterError` naming the file otherwise."""
     p = Path(path)
     try:
-        if not p.is_file():  # (a FIFO waits forever, /dev/zero never ends: read only regular files)
-            what = "is a folder" if p.is_dir() else "not a regular file" if p.exists() else "no such file"
+        st = p.stat()
+        if not stat.S_ISREG(st.st_mode):  # (a FIFO waits forever, /dev/zero never ends: read only regular files)
+            what = "is a folder" if stat.S_ISDIR(st.st_mode) else "not a regular file"
             raise ParameterError(f"{p}: cannot read printer preset ({what})")
-        if p.stat().st_size > PRESET_MAX_BYTES:
-            raise ParameterError(f"{p}: a printer preset of {p.stat().st_size} bytes is not one (at most "
+        if st.st_size > PRESET_MAX_BYTES:
+            raise ParameterError(f"{p}: a printer preset of {st.st_size} bytes is not one (at most "
                                  f"{PRESET_MAX_BYTES})")
         text = p.read_bytes()
     except OSError as exc:
