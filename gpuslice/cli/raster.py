@@ -95,6 +95,7 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
     The model is centred on the display (--keep-xy keeps its XY); column j has its centre at x = (j + 0.5)*pixel
     and row 0 is the +y edge (landscape). Greys are pixel coverage with PrusaSlicer's gamma.
     """
+    from ..io.atomic import committed_together
     from ..io.report import write_report
     from ..pipeline import CheckOutput, Job, ResinOutput, run_job
     from ..raster.outputs import resin_format_for
@@ -121,26 +122,31 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
 
         procs = enabled()
     bar = _Bar(f"raster {Path(output).name}", progress)
-    try:
-        with procs:
-            done = run_job(job, progress=bar)
-    finally:
-        bar.stop()
-    timings = {**done.timings, "total": time.perf_counter() - t_start}
-    stats, n = done.stats, done.result.n_layers
-    ml = resin_ml(done.result.area, done.result.thickness)
-    # the format's own estimate where it keeps one (SL1: exposures and tilts), else the settings' (lifts, waits)
-    t_print = stats.pop("print_time_s", None)
-    t_print = print_time_s(settings, n) if t_print is None else t_print
-    estimate = {"print_time_s": round(t_print, 3), "resin_ml": round(ml, 4),
-                "resin_g": round(ml * settings.resin_density, 4)}
-    if report is not None:
-        write_report({"layers": n, "raster_backend": stats["raster_backend"], "output": output, "timings_s": timings,
-                      **{k: v for k, v in stats.items() if k != "raster_backend"},
-                      "display": {"resolution": list(spec.resolution), "pixel": [spec.px, spec.py],
-                                  "portrait": spec.portrait, "mirror_x": spec.mirror_x, "mirror_y": spec.mirror_y},
-                      **estimate},
-                     report)
+    # the archive and the report renamed into place together, or neither (a report inside the PNG stack's folder
+    # is written once the folder is in place)
+    inside = report is not None and fmt.png and Path(report).resolve().is_relative_to(Path(output).resolve())
+    with nullcontext() if inside else committed_together():
+        try:
+            with procs:
+                done = run_job(job, progress=bar)
+        finally:
+            bar.stop()
+        timings = {**done.timings, "total": time.perf_counter() - t_start}
+        stats, n = done.stats, done.result.n_layers
+        ml = resin_ml(done.result.area, done.result.thickness)
+        # the format's own estimate where it keeps one (SL1: exposures and tilts), else the settings' (lifts, waits)
+        t_print = stats.pop("print_time_s", None)
+        t_print = print_time_s(settings, n) if t_print is None else t_print
+        estimate = {"print_time_s": round(t_print, 3), "resin_ml": round(ml, 4),
+                    "resin_g": round(ml * settings.resin_density, 4)}
+        if report is not None:
+            write_report({"layers": n, "raster_backend": stats["raster_backend"], "output": output,
+                          "timings_s": timings,
+                          **{k: v for k, v in stats.items() if k != "raster_backend"},
+                          "display": {"resolution": list(spec.resolution), "pixel": [spec.px, spec.py],
+                                      "portrait": spec.portrait, "mirror_x": spec.mirror_x, "mirror_y": spec.mirror_y},
+                          **estimate},
+                         report)
     if not quiet:
         click.echo(f"{Path(model).name}: {n} layers of {spec.png_size[0]}x{spec.png_size[1]} px ({spec.px:g} mm), "
                    f"raster {stats['raster_backend']}, {stats['png_bytes'] / 1e6:.1f} MB of layer images, "

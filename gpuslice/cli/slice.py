@@ -71,6 +71,7 @@ def build_report(result) -> dict:
 def slice_cmd(model: str, output: str | None, fmt_name: str | None, report: str | None, quiet: bool, **kw) -> None:
     """Slice MODEL into layers of closed, nested contours."""
     from ..formats import format_for
+    from ..io.atomic import committed_together
     from ..io.report import write_report
     from ..pipeline import Job, run_job
 
@@ -82,11 +83,12 @@ def slice_cmd(model: str, output: str | None, fmt_name: str | None, report: str 
     check_output_file(output, report)  # a folder that is missing: refused now, not after the slicing
     check_distinct_outputs(output, report)
     params, placement = slicing_values(kw)
-    done = run_job(Job(source=model, placement=placement, params=params, contours=output, contours_format=fmt_name,
-                       cusp=report is not None))
+    with committed_together():  # the layers and the report renamed into place together, or neither
+        done = run_job(Job(source=model, placement=placement, params=params, contours=output,
+                           contours_format=fmt_name, cusp=report is not None))
+        if report is not None:
+            write_report(build_report(done.result), report)
     meta = done.result.meta
-    if report is not None:
-        write_report(build_report(done.result), report)
     if not quiet:
         for line in adaptive_lines(meta):
             click.echo(line)

@@ -8,6 +8,7 @@ the name the user asked for. Folders (a PNG stack) are written the same way, as 
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import os
 import secrets
 import shutil
@@ -23,7 +24,10 @@ if TYPE_CHECKING:
 PathLike = str | os.PathLike
 
 __all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_text", "atomic_write_tree", "remove_path",
-           "refuse_special", "utf8"]
+           "refuse_special", "utf8", "committed_together"]
+
+#: the outputs whose renames wait for the end of the innermost :func:`committed_together` block (None: none open)
+_GROUP: contextvars.ContextVar[list | None] = contextvars.ContextVar("gpuslice_atomic_group", default=None)
 
 
 def remove_path(path: Path) -> None:
@@ -133,6 +137,23 @@ def atomic_path(path: PathLike, *, fsync: bool = True) -> Iterator[Path]:
         yield tmp
         if not tmp.exists() and not tmp.is_symlink():
             raise FileNotFoundError(f"{final}: nothing was written to the temporary path {tmp}")
+    except OSError as exc:
+        remove_path(tmp)
+        raise _naming(exc, tmp, final) from None
+    except BaseException:
+        remove_path(tmp)
+        raise
+    group = _GROUP.get()
+    if group is not None:  # renamed with the others at the end of the committed_together block
+        group.append((tmp, final, fsync))
+        return
+    _commit(tmp, final, fsync)
+
+
+def _commit(tmp: Path, final: Path, fsync: bool) -> None:
+    """Rename the complete temporary ``tmp`` over ``final`` (:func:`atomic_path`); ``tmp`` is removed on failure."""
+    directory = final.parent
+    try:
         refuse_special(final)  # (again: the path may have been made while the block ran)
         if tmp.is_dir() and not tmp.is_symlink():
             _replace_dir(tmp, final)
@@ -146,13 +167,48 @@ def atomic_path(path: PathLike, *, fsync: bool = True) -> Iterator[Path]:
             _fsync_dir(directory)
     except OSError as exc:
         remove_path(tmp)
-        if exc.errno is not None and (exc.filename is None or os.fspath(exc.filename).startswith(os.fspath(tmp))):
-            # (named after the output, not its hidden temporary: "No space left on device" said no file at all)
-            raise type(exc)(exc.errno, exc.strerror or str(exc), os.fspath(final)) from None
-        raise
+        raise _naming(exc, tmp, final) from None
     except BaseException:
         remove_path(tmp)
         raise
+
+
+def _naming(exc: OSError, tmp: Path, final: Path) -> OSError:
+    """``exc`` named after the output ``final``, not its hidden temporary ``tmp`` ("No space left on device" from a
+    writer named no file at all); ``exc`` itself when it names another file."""
+    if exc.errno is not None and (exc.filename is None or os.fspath(exc.filename).startswith(os.fspath(tmp))):
+        return type(exc)(exc.errno, exc.strerror or str(exc), os.fspath(final))
+    return exc
+
+
+@contextlib.contextmanager
+def committed_together() -> Iterator[None]:
+    """Context manager under which the outputs of :func:`atomic_path` (in this thread's context) are complete but
+    not yet renamed: all of them are renamed into place, in the order they were written, when the block succeeds,
+    and none when it raises (their temporaries are removed, the previous files left as they were). A command that
+    writes an output and then a report about it (``slice -o … --report …``) thus never leaves a new output beside
+    a failed report. Only a failing rename itself (rare: the temporaries lie in the outputs' own folders) can
+    leave the earlier outputs renamed; the later ones are then removed. Nested blocks join the outermost."""
+    if _GROUP.get() is not None:
+        yield
+        return
+    group: list[tuple[Path, Path, bool]] = []
+    token = _GROUP.set(group)
+    try:
+        yield
+    except BaseException:
+        for tmp, _final, _fsync in group:
+            remove_path(tmp)
+        raise
+    finally:
+        _GROUP.reset(token)
+    for k, (tmp, final, fsync) in enumerate(group):
+        try:
+            _commit(tmp, final, fsync)
+        except BaseException:
+            for later, _final, _fsync in group[k + 1 :]:
+                remove_path(later)
+            raise
 
 
 def _replace_dir(tmp: Path, final: Path) -> None:

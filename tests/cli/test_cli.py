@@ -217,3 +217,46 @@ def test_write_errors_name_the_output_not_its_temporary(torus, tmp_path, capsys)
     with pytest.raises(OSError) as info, atomic_path(tmp_path / "y.bin") as tmp:
         open(tmp / "sub", "wb")  # noqa: SIM115 - fails: no such folder (the error names the temporary)
     assert info.value.filename == str(tmp_path / "y.bin")
+
+
+@pytest.mark.parametrize("command", ["slice", "raster"])
+def test_a_failing_report_leaves_the_previous_output(torus, tmp_path, capsys, monkeypatch, command):
+    # the output used to be renamed into place before the report was written: a full disk at the report left a new
+    # output beside no report and exit 2. Both are now renamed together at the end, or neither.
+    import gpuslice.io.report as report_mod
+
+    out = tmp_path / ("t.svg" if command == "slice" else "t.goo")
+    out.write_bytes(b"the previous run's output")
+    real = report_mod.atomic_write_text
+
+    def full_disk(path, text, **kw):
+        with real.__globals__["atomic_path"](path) as tmp:  # the report's temporary exists, then the disk fills
+            tmp.write_text(text[:10])
+            raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(report_mod, "atomic_write_text", full_disk)
+    argv = [command, str(torus), "-t", "1", "-o", str(out), "--report", str(tmp_path / "r.json"), "-q"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "r.json" in err and "No space left" in err
+    assert out.read_bytes() == b"the previous run's output"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [out.name]  # no report, no temporaries
+    monkeypatch.setattr(report_mod, "atomic_write_text", real)
+    assert main(argv) == 0  # and a run that succeeds writes both
+    assert out.read_bytes() != b"the previous run's output" and json.loads((tmp_path / "r.json").read_text())
+
+
+def test_committed_together_renames_all_or_none(tmp_path):
+    from gpuslice.io.atomic import atomic_write_bytes, committed_together
+
+    with committed_together():
+        atomic_write_bytes(tmp_path / "a", b"1")
+        atomic_write_bytes(tmp_path / "b", b"2")
+        assert not (tmp_path / "a").exists()  # complete, but not yet in place
+    assert (tmp_path / "a").read_bytes() == b"1" and (tmp_path / "b").read_bytes() == b"2"
+    with pytest.raises(KeyboardInterrupt), committed_together():
+        atomic_write_bytes(tmp_path / "a", b"new")
+        with committed_together():  # a nested block joins the outer one
+            atomic_write_bytes(tmp_path / "c", b"3")
+        raise KeyboardInterrupt
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "b"] and (tmp_path / "a").read_bytes() == b"1"
