@@ -69,16 +69,10 @@ void count_crossings(__global const int *vub, __global const int *faces, const i
     count[f] = max(a, max(b, c)) - lo;
 }
 
-// Per facet: one segment per crossed layer, written at offsets[f] + j (offsets: exclusive scan of count).
-__kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
-void emit_segments(__global const float *verts, __global const int *faces, __global const int *face_edges,
-                   const int n_faces, __global const float *zs,
-                   __global const int *first_layer, __global const int *count, __global const long *offsets,
-                   __global int *seg_layer, __global int *seg_edges, __global float4 *seg_points) {
-    const int f = get_global_id(0);
-    if (f >= n_faces) return;
-    const int n = count[f];
-    if (n == 0) return;
+// One segment per crossed layer of facet f: layers lo .. lo + n - 1, written at out .. out + n - 1.
+inline void emit_facet(__global const float *verts, __global const int *faces, __global const int *face_edges,
+                       __global const float *zs, const int f, const int lo, const int n, long out,
+                       __global int *seg_layer, __global int *seg_edges, __global float4 *seg_points) {
     int v[3], e[3];
     float z[3];
     for (int k = 0; k < 3; ++k) {
@@ -86,8 +80,6 @@ void emit_segments(__global const float *verts, __global const int *faces, __glo
         e[k] = face_edges[3 * f + k];
         z[k] = verts[3 * v[k] + 2];
     }
-    const int lo = first_layer[f];
-    long out = offsets[f];
     for (int j = 0; j < n; ++j, ++out) {
         const int layer = lo + j;
         const float p = zs[layer];
@@ -107,4 +99,31 @@ void emit_segments(__global const float *verts, __global const int *faces, __glo
         vstore2((int2)(e[down], e[up]), (size_t)out, seg_edges);
         seg_points[out] = (float4)(a.x, a.y, b.x, b.y);
     }
+}
+
+// Per facet: one segment per crossed layer, written at offsets[f] + j (offsets: exclusive scan of count).
+__kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
+void emit_segments(__global const float *verts, __global const int *faces, __global const int *face_edges,
+                   const int n_faces, __global const float *zs,
+                   __global const int *first_layer, __global const int *count, __global const long *offsets,
+                   __global int *seg_layer, __global int *seg_edges, __global float4 *seg_points) {
+    const int f = get_global_id(0);
+    if (f >= n_faces) return;
+    const int n = count[f];
+    if (n == 0) return;
+    emit_facet(verts, faces, face_edges, zs, f, first_layer[f], n, offsets[f], seg_layer, seg_edges, seg_points);
+}
+
+// The same for the facets ids[0 .. n_ids - 1] alone (a layer batch's: the others cross none of its planes); entry i
+// has its first layer, count and offset at index i.
+__kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
+void emit_segments_of(__global const float *verts, __global const int *faces, __global const int *face_edges,
+                      __global const int *ids, const int n_ids, __global const float *zs,
+                      __global const int *first_layer, __global const int *count, __global const long *offsets,
+                      __global int *seg_layer, __global int *seg_edges, __global float4 *seg_points) {
+    const int i = get_global_id(0);
+    if (i >= n_ids) return;
+    const int n = count[i];
+    if (n == 0) return;
+    emit_facet(verts, faces, face_edges, zs, ids[i], first_layer[i], n, offsets[i], seg_layer, seg_edges, seg_points);
 }

@@ -160,13 +160,17 @@ class CrossingsKernel(KernelDriver):
         self._vertex = prg.vertex_layers
         self._count = prg.count_crossings
         self._emit = prg.emit_segments
+        self._emit_of = prg.emit_segments_of
 
     def __call__(self, mesh: Mesh, z: np.ndarray, *, read_back: bool = True,
                  layers: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-                 mesh_on_device: bool = False) -> Segments | DeviceSegments:
+                 mesh_on_device: bool = False, facets: np.ndarray | None = None) -> Segments | DeviceSegments:
         """The segments of ``mesh`` cut at ``z``; ``layers``: optional (vertex_layers, first layer, count) of the
         vertices and facets for these planes (:func:`vertex_layers`, :func:`facet_layer_ranges`, int32), when the
-        host has them: uploaded instead of computed here. ``mesh_on_device``: the call before uploaded this same
+        host has them: uploaded instead of computed here (chaining reads the vertices' from this driver).
+        ``facets``: with ``layers``, the increasing ids of the only facets that may cross these planes (a layer
+        batch's), ``layers``' first layer and count then given for them alone: the others are not visited (the
+        segments are the same, in the same order). ``mesh_on_device``: the call before uploaded this same
         mesh and nothing has used this driver since (the slicer's later layer batches, under
         :meth:`~gpuslice.device.Device.exclusive`): its vertices, faces and edges are not uploaded again."""
         import pyopencl as cl
@@ -182,9 +186,11 @@ class CrossingsKernel(KernelDriver):
             d_edges = self._put("face_edges", mesh.face_edges)
         d_zs = self._put("zs", zs)
         n_v = int(mesh.vertices.shape[0])
+        if facets is not None and layers is None:
+            raise ValueError("crossings of a subset of the facets need their layers")
         if layers is not None:
             vub, first, count = (np.ascontiguousarray(a, dtype=np.int32) for a in layers)
-            d_vub = self._put("vub", vub)
+            self._put("vub", vub)  # (not read here: chaining's edge ranges read it, chain.py)
             d_first = self._put("first", first)
             d_count = self._put("count", count)
         else:
@@ -195,8 +201,9 @@ class CrossingsKernel(KernelDriver):
             self._count(q, *self._grid(n_f), d_vub, d_faces, np.int32(n_f), d_first, d_count)
             count = np.empty(n_f, dtype=np.int32)
             cl.enqueue_copy(q, count, d_count)
+        n_emit = n_f if facets is None else int(facets.size)
         offsets = np.cumsum(count, dtype=np.int64)
-        total = int(offsets[-1]) if n_f else 0
+        total = int(offsets[-1]) if n_emit else 0
         offsets -= count
         if total == 0:
             empty = Segments(np.empty(0, np.int32), np.empty((0, 2), np.int32), np.empty((0, 4), np.float32))
@@ -205,21 +212,25 @@ class CrossingsKernel(KernelDriver):
         d_layer = self._buffer("seg_layer", 4 * total)
         d_sedges = self._buffer("seg_edges", 8 * total)
         d_spts = self._buffer("seg_points", 16 * total)
-        self._emit(
-            q, *self._grid(n_f), d_verts, d_faces, d_edges, np.int32(n_f), d_zs, d_first, d_count, d_off,
-            d_layer, d_sedges, d_spts,
-        )
+        if facets is None:
+            self._emit(q, *self._grid(n_f), d_verts, d_faces, d_edges, np.int32(n_f), d_zs, d_first, d_count, d_off,
+                       d_layer, d_sedges, d_spts)
+        else:
+            d_ids = self._put("facet_ids", np.ascontiguousarray(facets, dtype=np.int32))
+            self._emit_of(q, *self._grid(n_emit), d_verts, d_faces, d_edges, d_ids, np.int32(n_emit), d_zs, d_first,
+                          d_count, d_off, d_layer, d_sedges, d_spts)
         dseg = DeviceSegments(total, d_layer, d_sedges, d_spts, self)
         return dseg.fetch() if read_back else dseg
 
 
 def compute_crossings(mesh: Mesh, z: np.ndarray, device=None, *, read_back: bool = True, layers=None,
-                      mesh_on_device: bool = False):
+                      mesh_on_device: bool = False, facets: np.ndarray | None = None):
     """All segments of ``mesh`` cut at the planes ``z`` (mm, increasing): on ``device``, or numpy when None.
 
     With ``read_back=False`` (device only) the segments stay on the device as :class:`DeviceSegments`. ``layers``,
-    ``mesh_on_device``: see :meth:`CrossingsKernel.__call__` (device only).
+    ``mesh_on_device``, ``facets``: see :meth:`CrossingsKernel.__call__` (device only).
     """
     if device is None:
         return crossings_numpy(mesh, z)
-    return CrossingsKernel.of(device)(mesh, z, read_back=read_back, layers=layers, mesh_on_device=mesh_on_device)
+    return CrossingsKernel.of(device)(mesh, z, read_back=read_back, layers=layers, mesh_on_device=mesh_on_device,
+                                      facets=facets)

@@ -70,23 +70,42 @@ def _batches(mesh: Mesh, zs: np.ndarray, limit: int) -> tuple[list[tuple[int, in
     return out, per_layer, (vl, lo, count)
 
 
-def _batch_layers(ranges: tuple, a: int, b: int, n_layers: int, out: tuple | None = None) -> tuple:
-    """The (vertex layers, first layer, count) of :func:`_batches` (for all ``n_layers`` planes) for the planes
-    ``zs[a:b]`` alone, int32, written into ``out`` (three arrays shaped as ``ranges``'s) when given: done per batch
-    over every vertex and facet, so in place (fresh temporaries cost 40 ms a batch at 6.4M facets)."""
+def _batch_facets(ranges: tuple, batches: list[tuple[int, int]]) -> list[np.ndarray]:
+    """Each batch's facets: the increasing int32 ids of those crossing at least one of its planes (``ranges`` as
+    :func:`_batches` returns them), so that its crossings visit them alone. Grouped by the batch of each facet's
+    first layer (a stable sort of small integers), then each facet reaching into later batches added to those."""
+    from ..ragged import expand_ranges
+
+    _, lo, count = ranges
+    nb = len(batches)
+    key = np.int16 if nb < 2**15 else np.int32  # (numpy sorts 16-bit keys stably by radix)
+    layer_batch = np.repeat(np.arange(nb, dtype=key), [b - a for a, b in batches])
+    ids = np.flatnonzero(count > 0).astype(np.int32)
+    first = lo[ids]
+    bf = layer_batch[first]
+    bl = layer_batch[first + count[ids] - 1]
+    main = ids[np.argsort(bf, kind="stable")]
+    cuts = np.concatenate([[0], np.cumsum(np.bincount(bf, minlength=nb))])
+    span = np.flatnonzero(bl > bf)  # facets crossing planes of several batches: also in the later ones
+    owner, batch = expand_ranges(bf[span].astype(np.int64) + 1, (bl[span] - bf[span]).astype(np.int64))
+    order = np.argsort(batch, kind="stable")
+    extra, ecuts = ids[span][owner[order]], np.searchsorted(batch[order], np.arange(nb + 1))
+    return [np.sort(np.concatenate([main[cuts[k] : cuts[k + 1]], extra[ecuts[k] : ecuts[k + 1]]]), kind="stable")
+            for k in range(nb)]  # (two sorted runs: one merge)
+
+
+def _batch_layers(ranges: tuple, a: int, b: int, facets: np.ndarray, out: np.ndarray | None = None) -> tuple:
+    """The (vertex layers, first layer, count) of :func:`_batches` (``ranges``, for all planes) for the planes
+    ``zs[a:b]`` alone, int32: of every vertex (written into ``out`` when given: done per batch, so in place) and of
+    ``facets`` (:func:`_batch_facets`) alone."""
     vl, lo, count = ranges
-    if a == 0 and b == n_layers:
-        return vl, lo, count
     n = b - a
-    v, f, c = out if out is not None else (np.empty(vl.shape, np.int32), np.empty(lo.shape, np.int32),
-                                           np.empty(count.shape, np.int32))
+    v = out if out is not None else np.empty(vl.shape, np.int32)
     np.subtract(vl, a, out=v, casting="unsafe")
     np.clip(v, 0, n, out=v)
-    np.subtract(lo, a, out=f, casting="unsafe")
-    np.clip(f, 0, n, out=f)
-    np.add(lo, count, out=c, casting="unsafe")  # the facet's end layer, then clipped and made a count
-    c -= np.int32(a)
-    np.clip(c, 0, n, out=c)
+    f = lo[facets]
+    c = np.clip(f + count[facets] - a, 0, n).astype(np.int32)
+    f = np.clip(f - a, 0, n).astype(np.int32)
     c -= f
     return v, f, c
 
@@ -181,16 +200,21 @@ def slice_mesh(
         n_segments = 0
         batches, per_layer, ranges = _batches(mesh, zs, params.max_segments_per_batch) if n_layers else ([], None, None)
 
-        # the per-batch layer ranges, reused: a batch's uploads are done (queue.finish below) before the next's
-        scratch = tuple(np.empty(x.shape, np.int32) for x in ranges) if len(batches) > 1 and device else None
+        # several batches on a device: each visits only the facets that cross its planes
+        facets = _batch_facets(ranges, batches) if len(batches) > 1 and device is not None else None
+        scratch = np.empty(ranges[0].shape, np.int32) if facets is not None else None  # (the vertices' layers)
 
         def chained():  # crossings and chaining of each batch (on the prefetch thread when there are several)
             for k, (a, b) in enumerate(batches):
                 t = time.perf_counter()
                 if device is not None:  # (after the first batch the mesh's arrays are on the device already)
-                    seg = compute_crossings(mesh, zs[a:b], device, read_back=False,
-                                             layers=_batch_layers(ranges, a, b, n_layers, scratch),
-                                             mesh_on_device=k > 0)
+                    if facets is None:
+                        seg = compute_crossings(mesh, zs[a:b], device, read_back=False, layers=ranges)
+                    else:
+                        own = _batch_layers(ranges, a, b, facets[k], scratch)
+                        seg = compute_crossings(mesh, zs[a:b], device, read_back=False, mesh_on_device=k > 0,
+                                                layers=own, facets=facets[k])
+                        facets[k] = None  # (each batch's ids are used once)
                     device.queue.finish()  # so the kernels' time counts here, not in the next stage
                 else:
                     seg = compute_crossings(mesh, zs[a:b])
