@@ -6,9 +6,10 @@ another worker), and collects their records into the batch report (:meth:`BatchR
 
 Skipping: a model whose output exists is skipped (``force`` redoes it); outputs are only ever renamed into place
 complete, so existing means complete (with ``--check``, its check report must exist too: a contour file is written
-before the checks run). The output folder holds a small manifest (``.gpuslice-batch.json``) with the
-options that shape the outputs; a batch with other options into the same folder is refused unless ``force`` is
-given, so a re-run never skips a model whose output was made with different options.
+before the checks run). The output folder holds a small manifest (``.gpuslice-batch.json``) with the options that
+shape the outputs; a batch with other options into the same folder is refused unless ``force`` is given, so a re-run
+never skips a model whose output was made with different options. Existing outputs in a folder without a manifest
+were not made by a batch: they are refused too (by name), not skipped, unless ``force`` is given.
 """
 
 from __future__ import annotations
@@ -143,17 +144,22 @@ class BatchRunner:
                                  if old.get(k) != v) or "unreadable manifest"
                 raise BatchError(f"{out}: holds outputs made with other options ({diff}); use --force to redo "
                                  "them, or another output folder")
+        ours = manifest.exists()  # a batch wrote here before: existing outputs are its finished models
+        done = [] if self.force else [i for i, m in enumerate(self.models) if (out / m.out).exists() and
+                                      (not self.opts.check or check_path(out / m.out).exists())]
+        if done and not ours:
+            first = out / self.models[done[0]].out
+            raise BatchError(f"{first}: exists, and {out} has no batch manifest ({MANIFEST_NAME}): not written by "
+                             f"gpuslice batch ({len(done)} such outputs); use --force to replace them, or another "
+                             "output folder")
         from ..io.atomic import atomic_write_text
 
         atomic_write_text(manifest, json.dumps(want, indent=1, sort_keys=True) + "\n")
-        tasks = []
-        for i, m in enumerate(self.models):
-            target = out / m.out
-            if not self.force and target.exists() and (not self.opts.check or check_path(target).exists()):
-                self._finish(i, {"model": m.rel, "output": m.out, "status": "skipped", "error": None}, None)
-            else:
-                tasks.append(_Task(i))
-        return tasks
+        for i in done:
+            self._finish(i, {"model": self.models[i].rel, "output": self.models[i].out, "status": "skipped",
+                             "error": None}, None)
+        skip = set(done)
+        return [_Task(i) for i in range(len(self.models)) if i not in skip]
 
     def _cleanup_temporaries(self) -> None:
         """Remove temporaries left by killed workers beside this batch's outputs (``.NAME.tmp-…``): one listing

@@ -185,6 +185,23 @@ def test_local_workers_match_serial_and_rerun_skips(tree, serial, tmp_path):
     assert all(r["status"] == "done" for r in forced.values())
 
 
+def test_outputs_not_written_by_a_batch_are_not_skipped(tree, serial, tmp_path):
+    """An output path that already holds a file in a folder no batch has written to (no manifest) was skipped as if
+    finished; it is refused by name, before any model, unless forced."""
+    out = tmp_path / "foreign"
+    report = run_batch([tree / "gen" / "deep"], out, OPTS, workers=0)
+    first = next(r["output"] for r in report["models"] if r["status"] == "done")
+    (out / ".gpuslice-batch.json").unlink()
+    (out / first).write_bytes(b"someone else's file")
+    with pytest.raises(BatchError, match=r"exists, and .* has no batch manifest .* not written by gpuslice batch"):
+        run_batch([tree / "gen" / "deep"], out, OPTS, workers=0)
+    assert (out / first).read_bytes() == b"someone else's file" and not (out / ".gpuslice-batch.json").exists()
+    forced = _by_model(run_batch([tree / "gen" / "deep"], out, OPTS, workers=0, force=True))
+    assert all(r["status"] == "done" for r in forced.values()) and (out / first).read_bytes() != b"someone else's file"
+    again = _by_model(run_batch([tree / "gen" / "deep"], out, OPTS, workers=0))  # the manifest is there now
+    assert all(r["status"] == "skipped" for r in again.values())
+
+
 def test_killed_worker_mid_batch(tree, serial, tmp_path):
     """SIGKILL one worker after the third finished model: the pool replaces it, its unfinished models re-run, and
     every model is done exactly once with the serial run's bytes; no temporary file is left."""
