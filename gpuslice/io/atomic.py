@@ -133,16 +133,10 @@ def atomic_path(path: PathLike, *, fsync: bool = True) -> Iterator[Path]:
     refuse_special(final)
     stem = final.name if len(os.fsencode(final.name)) <= 200 else "gpuslice"  # (a long name fits; its temporary too)
     tmp = directory / f".{stem}.tmp-{os.getpid()}-{secrets.token_hex(4)}{final.suffix}"
-    try:
+    with _removing(tmp, final):
         yield tmp
         if not tmp.exists() and not tmp.is_symlink():
             raise FileNotFoundError(f"{final}: nothing was written to the temporary path {tmp}")
-    except OSError as exc:
-        remove_path(tmp)
-        raise _naming(exc, tmp, final) from None
-    except BaseException:
-        remove_path(tmp)
-        raise
     group = _GROUP.get()
     if group is not None:  # renamed with the others at the end of the committed_together block
         group.append((tmp, final, fsync))
@@ -152,8 +146,7 @@ def atomic_path(path: PathLike, *, fsync: bool = True) -> Iterator[Path]:
 
 def _commit(tmp: Path, final: Path, fsync: bool) -> None:
     """Rename the complete temporary ``tmp`` over ``final`` (:func:`atomic_path`); ``tmp`` is removed on failure."""
-    directory = final.parent
-    try:
+    with _removing(tmp, final):
         refuse_special(final)  # (again: the path may have been made while the block ran)
         if tmp.is_dir() and not tmp.is_symlink():
             _replace_dir(tmp, final)
@@ -164,21 +157,24 @@ def _commit(tmp: Path, final: Path, fsync: bool) -> None:
                 _fsync_file(tmp)
             os.replace(tmp, final)
         if fsync:
-            _fsync_dir(directory)
+            _fsync_dir(final.parent)
+
+
+@contextlib.contextmanager
+def _removing(tmp: Path, final: Path) -> Iterator[None]:
+    """Remove ``tmp`` when the block raises anything; an :class:`OSError` is raised again named after the output
+    ``final``, not its hidden temporary ("No space left on device" from a writer named no file at all), unless it
+    names another file."""
+    try:
+        yield
     except OSError as exc:
         remove_path(tmp)
-        raise _naming(exc, tmp, final) from None
+        if exc.errno is not None and (exc.filename is None or os.fspath(exc.filename).startswith(os.fspath(tmp))):
+            raise type(exc)(exc.errno, exc.strerror or str(exc), os.fspath(final)) from None
+        raise
     except BaseException:
         remove_path(tmp)
         raise
-
-
-def _naming(exc: OSError, tmp: Path, final: Path) -> OSError:
-    """``exc`` named after the output ``final``, not its hidden temporary ``tmp`` ("No space left on device" from a
-    writer named no file at all); ``exc`` itself when it names another file."""
-    if exc.errno is not None and (exc.filename is None or os.fspath(exc.filename).startswith(os.fspath(tmp))):
-        return type(exc)(exc.errno, exc.strerror or str(exc), os.fspath(final))
-    return exc
 
 
 @contextlib.contextmanager
