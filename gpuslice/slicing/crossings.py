@@ -190,7 +190,7 @@ class CrossingsKernel(KernelDriver):
             raise ValueError("crossings of a subset of the facets need their layers")
         if layers is not None:
             vub, first, count = (np.ascontiguousarray(a, dtype=np.int32) for a in layers)
-            self._put("vub", vub)  # (not read here: chaining's edge ranges read it, chain.py)
+            self._put("vub", vub)  # (not read here: chaining reads it, walk.py's edge ranges)
             d_first = self._put("first", first)
             d_count = self._put("count", count)
         else:
