@@ -115,22 +115,29 @@ def iter_sub_plane_edges(mesh, z: np.ndarray, k: int, spec: RasterSpec, bounds, 
     edges, one block's polygons."""
     import time
 
-    from ..slicing.crossings import compute_crossings
+    from ..slicing.crossings import batch_facets, batch_layers, compute_crossings, facet_layer_ranges, vertex_layers
 
     kern = SegmentEdgesKernel.of(device)
     n_layers = len(z) // k
     on_vertex = layers_through_vertices(mesh, z, k)
     chunk = min(chunk, 256)
     starts = list(range(0, n_layers, chunk))
+    # each chunk's crossings visit only the facets that cross its sub-planes (grouped once)
+    vl = vertex_layers(mesh, z)
+    ranges = (vl, *facet_layer_ranges(mesh, z, vl))
+    facets = batch_facets(ranges, [(a * k, min(a + chunk, n_layers) * k) for a in starts])
+    scratch = np.empty(vl.shape, np.int32)
     for g in range(0, len(starts), group):  # `group` chunks at a time: their polygon layers sliced in one go
         t = time.perf_counter()
         done = []
-        for a in starts[g : g + group]:
+        for c, a in enumerate(starts[g : g + group], g):
             b = min(a + chunk, n_layers)
+            own = batch_layers(ranges, a * k, b * k, facets[c], scratch)
             with device.exclusive():  # (the crossings' buffers are read by the edges' kernels: one thread's turn)
-                seg = compute_crossings(mesh, z[a * k : b * k], device, read_back=False)
+                seg = compute_crossings(mesh, z[a * k : b * k], device, read_back=False, layers=own, facets=facets[c])
                 merged, short = kern(seg, (b - a) * k, k, spec, bounds)
                 del seg
+            facets[c] = None  # (each chunk's ids are used once)
             done.append((a, merged, a + np.flatnonzero(short | on_vertex[a:b])))
         cut = np.concatenate([d[2] for d in done])
         for i in range(0, cut.size, 256):  # (blocks of at most EDGE_CHUNK layers: one chunk of polygon edges each)

@@ -19,7 +19,8 @@ import numpy as np
 from ..device import KernelDriver
 from ..mesh.mesh import Mesh
 
-__all__ = ["Segments", "DeviceSegments", "crossings_numpy", "CrossingsKernel", "compute_crossings"]
+__all__ = ["Segments", "DeviceSegments", "crossings_numpy", "CrossingsKernel", "compute_crossings", "batch_facets",
+           "batch_layers"]
 
 
 @dataclass
@@ -234,3 +235,44 @@ def compute_crossings(mesh: Mesh, z: np.ndarray, device=None, *, read_back: bool
         return crossings_numpy(mesh, z)
     return CrossingsKernel.of(device)(mesh, z, read_back=read_back, layers=layers, mesh_on_device=mesh_on_device,
                                       facets=facets)
+
+
+def batch_facets(ranges: tuple, batches: list[tuple[int, int]]) -> list[np.ndarray]:
+    """Each batch's facets: the increasing int32 ids of those crossing at least one of its planes (``ranges`` as
+    ``slicer._batches`` returns them: vertex layers, facets' first layer and count for all planes), so that its
+    crossings visit them alone (``facets=``). Grouped by the batch of each facet's
+    first layer (a stable sort of small integers), then each facet reaching into later batches added to those."""
+    from ..ragged import expand_ranges
+
+    _, lo, count = ranges
+    nb = len(batches)
+    key = np.int16 if nb < 2**15 else np.int32  # (numpy sorts 16-bit keys stably by radix)
+    layer_batch = np.repeat(np.arange(nb, dtype=key), [b - a for a, b in batches])
+    ids = np.flatnonzero(count > 0).astype(np.int32)
+    first = lo[ids]
+    bf = layer_batch[first]
+    bl = layer_batch[first + count[ids] - 1]
+    main = ids[np.argsort(bf, kind="stable")]
+    cuts = np.concatenate([[0], np.cumsum(np.bincount(bf, minlength=nb))])
+    span = np.flatnonzero(bl > bf)  # facets crossing planes of several batches: also in the later ones
+    owner, batch = expand_ranges(bf[span].astype(np.int64) + 1, (bl[span] - bf[span]).astype(np.int64))
+    order = np.argsort(batch, kind="stable")
+    extra, ecuts = ids[span][owner[order]], np.searchsorted(batch[order], np.arange(nb + 1))
+    return [np.sort(np.concatenate([main[cuts[k] : cuts[k + 1]], extra[ecuts[k] : ecuts[k + 1]]]), kind="stable")
+            for k in range(nb)]  # (two sorted runs: one merge)
+
+
+def batch_layers(ranges: tuple, a: int, b: int, facets: np.ndarray, out: np.ndarray | None = None) -> tuple:
+    """The (vertex layers, first layer, count) of ``ranges`` (for all planes) for the planes ``zs[a:b]`` alone, int32,
+    as :meth:`CrossingsKernel.__call__` takes them with ``facets``: of every vertex (written into ``out`` when
+    given: done per batch, so in place) and of ``facets`` (:func:`batch_facets`) alone."""
+    vl, lo, count = ranges
+    n = b - a
+    v = out if out is not None else np.empty(vl.shape, np.int32)
+    np.subtract(vl, a, out=v, casting="unsafe")
+    np.clip(v, 0, n, out=v)
+    f = lo[facets]
+    c = np.clip(f + count[facets] - a, 0, n).astype(np.int32)
+    f = np.clip(f - a, 0, n).astype(np.int32)
+    c -= f
+    return v, f, c

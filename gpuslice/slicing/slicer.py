@@ -20,7 +20,15 @@ from ..prefetch import prefetch
 from ..schedule.adaptive import AdaptiveSchedule
 from ..schedule.uniform import Schedule, from_z, uniform
 from .chain import REPAIR_KINDS, chain_segments
-from .crossings import _planes32, check_plane_spacing, compute_crossings, facet_layer_ranges, vertex_layers
+from .crossings import (
+    _planes32,
+    batch_facets,
+    batch_layers,
+    check_plane_spacing,
+    compute_crossings,
+    facet_layer_ranges,
+    vertex_layers,
+)
 from .nest import nest_loops
 from .params import SliceParams
 from .result import SliceResult
@@ -68,46 +76,6 @@ def _batches(mesh: Mesh, zs: np.ndarray, limit: int) -> tuple[list[tuple[int, in
         acc += int(c)
     out.append((start, int(zs.size)))
     return out, per_layer, (vl, lo, count)
-
-
-def _batch_facets(ranges: tuple, batches: list[tuple[int, int]]) -> list[np.ndarray]:
-    """Each batch's facets: the increasing int32 ids of those crossing at least one of its planes (``ranges`` as
-    :func:`_batches` returns them), so that its crossings visit them alone. Grouped by the batch of each facet's
-    first layer (a stable sort of small integers), then each facet reaching into later batches added to those."""
-    from ..ragged import expand_ranges
-
-    _, lo, count = ranges
-    nb = len(batches)
-    key = np.int16 if nb < 2**15 else np.int32  # (numpy sorts 16-bit keys stably by radix)
-    layer_batch = np.repeat(np.arange(nb, dtype=key), [b - a for a, b in batches])
-    ids = np.flatnonzero(count > 0).astype(np.int32)
-    first = lo[ids]
-    bf = layer_batch[first]
-    bl = layer_batch[first + count[ids] - 1]
-    main = ids[np.argsort(bf, kind="stable")]
-    cuts = np.concatenate([[0], np.cumsum(np.bincount(bf, minlength=nb))])
-    span = np.flatnonzero(bl > bf)  # facets crossing planes of several batches: also in the later ones
-    owner, batch = expand_ranges(bf[span].astype(np.int64) + 1, (bl[span] - bf[span]).astype(np.int64))
-    order = np.argsort(batch, kind="stable")
-    extra, ecuts = ids[span][owner[order]], np.searchsorted(batch[order], np.arange(nb + 1))
-    return [np.sort(np.concatenate([main[cuts[k] : cuts[k + 1]], extra[ecuts[k] : ecuts[k + 1]]]), kind="stable")
-            for k in range(nb)]  # (two sorted runs: one merge)
-
-
-def _batch_layers(ranges: tuple, a: int, b: int, facets: np.ndarray, out: np.ndarray | None = None) -> tuple:
-    """The (vertex layers, first layer, count) of :func:`_batches` (``ranges``, for all planes) for the planes
-    ``zs[a:b]`` alone, int32: of every vertex (written into ``out`` when given: done per batch, so in place) and of
-    ``facets`` (:func:`_batch_facets`) alone."""
-    vl, lo, count = ranges
-    n = b - a
-    v = out if out is not None else np.empty(vl.shape, np.int32)
-    np.subtract(vl, a, out=v, casting="unsafe")
-    np.clip(v, 0, n, out=v)
-    f = lo[facets]
-    c = np.clip(f + count[facets] - a, 0, n).astype(np.int32)
-    f = np.clip(f - a, 0, n).astype(np.int32)
-    c -= f
-    return v, f, c
 
 
 def slice_mesh(
@@ -201,7 +169,7 @@ def slice_mesh(
         batches, per_layer, ranges = _batches(mesh, zs, params.max_segments_per_batch) if n_layers else ([], None, None)
 
         # several batches on a device: each visits only the facets that cross its planes
-        facets = _batch_facets(ranges, batches) if len(batches) > 1 and device is not None else None
+        facets = batch_facets(ranges, batches) if len(batches) > 1 and device is not None else None
         scratch = np.empty(ranges[0].shape, np.int32) if facets is not None else None  # (the vertices' layers)
 
         def chained():  # crossings and chaining of each batch (on the prefetch thread when there are several)
@@ -211,7 +179,7 @@ def slice_mesh(
                     if facets is None:
                         seg = compute_crossings(mesh, zs[a:b], device, read_back=False, layers=ranges)
                     else:
-                        own = _batch_layers(ranges, a, b, facets[k], scratch)
+                        own = batch_layers(ranges, a, b, facets[k], scratch)
                         seg = compute_crossings(mesh, zs[a:b], device, read_back=False, mesh_on_device=k > 0,
                                                 layers=own, facets=facets[k])
                         facets[k] = None  # (each batch's ids are used once)

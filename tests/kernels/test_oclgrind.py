@@ -271,13 +271,12 @@ def _workload(pass_name: str) -> dict:
         b = slice_mesh(mesh, thickness=2.5, backend="opencl")
         _same_result(b, a, f"slice {what}")
         results[what] = a
-    from gpuslice.slicing.crossings import facet_layer_ranges, vertex_layers
-    from gpuslice.slicing.slicer import _batch_facets, _batch_layers
+    from gpuslice.slicing.crossings import batch_facets, batch_layers, facet_layer_ranges, vertex_layers
 
     vl = vertex_layers(sphere, zs)
     ranges, batches = (vl, *facet_layer_ranges(sphere, zs, vl)), [(0, zs.size // 2), (zs.size // 2, zs.size)]
-    for (a, b), ids in zip(batches, _batch_facets(ranges, batches), strict=True):  # a batch's facets alone
-        sub, want = compute_crossings(sphere, zs[a:b], dev, layers=_batch_layers(ranges, a, b, ids), facets=ids), \
+    for (a, b), ids in zip(batches, batch_facets(ranges, batches), strict=True):  # a batch's facets alone
+        sub, want = compute_crossings(sphere, zs[a:b], dev, layers=batch_layers(ranges, a, b, ids), facets=ids), \
             crossings_numpy(sphere, zs[a:b])
         _same((sub.layer, sub.edges, sub.points), (want.layer, want.edges, want.points), f"crossings {a}..{b}")
     # adaptive.cl

@@ -93,9 +93,9 @@ def test_wrong_layer_counts_fall_back_to_counting_or_the_host(device, sphere_cut
 
 def test_host_layer_ranges_give_the_kernels_segments(device, sphere_cut):
     """The crossings of a batch of planes from the host's facet ranges and the batch's own facets (as
-    ``slice_mesh`` passes them: :func:`_batch_facets`, :func:`_batch_layers`) equal those the kernels compute
+    ``slice_mesh`` passes them: :func:`batch_facets`, :func:`batch_layers`) equal those the kernels compute
     themselves over every facet, in the same order; every facet crossing a batch's planes is among its facets."""
-    from gpuslice.slicing.slicer import _batch_facets, _batch_layers
+    from gpuslice.slicing.crossings import batch_facets, batch_layers
 
     sphere, zs = sphere_cut
     vl = vertex_layers(sphere, zs)
@@ -105,13 +105,13 @@ def test_host_layer_ranges_give_the_kernels_segments(device, sphere_cut):
     for name in ("layer", "edges", "points"):
         assert np.array_equal(getattr(got, name), getattr(want, name)), name
     for batches in ([(0, 5), (5, 14), (14, zs.size)], [(k, k + 1) for k in range(zs.size)]):
-        facets = _batch_facets(ranges, batches)
+        facets = batch_facets(ranges, batches)
         for (a, b), ids in zip(batches, facets, strict=True):
             lo, count = ranges[1], ranges[2]
             crossing = np.flatnonzero((lo < b) & (lo + count > a))
             assert np.array_equal(ids, crossing), (a, b)  # all of them, increasing, nothing else
             want = compute_crossings(sphere, zs[a:b], device)
-            got = compute_crossings(sphere, zs[a:b], device, read_back=False, layers=_batch_layers(ranges, a, b, ids),
+            got = compute_crossings(sphere, zs[a:b], device, read_back=False, layers=batch_layers(ranges, a, b, ids),
                                     facets=ids).fetch()
             for name in ("layer", "edges", "points"):
                 assert np.array_equal(getattr(got, name), getattr(want, name)), (a, b, name)
