@@ -88,8 +88,10 @@ def polygon_rings(result: Contours, start: int = 0, stop: int | None = None):
     return kept + r0, poly[kept], poly_layer
 
 
-def polygons_shapely(result: Contours, start: int = 0, stop: int | None = None) -> np.ndarray:
-    """Layers ``start .. stop - 1`` of ``result`` as an (n,) object array of shapely ``MultiPolygon`` (mm).
+def polygons_shapely(result: Contours, start: int = 0, stop: int | None = None, *,
+                     with_invalid: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """Layers ``start .. stop - 1`` of ``result`` as an (n,) object array of shapely ``MultiPolygon`` (mm);
+    ``with_invalid``: also an (n,) bool array, True for the layers that are still not valid for GEOS (below).
 
     Outer loops are shells, their holes interiors, in the result's orientation (shells CCW, holes CW). Built with
     ``shapely.linearrings(coords, indices=…)``, ``shapely.polygons(rings, indices=…)`` and
@@ -102,11 +104,10 @@ def polygons_shapely(result: Contours, start: int = 0, stop: int | None = None) 
     stop = result.n_layers if stop is None else stop
     n = max(stop - start, 0)
     out = np.full(n, shapely.MultiPolygon(), dtype=object)
-    if n == 0:
-        return out
-    rings, ring_poly, poly_layer = polygon_rings(result, start, stop)
+    invalid = np.zeros(n, dtype=bool)
+    rings, ring_poly, poly_layer = polygon_rings(result, start, stop) if n else (np.zeros(0, np.int64),) * 3
     if rings.size == 0:
-        return out
+        return (out, invalid) if with_invalid else out
     offsets = np.asarray(result.loop_offsets)
     counts = offsets[rings + 1] - offsets[rings]
     lo_off = np.asarray(result.layer_offsets)
@@ -126,7 +127,8 @@ def polygons_shapely(result: Contours, start: int = 0, stop: int | None = None) 
         before, after = shapely.area(out[bad]), shapely.area(fixed)
         same = np.abs(after - before) <= 1e-12 * np.maximum(before, 1.0)
         out[bad[same]] = fixed[same]
-    return out
+        invalid[bad[~same]] = True
+    return (out, invalid) if with_invalid else out
 
 
 def _as_multipolygon(geom):
