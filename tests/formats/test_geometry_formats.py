@@ -294,3 +294,24 @@ def test_slice_format_overrides_the_suffix(tmp_path, capsys):
     assert main(["slice", str(stl), "-t", "0.5", "--format", "svg"]) == 2  # nothing to write it to
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--format svg needs -o" in err
+
+
+def test_polygons_shapely_names_the_layers_it_could_not_make_valid():
+    """A layer with a self-crossing loop (a bow-tie: making it valid changes its area) stays as it is and is flagged;
+    valid layers are not (the islands' check makes the flagged ones valid itself, instead of testing every layer)."""
+    from gpuslice.slicing.geometry import polygons_shapely
+
+    square = np.array([[0, 0], [4, 0], [4, 4], [0, 4]], np.float32)
+    bowtie = np.array([[0, 0], [10, 6], [10, 0], [0, 3]], np.float32)
+    res = SliceResult(points=np.concatenate([square, bowtie, square]), loop_offsets=np.array([0, 4, 8, 12], np.int64),
+                      layer_offsets=np.array([0, 1, 2, 3], np.int64), loop_layer=np.array([0, 1, 2], np.int32),
+                      loop_is_hole=np.zeros(3, bool), loop_parent=np.full(3, -1, np.int32),
+                      loop_closed=np.ones(3, bool),
+                      z=np.array([0.1, 0.3, 0.5]), thickness=np.full(3, 0.2), area=np.array([16.0, 15.0, 16.0]))
+    polys, invalid = polygons_shapely(res, with_invalid=True)
+    assert invalid.tolist() == [False, True, False]
+    assert shapely.is_valid(polys).tolist() == [True, False, True]
+    same = polygons_shapely(res)
+    assert all(a.equals_exact(b, 0.0) for a, b in zip(polys, same, strict=True))
+    _, part = polygons_shapely(res, 1, 3, with_invalid=True)
+    assert part.tolist() == [True, False]
