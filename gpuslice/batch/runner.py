@@ -158,8 +158,7 @@ class BatchRunner:
         for i in done:
             self._finish(i, {"model": self.models[i].rel, "output": self.models[i].out, "status": "skipped",
                              "error": None}, None)
-        skip = set(done)
-        return [_Task(i) for i in range(len(self.models)) if i not in skip]
+        return [_Task(i) for i in sorted(set(range(len(self.models))) - set(done))]
 
     def _cleanup_temporaries(self) -> None:
         """Remove temporaries left by killed workers beside this batch's outputs (``.NAME.tmp-…``): one listing

@@ -88,8 +88,8 @@ def _contour_chunk(result, a: int, b: int, tolerance: float | None, simplify: fl
     from ..slicing.geometry import polygons_shapely
 
     lo = max(a - 1, 0)
-    lay, bad = polygons_shapely(result, lo, b, with_invalid=True)  # layers lo .. b-1; bad: broken meshes'
-    # self-crossing rings that GEOS's overlays refuse
+    # layers lo .. b-1; bad: those a broken mesh left invalid (self-crossing rings that GEOS's overlays refuse)
+    lay, bad = polygons_shapely(result, lo, b, with_invalid=True)
     if bad.any():
         lay[bad] = shapely.make_valid(lay[bad], method="structure", keep_collapsed=False)
     shapely.prepare(lay)

@@ -191,7 +191,6 @@ def batch(inputs, out_dir, pattern, raster_opt, workers, threads, scheduler, tra
         raise SystemExit(1)
 
 
-
 def _check_report_clear(report: str, inputs, models, out_dir: str) -> None:
     """A one-line error, before any model, when ``--report`` names an input (a model, a list file) or a model's
     output (or a path inside a PNG stack's folder): the report written at the end would replace it."""

@@ -202,7 +202,7 @@ class CrossingsKernel(KernelDriver):
             self._count(q, *self._grid(n_f), d_vub, d_faces, np.int32(n_f), d_first, d_count)
             count = np.empty(n_f, dtype=np.int32)
             cl.enqueue_copy(q, count, d_count)
-        n_emit = n_f if facets is None else int(facets.size)
+        n_emit = int(count.size)  # (the facets, or the batch's own)
         offsets = np.cumsum(count, dtype=np.int64)
         total = int(offsets[-1]) if n_emit else 0
         offsets -= count
