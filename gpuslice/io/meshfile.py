@@ -88,12 +88,14 @@ def read_mesh_file(path: str | os.PathLike[str]) -> RawMesh:
         if not (stat.S_ISREG(mode) or stat.S_ISFIFO(mode)):  # /dev/zero would be read until memory runs out
             raise MeshFileError(f"{name}: not a regular file (a device or a socket)")
         ext = os.path.splitext(name)[1].lower()
-        if ext in TRIMESH_EXTENSIONS:  # trimesh opens the file itself
+        if ext in TRIMESH_EXTENSIONS and not stat.S_ISFIFO(mode):  # trimesh opens the file itself
             return _read_with_trimesh(name, TRIMESH_EXTENSIONS[ext])
-        with open(name, "rb") as fh:
+        with open(name, "rb") as fh:  # (a FIFO's bytes read here: trimesh takes only a regular file by name)
             data = fh.read()
     except OSError as exc:
         raise _file_error(name, exc) from None
+    if ext in TRIMESH_EXTENSIONS:
+        return _read_with_trimesh(name, TRIMESH_EXTENSIONS[ext], data)
     return read_stl_bytes(data, name)
 
 

@@ -444,6 +444,26 @@ def test_trimesh_formats(tmp_path: Path, suffix: str, data: bytes, fmt_name: str
     assert mesh.normals is None and mesh.header == b"" and mesh.solids == 1
 
 
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs on this system")
+@pytest.mark.parametrize(("suffix", "data"), [(".obj", OBJ), (".stl", None)])
+def test_a_fifo_is_read_like_a_file(tmp_path: Path, suffix: str, data: bytes | None) -> None:
+    """A mesh piped in through a FIFO is read from its bytes (trimesh refused an OBJ by name: "not a file")."""
+    import threading
+
+    data = make_binary_stl(random_triangles(4, seed=9, scale=10.0)) if data is None else data
+    fifo = tmp_path / ("pipe" + suffix)
+    os.mkfifo(fifo)
+    writer = threading.Thread(target=fifo.write_bytes, args=(data,), daemon=True)
+    writer.start()
+    try:
+        mesh = read_mesh_file(fifo)
+    finally:
+        if writer.is_alive():  # the FIFO was not read (a failure): open it once so that the writer returns
+            os.close(os.open(fifo, os.O_RDONLY | os.O_NONBLOCK))
+        writer.join(timeout=10)
+    np.testing.assert_array_equal(mesh.triangles, read_mesh_file(write(tmp_path, "m" + suffix, data)).triangles)
+
+
 def test_trimesh_errors(tmp_path: Path) -> None:
     raises_for(tmp_path, "bad.ply", b"\x00\x01garbage", MeshFileError, r"bad\.ply: cannot read PLY file: ")
     raises_for(tmp_path, "bad.off", b"OFF\n3 1 0\n0 0 0\n1 0 0\n", MeshFileError,
