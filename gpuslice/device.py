@@ -139,6 +139,13 @@ def locked(method):
     return run
 
 
+#: a CPU device's reused buffers of at least this many bytes live in numpy's memory (``USE_HOST_PTR``), which numpy
+#: asks the kernel to back with huge pages (arrays of 4 MiB and more): a cold process touching its first segment
+#: buffers faults them in 2 MiB pages, not 4 KiB ones (PoCL's own allocations): 1/3 fewer page faults, 0.91-0.94x
+#: the whole process of a contour or resin job (docs/BENCHMARKS.md, fourteenth session)
+HOST_BACKED_BYTES = 4 << 20
+
+
 class KernelDriver:
     """Base of the thin drivers of ``kernels/*.cl``: named device buffers grown geometrically and reused across
     calls, uploads, fills, and launch grids rounded up to the explicit local size."""
@@ -170,7 +177,11 @@ class KernelDriver:
         buf, size = self._buffers.get(name, (None, 0))
         if size < nbytes:
             size = max(nbytes, int(size * 1.5), 64)
-            buf = cl.Buffer(self.device.context, cl.mem_flags.READ_WRITE, size)
+            if size >= HOST_BACKED_BYTES and not self.device.is_gpu:  # (pyopencl holds ``hostbuf`` with it)
+                flags = cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR
+                buf = cl.Buffer(self.device.context, flags, hostbuf=aligned_empty(size, np.uint8))
+            else:
+                buf = cl.Buffer(self.device.context, cl.mem_flags.READ_WRITE, size)
             self._buffers[name] = (buf, size)
         return buf
 

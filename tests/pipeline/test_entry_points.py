@@ -143,6 +143,46 @@ def test_release_scratch_drops_the_drivers_buffers_and_slicing_still_agrees(mode
     assert np.allclose(again.area, reference.area)
 
 
+def test_a_cpu_devices_large_buffers_live_in_host_memory_and_slicing_agrees(model, device, monkeypatch):
+    """On a CPU device a driver's buffers from ``HOST_BACKED_BYTES`` up use numpy's memory (``USE_HOST_PTR``: huge
+    pages); with every buffer made that way (the threshold lowered) the slice is the same as with none."""
+    import pyopencl as cl
+
+    from gpuslice import device as devmod
+    from gpuslice import load_mesh, slice_mesh
+    from gpuslice.device import KernelDriver, release_scratch
+
+    if device.is_gpu:
+        pytest.skip("buffers are host-backed on CPU devices only")
+
+    class Probe(KernelDriver):
+        pass
+
+    drv = Probe(device)
+    big, small = drv._buffer("big", devmod.HOST_BACKED_BYTES), drv._buffer("small", 1024)
+    assert big.flags & cl.mem_flags.USE_HOST_PTR and big.hostbuf is not None
+    assert not small.flags & cl.mem_flags.USE_HOST_PTR
+    data = np.arange(devmod.HOST_BACKED_BYTES // 4, dtype=np.int32)
+    got = np.empty_like(data)
+    drv._put("big", data)
+    drv._read((got, drv.buffer("big")))
+    assert np.array_equal(got, data)
+
+    mesh = load_mesh(model, fit=30)
+    results = []
+    for threshold in (1 << 62, 64):
+        monkeypatch.setattr(devmod, "HOST_BACKED_BYTES", threshold)
+        release_scratch(device)
+        results.append(slice_mesh(mesh, thickness=0.25, device=device))
+        flags = [b.flags for (_, i), d in KernelDriver._instances.items() if i == id(device)
+                 for b, _ in d._buffers.values()]
+        assert any(f & cl.mem_flags.USE_HOST_PTR for f in flags) == (threshold == 64)
+    release_scratch(device)
+    a, b = results
+    for name in ("points", "loop_offsets", "layer_offsets", "area"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+
+
 def test_a_kernel_driver_is_made_once_when_threads_ask_at_once(device):
     """The archive writers' encoder threads ask for their encoding driver at the same moment: one driver comes back
     to all of them (made once: PyOpenCL warns on stderr when a kernel is looked up twice)."""
