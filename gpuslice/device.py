@@ -32,7 +32,8 @@ import numpy as np
 
 from .errors import DeviceError
 
-__all__ = ["Device", "KernelDriver", "aligned_empty", "get_device", "list_devices", "release_scratch", "ENV_VAR"]
+__all__ = ["Device", "KernelDriver", "aligned_empty", "input_buffer", "get_device", "list_devices", "release_scratch",
+           "ENV_VAR"]
 
 ENV_VAR = "GPUSLICE_DEVICE"
 
@@ -235,6 +236,16 @@ class KernelDriver:
         """(global size, local size) covering ``n`` work-items with the device's explicit local size."""
         ls = self.device.local_size
         return (max(ls, ((n + ls - 1) // ls) * ls),), (ls,)
+
+
+def input_buffer(device: Device, array: np.ndarray):
+    """A read-only buffer holding the contiguous ``array`` for one call's kernels: on a CPU device the array's own
+    memory (``USE_HOST_PTR``: no copy into fresh pages; pyopencl holds the array with the buffer), on a GPU a copy
+    (``COPY_HOST_PTR``). ``array`` must not change until the kernels that read it are done."""
+    import pyopencl as cl
+
+    share = cl.mem_flags.COPY_HOST_PTR if device.is_gpu else cl.mem_flags.USE_HOST_PTR
+    return cl.Buffer(device.context, cl.mem_flags.READ_ONLY | share, hostbuf=array)
 
 
 def aligned_empty(n: int, dtype) -> np.ndarray:

@@ -16,6 +16,7 @@ import zlib
 
 import numpy as np
 
+from ..device import input_buffer
 from . import deflate_runs as _d
 from .png import png_chunk
 from .run_encoder import RunKernels
@@ -94,7 +95,7 @@ class PngRunsEncoder(RunKernels):
         np.cumsum(size, out=start[1:])
         n_words = int(start[-1]) // 4 + 2
         base = 8 * start[:-1] + self._hdr_bits - before
-        b_base = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=base)
+        b_base = input_buffer(self.device, base)
         words = np.zeros(n_words, np.uint32)
         b_out = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=words)
         b_ad = [cl.Buffer(ctx, mf.WRITE_ONLY, 4 * m) for _ in range(2)]

@@ -21,7 +21,7 @@ from abc import ABC, abstractmethod
 
 import numpy as np
 
-from ..device import KernelDriver, aligned_empty
+from ..device import KernelDriver, aligned_empty, input_buffer
 
 __all__ = ["RunKernels", "RunImageEncoder", "RUN_DTYPES"]
 
@@ -56,17 +56,15 @@ class RunKernels(KernelDriver):
 
     def _inputs(self, runs, a: int, b: int) -> tuple | None:
         """``(m, n_img, img_off, its buffer, the run arrays' buffers)`` of entries ``a`` … ``b`` − 1 of ``runs`` (the
-        group's runs copied to the device), or None when the arrays are not typed as the runs kernel types them."""
-        import pyopencl as cl
-
+        group's runs for the device: :func:`~gpuslice.device.input_buffer`), or None when the arrays are not typed
+        as the runs kernel types them."""
         lo, hi = int(runs.layer_offsets[a]), int(runs.layer_offsets[b])
         arrays = (runs.row, runs.x, runs.length, runs.grey)
         if any(arr.dtype != dt or not arr.flags.c_contiguous for arr, dt in zip(arrays, RUN_DTYPES, strict=True)):
             return None
-        ctx, mf = self.device.context, cl.mem_flags
         img_off = np.ascontiguousarray(runs.layer_offsets[a : b + 1] - lo, np.int32)
-        b_runs = [cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=arr[lo:hi]) for arr in arrays]
-        b_off = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=img_off)
+        b_runs = [input_buffer(self.device, arr[lo:hi]) for arr in arrays]
+        b_off = input_buffer(self.device, img_off)
         return hi - lo, b - a, img_off, b_off, b_runs
 
     def _counted(self, q, head: tuple, m: int, img_off: np.ndarray) -> tuple | None:
@@ -88,7 +86,7 @@ class RunKernels(KernelDriver):
             self.fallbacks += 1
             return None
         np.cumsum(cum, out=cum)  # inclusive, in place (the callers bound the sum below 2^31)
-        b_cum = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=cum)
+        b_cum = input_buffer(self.device, cum)
         first, end = img_off[:-1].astype(np.int64), img_off[1:].astype(np.int64)
         before = np.where(first > 0, cum[np.maximum(first - 1, 0)], 0).astype(np.int64)
         after = np.where(end > 0, cum[np.maximum(end - 1, 0)], 0).astype(np.int64)
@@ -154,7 +152,7 @@ class RunImageEncoder(RunKernels, ABC):
         base = start[:-1] + self.HEAD - before
         out = aligned_empty(max(total, 1), np.uint8)  # (never 0 with correct kernels: a buffer cannot be empty)
         b_out = cl.Buffer(ctx, mf.WRITE_ONLY | mf.USE_HOST_PTR, hostbuf=out)
-        b_base = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=base)
+        b_base = input_buffer(self.device, base)
         b_extra = [cl.Buffer(ctx, mf.WRITE_ONLY | mf.USE_HOST_PTR, hostbuf=aligned_empty(m, dt)) for dt in self.EXTRA]
         with self._lock:
             self._write(q, grid, local, *head, b_cum, b_base, b_out, *b_extra)
