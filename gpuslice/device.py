@@ -95,6 +95,16 @@ class Device:
         return bool(self.device.type & cl.device_type.GPU)
 
     @property
+    def is_cpu(self) -> bool:
+        """A CPU device (PoCL, Intel's CPU runtime), whose buffers can be the host's own memory (``USE_HOST_PTR``);
+        not a device that also says GPU (Oclgrind says every type, and its uninitialised-value check takes a
+        ``USE_HOST_PTR`` buffer's contents for uninitialised: it gets copies, as a GPU does)."""
+        import pyopencl as cl
+
+        t = self.device.type
+        return bool(t & cl.device_type.CPU) and not t & cl.device_type.GPU
+
+    @property
     def local_size(self) -> int:
         """The work-group size used by every kernel: 64 (a multiple of the warp/wavefront, good for PoCL too)."""
         return int(min(64, self.device.max_work_group_size))
@@ -172,13 +182,16 @@ class KernelDriver:
         return drv
 
     def _buffer(self, name: str, nbytes: int):
-        """The buffer ``name`` with at least ``nbytes`` bytes (contents undefined when it had to grow)."""
+        """The buffer ``name`` with at least ``nbytes`` bytes (contents undefined when it had to grow; the drivers
+        use their buffers on the device's queue, which a host-backed buffer waits for before it is let go)."""
         import pyopencl as cl
 
         buf, size = self._buffers.get(name, (None, 0))
         if size < nbytes:
             size = max(nbytes, int(size * 1.5), 64)
-            if size >= HOST_BACKED_BYTES and not self.device.is_gpu:  # (pyopencl holds ``hostbuf`` with it)
+            if size >= HOST_BACKED_BYTES and self.device.is_cpu:  # (pyopencl holds ``hostbuf`` with it)
+                if buf is not None:  # numpy frees the old memory with its buffer: no command may still use it
+                    self.device.queue.finish()
                 flags = cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR
                 buf = cl.Buffer(self.device.context, flags, hostbuf=aligned_empty(size, np.uint8))
             else:
@@ -240,11 +253,12 @@ class KernelDriver:
 
 def input_buffer(device: Device, array: np.ndarray):
     """A read-only buffer holding the contiguous ``array`` for one call's kernels: on a CPU device the array's own
-    memory (``USE_HOST_PTR``: no copy into fresh pages; pyopencl holds the array with the buffer), on a GPU a copy
-    (``COPY_HOST_PTR``). ``array`` must not change until the kernels that read it are done."""
+    memory (``USE_HOST_PTR``: no copy into fresh pages; pyopencl holds the array with the buffer), on others (a GPU)
+    a copy (``COPY_HOST_PTR``). ``array`` must not change, and the buffer must be held, until the kernels that read it
+    are done (the array is freed with the buffer: on an exception, wait for the queue first)."""
     import pyopencl as cl
 
-    share = cl.mem_flags.COPY_HOST_PTR if device.is_gpu else cl.mem_flags.USE_HOST_PTR
+    share = cl.mem_flags.USE_HOST_PTR if device.is_cpu else cl.mem_flags.COPY_HOST_PTR
     return cl.Buffer(device.context, cl.mem_flags.READ_ONLY | share, hostbuf=array)
 
 
@@ -268,10 +282,11 @@ def release_scratch(device: Device | None = None) -> None:
         if device is None or dev_id == id(device) or drv.device.origin is device:  # (and the device's lanes)
             own = getattr(drv, "_lock", None)  # (a driver with a lock of its own: the runs, between two batches)
             with drv.device.exclusive(), own if own is not None else contextlib.nullcontext():
+                # first the queue: a kernel left running (e.g. the loops' screen) may use a buffer whose memory is
+                # numpy's (HOST_BACKED_BYTES), freed with it; and the uploads' events hold their host arrays
+                drv.device.queue.finish()
                 drv._buffers.clear()
-                if drv._events:  # (the uploads' events hold their host arrays: let them go, once done)
-                    drv.device.queue.finish()
-                    drv._events.clear()
+                drv._events.clear()
     gc.collect()
     try:
         import ctypes

@@ -19,7 +19,7 @@ import numpy as np
 from ..device import input_buffer
 from . import deflate_runs as _d
 from .png import png_chunk
-from .run_encoder import RunKernels
+from .run_encoder import RunKernels, drained
 
 __all__ = ["PngRunsEncoder"]
 
@@ -71,8 +71,6 @@ class PngRunsEncoder(RunKernels):
     def encode(self, runs, a: int, b: int, width: int, height: int) -> list[bytes] | None:
         """The PNGs (``width`` × ``height``) of entries ``a`` … ``b`` − 1 of ``runs``, or None where the twin must
         make them all (arrays not typed as the runs kernel types them, a group too large, the kernels' flags)."""
-        import pyopencl as cl
-
         m, n_img = int(runs.layer_offsets[b]) - int(runs.layer_offsets[a]), b - a
         n_bytes = height * (width + 1)
         if m == 0 and width > 0 and height > 0:  # blank layers only: the twin's bytes are the kernels'
@@ -82,8 +80,16 @@ class PngRunsEncoder(RunKernels):
         got = self._inputs(runs, a, b) if fits and self._little else None
         if got is None:
             return None
+        q = self._queue()
+        with drained(q):  # (host arrays the kernels use in place are freed when an exception lets them go)
+            return self._encode_group(q, got, a, runs, width, height, n_bytes)
+
+    def _encode_group(self, q, got: tuple, a: int, runs, width: int, height: int, n_bytes: int) -> list[bytes] | None:
+        """:meth:`encode` of the group ``got`` (:meth:`_inputs`: entries from ``a`` of ``runs``) on the queue ``q``."""
+        import pyopencl as cl
+
         m, n_img, img_off, b_off, b_runs = got
-        ctx, q, mf = self.device.context, self._queue(), cl.mem_flags
+        ctx, mf = self.device.context, cl.mem_flags
         head = (np.int32(m), np.int32(n_img), np.int32(width), np.int32(height), b_off, *b_runs, *self._tabs)
         counted = self._counted(q, head, m, img_off)  # (worst < MAX_BITS: the bits' prefix sum fits)
         if counted is None:

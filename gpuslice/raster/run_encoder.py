@@ -16,6 +16,7 @@ enqueues on a command queue of its own, and the kernels' arguments are set under
 
 from __future__ import annotations
 
+import contextlib
 import threading
 from abc import ABC, abstractmethod
 
@@ -23,7 +24,7 @@ import numpy as np
 
 from ..device import KernelDriver, aligned_empty, input_buffer
 
-__all__ = ["RunKernels", "RunImageEncoder", "RUN_DTYPES"]
+__all__ = ["RunKernels", "RunImageEncoder", "RUN_DTYPES", "drained"]
 
 #: the run arrays' dtypes (row, x, length, grey) the kernels take as they are (the runs kernel's)
 RUN_DTYPES = (np.dtype(np.int32), np.dtype(np.int32), np.dtype(np.int32), np.dtype(np.uint8))
@@ -93,6 +94,18 @@ class RunKernels(KernelDriver):
         return b_cum, cum, first, before, after, end > first
 
 
+@contextlib.contextmanager
+def drained(q):
+    """On an exception, wait for the queue ``q`` before it propagates: buffers over host arrays (``USE_HOST_PTR``:
+    the inputs on a CPU device, the outputs) must outlive the commands that use them, and unwinding frees them."""
+    try:
+        yield
+    except BaseException:
+        with contextlib.suppress(Exception):
+            q.finish()
+        raise
+
+
 class RunImageEncoder(RunKernels, ABC):
     """Base of the byte-oriented encoders (GOO, CTB, PW0): ``MAX_RUN`` (the longest record: larger images go to the
     twin), ``HEAD``/``TAIL`` (bytes of each layer before/after its runs' bytes, set by :meth:`finish`), ``EXTRA``
@@ -127,15 +140,21 @@ class RunImageEncoder(RunKernels, ABC):
 
     def encode_stats(self, runs, a: int, b: int, cols: int, n_pixels: int) -> tuple[list[bytes], object] | None:
         """:meth:`encode` and :meth:`reduce`'s per-layer values: ``(images, stats)``, or None (the twin's turn)."""
-        import pyopencl as cl
-
         m = int(runs.layer_offsets[b]) - int(runs.layer_offsets[a])
         got = self._inputs(runs, a, b) if 0 < m <= self.MAX_RUNS and 0 < n_pixels <= self.MAX_RUN and cols > 0 \
             else None
         if got is None:
             return None
+        q = self._queue()
+        with drained(q):  # (host arrays the kernels use in place are freed when an exception lets them go)
+            return self._encode_group(q, got, cols, n_pixels)
+
+    def _encode_group(self, q, got: tuple, cols: int, n_pixels: int) -> tuple[list[bytes], object] | None:
+        """:meth:`encode_stats` of the group ``got`` (:meth:`_inputs`) on the queue ``q``."""
+        import pyopencl as cl
+
         m, n_img, img_off, b_off, b_runs = got
-        ctx, q, mf = self.device.context, self._queue(), cl.mem_flags
+        ctx, mf = self.device.context, cl.mem_flags
         head = (np.int32(m), np.int32(n_img), np.int32(cols), np.int64(n_pixels), b_off, *b_runs)
         counted = self._counted(q, head, m, img_off)
         if counted is None:

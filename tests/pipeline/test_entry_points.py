@@ -152,7 +152,7 @@ def test_a_cpu_devices_large_buffers_live_in_host_memory_and_slicing_agrees(mode
     from gpuslice import load_mesh, slice_mesh
     from gpuslice.device import KernelDriver, release_scratch
 
-    if device.is_gpu:
+    if not device.is_cpu:
         pytest.skip("buffers are host-backed on CPU devices only")
 
     class Probe(KernelDriver):
@@ -181,6 +181,58 @@ def test_a_cpu_devices_large_buffers_live_in_host_memory_and_slicing_agrees(mode
     a, b = results
     for name in ("points", "loop_offsets", "layer_offsets", "area"):
         assert np.array_equal(getattr(a, name), getattr(b, name)), name
+
+
+RELEASE_WHILE_RUNNING = """
+import numpy as np
+from gpuslice.device import get_device, release_scratch
+from gpuslice.slicing.walk import chain_kernels
+dev = get_device()
+ck = chain_kernels(dev)
+pts = np.random.default_rng(0).random((4_000_000, 2)).astype(np.float32)
+offs = np.arange(0, 4_000_001, 200, dtype=np.int64)
+ref = ck.simple_loops(pts, offs, wait=True)
+for _ in range(3):
+    pending = ck.simple_loops(pts, offs, wait=False)  # left running, as nesting leaves the loops' screen
+    release_scratch(dev)
+    assert np.array_equal(pending(), ref)
+print("ok")
+"""
+
+
+def test_release_scratch_waits_for_a_kernel_left_running(device):
+    """``release_scratch`` while a kernel still runs (the loops' screen, left running while the host nests): the
+    queue is finished before the buffers go, whose memory on a CPU device is numpy's and freed with them (the
+    process crashed with a segmentation fault before). In a child process, so that a crash fails only this test."""
+    import subprocess
+    import sys
+
+    from gpuslice.slicing.walk import chain_kernels
+
+    if chain_kernels(device)._simple is None:
+        pytest.skip("the device has no doubles: no loops' screen")
+    p = subprocess.run([sys.executable, "-c", RELEASE_WHILE_RUNNING], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0 and p.stdout.strip() == "ok", (p.returncode, p.stderr[-2000:])
+
+
+def test_drained_waits_for_the_queue_only_on_an_exception():
+    """``run_encoder.drained``: the queue is finished before an exception leaves the block (the host arrays its
+    commands use in place are freed as it unwinds), and not on the normal path (the block waits itself)."""
+    from gpuslice.raster.run_encoder import drained
+
+    class Queue:
+        finished = 0
+
+        def finish(self) -> None:
+            self.finished += 1
+
+    q = Queue()
+    with drained(q):
+        pass
+    assert q.finished == 0
+    with pytest.raises(KeyError, match="boom"), drained(q):
+        raise KeyError("boom")
+    assert q.finished == 1
 
 
 def test_a_kernel_driver_is_made_once_when_threads_ask_at_once(device):

@@ -109,7 +109,7 @@ def test_no_driver_drops_a_non_blocking_transfer_event():
 
 
 def test_input_buffer_shares_a_cpu_devices_memory_and_copies_for_a_gpu(device):
-    """``input_buffer``: the array's own memory on a CPU device (no copy into fresh pages), a copy on a GPU; the
+    """``input_buffer``: the array's own memory on a CPU device (no copy into fresh pages), a copy on others; the
     device reads the array's values either way (an odd, unaligned slice too, as the encoders pass)."""
     import pyopencl as cl
 
@@ -118,7 +118,7 @@ def test_input_buffer_shares_a_cpu_devices_memory_and_copies_for_a_gpu(device):
     data = np.arange(1_000_003, dtype=np.int32)[3:]
     buf = input_buffer(device, data)
     shared = bool(buf.flags & cl.mem_flags.USE_HOST_PTR)
-    assert shared == (not device.is_gpu) and bool(buf.flags & cl.mem_flags.COPY_HOST_PTR) == device.is_gpu
+    assert shared == device.is_cpu and bool(buf.flags & cl.mem_flags.COPY_HOST_PTR) == (not device.is_cpu)
     assert buf.flags & cl.mem_flags.READ_ONLY
     got = np.empty_like(data)
     cl.enqueue_copy(device.queue, got, buf, is_blocking=True)
