@@ -109,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     from distributed import Client, LocalCluster
 
-    from gpuslice.batch.runner import _cores
+    from gpuslice.batch.task import _cores
 
     cores = _cores()
     thicknesses = [float(x) for x in args.thickness.split(",")]

@@ -9,7 +9,8 @@ complete, so existing means complete (with ``--check``, its check report must ex
 before the checks run). The output folder holds a small manifest (``.gpuslice-batch.json``) with the options that
 shape the outputs; a batch with other options into the same folder is refused unless ``force`` is given, so a re-run
 never skips a model whose output was made with different options. Existing outputs in a folder without a manifest
-were not made by a batch: they are refused too (by name), not skipped, unless ``force`` is given.
+were not made by a batch: they are refused too (by name), not skipped, unless ``force`` is given; so are files the
+batch's journal (:mod:`.journal`) does not list as they are (put there later, or changed since).
 """
 
 from __future__ import annotations
@@ -30,11 +31,12 @@ from typing import Any
 from ..errors import BatchError, one_line
 from ..io.atomic import atomic_write_tree
 from .discover import Model, discover
+from .journal import JOURNAL_NAME, read_journal, record_finished, unchanged
 from .options import BatchOptions, check_path
 from .report import checks_summary
-from .task import _worker_device, init_worker, pocl_thread_env, run_model
+from .task import _cores, _worker_device, default_workers, init_worker, pocl_thread_env, run_model
 
-__all__ = ["BatchRunner", "MANIFEST_NAME", "default_workers", "run_batch"]
+__all__ = ["BatchRunner", "MANIFEST_NAME", "run_batch"]
 
 #: the manifest in the output folder: the options that shape the outputs
 MANIFEST_NAME = ".gpuslice-batch.json"
@@ -42,32 +44,6 @@ MANIFEST_NAME = ".gpuslice-batch.json"
 PREFETCH = 2
 #: a model whose worker died this many times is reported failed instead of re-run again
 MAX_LOST = 2
-
-
-def _cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        return os.cpu_count() or 1
-
-
-def default_workers(n_models: int, device: str | None = None, backend: str = "opencl") -> tuple[int, int]:
-    """The default (worker processes, PoCL threads per worker) for ``n_models`` models on this machine.
-
-    On a CPU device (PoCL) one worker per core, each with ``cores // workers`` PoCL threads: the cores are
-    shared out instead of every process starting one thread per core (oversubscription). Fewer models than cores
-    get fewer workers with more threads each. On a GPU, ``min(cores, 4)`` workers share the GPU (the host-side
-    stages of one model overlap the kernels of another); PoCL's thread count does not matter there.
-    """
-    cores = _cores()
-    n = max(1, min(cores, n_models))
-    if backend == "opencl":
-        with contextlib.suppress(Exception):
-            from ..device import resolve
-
-            if "GPU" in resolve(device)["type"]:
-                n = max(1, min(4, cores, n_models))
-    return n, max(1, cores // n)
 
 
 _PRELOAD = ["gpuslice.batch.task", "gpuslice.pipeline", "gpuslice.slicing.slicer", "gpuslice.io.meshfile",
@@ -145,17 +121,22 @@ class BatchRunner:
                 raise BatchError(f"{out}: holds outputs made with other options ({diff}); use --force to redo "
                                  "them, or another output folder")
         ours = manifest.exists()  # a batch wrote here before: existing outputs are its finished models
-        done = [] if self.force else [i for i, m in enumerate(self.models) if (out / m.out).exists() and
-                                      (not self.opts.check or check_path(out / m.out).exists())]
-        if done and not ours:
-            first = out / self.models[done[0]].out
-            raise BatchError(f"{first}: exists, and {out} has no batch manifest ({MANIFEST_NAME}): not written by "
-                             f"gpuslice batch ({len(done)} such outputs); use --force to replace them, or another "
-                             "output folder")
+        done = [] if self.force else [i for i in range(len(self.models)) if all((out / f).exists() for f in
+                                                                                self._files(i))]
+        journal = read_journal(out) if done else None  # (None: a folder of a batch from before the journal)
+        foreign = done if not ours else [i for i in done if journal is not None and
+                                         not unchanged(out, self._files(i), journal)]
+        if foreign:
+            why = (f"and {out} has no batch manifest ({MANIFEST_NAME}): not written by gpuslice batch" if not ours else
+                   f"but {out}'s batch journal ({JOURNAL_NAME}) does not list it as it is: put there or changed since")
+            raise BatchError(f"{out / self.models[foreign[0]].out}: exists, {why} ({len(foreign)} such outputs); use "
+                             "--force to replace them, or another output folder")
         from ..io.atomic import atomic_write_text
 
         atomic_write_text(manifest, json.dumps(want, indent=1, sort_keys=True) + "\n")
         for i in done:
+            if journal is None:  # taken as finished by the older rule: recorded now, so the next run knows them
+                record_finished(out, self._files(i))
             self._finish(i, {"model": self.models[i].rel, "output": self.models[i].out, "status": "skipped",
                              "error": None}, None)
         return [_Task(i) for i in sorted(set(range(len(self.models))) - set(done))]
@@ -179,8 +160,15 @@ class BatchRunner:
                     if name.startswith(".") and k > 1 and name[1:k] in names:
                         remove_path(Path(entry.path))
 
+    def _files(self, index: int) -> list[str]:
+        """The files model ``index`` leaves in the output folder (its output; with checks, its check report)."""
+        out = self.models[index].out
+        return [out, str(check_path(out))] if self.opts.check else [out]
+
     def _finish(self, index: int, rec: dict, task: _Task | None) -> None:
         m = self.models[index]
+        if rec["status"] == "done":
+            record_finished(self.out_dir, self._files(index))
         rec["input"] = m.src
         if task is not None:
             rec["attempts"] = task.attempt

@@ -2,6 +2,7 @@
 in whatever process runs it (this one, a local worker, a Dask worker). :func:`run_model` never raises: it returns a
 JSON-able record. Outputs are written atomically and their bytes depend only on the model and the options (no
 timings, device names or paths of the machine in the file), so a task can be re-run anywhere: tasks are idempotent.
+How many worker processes and PoCL threads a machine gets by default: :func:`default_workers`.
 """
 
 from __future__ import annotations
@@ -20,9 +21,35 @@ from ..errors import BatchError, GpusliceError, one_line
 from .discover import Model
 from .options import BatchOptions, check_path
 
-__all__ = ["check_summary", "connect", "init_worker", "pocl_thread_env", "run_model"]
+__all__ = ["check_summary", "connect", "default_workers", "init_worker", "pocl_thread_env", "run_model"]
 
 _WORKER: dict[str, Any] = {}
+
+
+def _cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def default_workers(n_models: int, device: str | None = None, backend: str = "opencl") -> tuple[int, int]:
+    """The default (worker processes, PoCL threads per worker) for ``n_models`` models on this machine.
+
+    On a CPU device (PoCL) one worker per core, each with ``cores // workers`` PoCL threads: the cores are
+    shared out instead of every process starting one thread per core (oversubscription). Fewer models than cores
+    get fewer workers with more threads each. On a GPU, ``min(cores, 4)`` workers share the GPU (the host-side
+    stages of one model overlap the kernels of another); PoCL's thread count does not matter there.
+    """
+    cores = _cores()
+    n = max(1, min(cores, n_models))
+    if backend == "opencl":
+        with contextlib.suppress(Exception):
+            from ..device import resolve
+
+            if "GPU" in resolve(device)["type"]:
+                n = max(1, min(4, cores, n_models))
+    return n, max(1, cores // n)
 
 
 def pocl_thread_env(threads: int) -> dict[str, str]:

@@ -18,6 +18,7 @@ import pytest
 
 from gpuslice import Placement, SliceParams
 from gpuslice.batch import (
+    JOURNAL_NAME,
     MANIFEST_NAME,
     BatchError,
     BatchOptions,
@@ -76,7 +77,7 @@ def tree(tmp_path_factory, device) -> Path:
 
 def _outputs(folder: Path) -> dict[str, bytes]:
     return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*"))
-            if p.is_file() and p.name != MANIFEST_NAME}
+            if p.is_file() and p.name not in (MANIFEST_NAME, JOURNAL_NAME)}
 
 
 @pytest.fixture(scope="module")
@@ -200,6 +201,41 @@ def test_outputs_not_written_by_a_batch_are_not_skipped(tree, serial, tmp_path):
     assert all(r["status"] == "done" for r in forced.values()) and (out / first).read_bytes() != b"someone else's file"
     again = _by_model(run_batch([tree / "gen" / "deep"], out, OPTS, workers=0))  # the manifest is there now
     assert all(r["status"] == "skipped" for r in again.values())
+
+
+def test_a_file_put_into_a_batch_folder_later_is_not_skipped(tmp_path, device):
+    """In a folder a batch wrote (its manifest there), a file in the place of a model that failed, or an output changed
+    since, was skipped as that model's finished output; it is refused by name unless forced (the batch's journal
+    lists the files it left). The batch's own outputs are still skipped, and a folder of a batch from before the
+    journal keeps the older rule (its outputs recorded as they are)."""
+    models = tmp_path / "models"
+    models.mkdir()
+    for name, make in (("cube", shapes.box), ("cone", lambda: shapes.cone(n=24))):
+        shapes.write_stl(make(), models / f"{name}.stl")
+    (models / "bad.stl").write_bytes(b"solid nothing\n  facet normal 0 0 1\n")
+    out = tmp_path / "out"
+    recs = _by_model(run_batch([models], out, OPTS, workers=0))
+    assert recs["bad.stl"]["status"] == "failed" and (out / JOURNAL_NAME).is_file()
+    bad, cube = out / recs["bad.stl"]["output"], out / recs["cube.stl"]["output"]
+    skipped = lambda rep: {k for k, r in _by_model(rep).items() if r["status"] == "skipped"}  # noqa: E731
+    assert skipped(run_batch([models], out, OPTS, workers=0)) == {"cube.stl", "cone.stl"}
+    bad.write_bytes(b"put here later")  # the failed model's place filled by someone else
+    with pytest.raises(BatchError, match=rf"{bad.name}: exists, but .* journal .* does not list it as it is"):
+        run_batch([models], out, OPTS, workers=0)
+    assert bad.read_bytes() == b"put here later"
+    bad.unlink()
+    made = cube.read_bytes()
+    cube.write_bytes(made + b"changed")  # an output changed since the batch wrote it
+    with pytest.raises(BatchError, match=rf"{cube.name}: exists, but"):
+        run_batch([models], out, OPTS, workers=0)
+    forced = _by_model(run_batch([models], out, OPTS, workers=0, force=True))
+    assert forced["cube.stl"]["status"] == "done" and cube.read_bytes() == made
+    assert skipped(run_batch([models], out, OPTS, workers=0)) == {"cube.stl", "cone.stl"}
+    (out / JOURNAL_NAME).unlink()  # a folder of a batch from before the journal: the older rule, then recorded
+    assert skipped(run_batch([models], out, OPTS, workers=0)) == {"cube.stl", "cone.stl"}
+    bad.write_bytes(b"put here later")
+    with pytest.raises(BatchError, match="does not list it as it is"):
+        run_batch([models], out, OPTS, workers=0)
 
 
 def test_killed_worker_mid_batch(tree, serial, tmp_path):
