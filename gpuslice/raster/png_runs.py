@@ -16,10 +16,10 @@ import zlib
 
 import numpy as np
 
-from ..device import input_buffer
+from ..device import drained, input_buffer
 from . import deflate_runs as _d
 from .png import png_chunk
-from .run_encoder import RunKernels, drained
+from .run_encoder import RunKernels
 
 __all__ = ["PngRunsEncoder"]
 

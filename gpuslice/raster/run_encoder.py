@@ -16,15 +16,14 @@ enqueues on a command queue of its own, and the kernels' arguments are set under
 
 from __future__ import annotations
 
-import contextlib
 import threading
 from abc import ABC, abstractmethod
 
 import numpy as np
 
-from ..device import KernelDriver, aligned_empty, input_buffer
+from ..device import KernelDriver, aligned_empty, drained, input_buffer
 
-__all__ = ["RunKernels", "RunImageEncoder", "RUN_DTYPES", "drained"]
+__all__ = ["RunKernels", "RunImageEncoder", "RUN_DTYPES"]
 
 #: the run arrays' dtypes (row, x, length, grey) the kernels take as they are (the runs kernel's)
 RUN_DTYPES = (np.dtype(np.int32), np.dtype(np.int32), np.dtype(np.int32), np.dtype(np.uint8))
@@ -92,18 +91,6 @@ class RunKernels(KernelDriver):
         before = np.where(first > 0, cum[np.maximum(first - 1, 0)], 0).astype(np.int64)
         after = np.where(end > 0, cum[np.maximum(end - 1, 0)], 0).astype(np.int64)
         return b_cum, cum, first, before, after, end > first
-
-
-@contextlib.contextmanager
-def drained(q):
-    """On an exception, wait for the queue ``q`` before it propagates: buffers over host arrays (``USE_HOST_PTR``:
-    the inputs on a CPU device, the outputs) must outlive the commands that use them, and unwinding frees them."""
-    try:
-        yield
-    except BaseException:
-        with contextlib.suppress(Exception):
-            q.finish()
-        raise
 
 
 class RunImageEncoder(RunKernels, ABC):
