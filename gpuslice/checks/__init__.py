@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import ParameterError
 from ..options import is_real, option
-from .cavities import DEFAULT_GRID_MM, KINDS, SUCTION_CUP, TRAP, Cavities, CavityFinder
+from .cavities import DEFAULT_GRID_MM, KINDS, SUCTION_CUP, TRAP, Cavities, CavityFinder, enclosed_in_outlines
 from .islands import Islands, PixelIslands, contour_islands
 from .summary import CheckReport, peel_and_time
 
@@ -39,12 +39,13 @@ class CheckOptions:
                               "printer's pixels, with --printer)", unit="mm")
 
     def __post_init__(self) -> None:
-        t = self.overhang_tolerance
-        if t is not None and not (is_real(t) and math.isfinite(t) and t >= 0):
-            raise ParameterError(f"overhang_tolerance must be >= 0 mm, got {t}", param="overhang_tolerance")
-        g = self.trap_grid
-        if not (is_real(g) and math.isfinite(g) and g >= 0):
-            raise ParameterError(f"trap_grid must be >= 0 mm, got {g}", param="trap_grid")
+        for name, value in (("overhang_tolerance", self.overhang_tolerance), ("trap_grid", self.trap_grid)):
+            if value is None and name == "overhang_tolerance":
+                continue
+            if not is_real(value):
+                raise ParameterError(f"{name} must be a number (mm), got {value!r}", param=name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ParameterError(f"{name} must be >= 0 mm, got {value}", param=name)
 
 
 def _check_arguments(result, spec, settings, options, bounds, backend: str, workers) -> None:
@@ -218,7 +219,7 @@ def run_checks(result, spec=None, settings=None, *, options: CheckOptions | None
             for layer0, k, parts in layer_intervals(result, grid_spec, bounds, backend=backend, device=device,
                                                     layers=near):
                 finder.feed(layer0, k, parts)
-        cavities = finder.result()
+        cavities = finder.result(enclosed=lambda lay, x, y: enclosed_in_outlines(result, lay, x, y))
     timings["cavities"] = time.perf_counter() - t
     peel = peel_and_time(result, settings)
     display = None

@@ -22,6 +22,14 @@ or above. Only the last layer of a batch is kept for the next, so memory is one 
 layer without a hole loop has no enclosed empty space, so only the layers with one and their neighbours are
 rasterised (:func:`gpuslice.checks.hole_layers`).
 
+**Holes the grid made.** A notch or slit narrower than a cell can close on the grid into a hole that the layer's
+polygons do not enclose: its empty space reaches the outside within the layer. Given the polygons
+(:meth:`CavityFinder.result`'s ``enclosed``, :func:`enclosed_in_outlines`), a hole counts as enclosed only where its
+layer has a hole loop and its cell nearest the centroid lies inside one of the layer's closed outer loops; the others
+are open to the outside in their own layer (as a hole of the first layer is open below). Without this, such a notch
+whose layers end where the rasterised layers end was never seen to open and came out as a trap (a surface groove of
+``rear_case``, a slit beside a vent).
+
 **Traps**: connected holes of which none is open, none lies in the first layer (open to below once off the plate)
 nor in the last (open above): they hold uncured resin after printing. **Suction cups**: while layer i prints, the
 empty space of layers 0 .. i is closed below by the plate and above by the vat floor; a hole of layer i whose
@@ -33,13 +41,14 @@ volume when it was last sealed.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from .intervals import Lines, components, expand_pairs
 
-__all__ = ["Cavities", "CavityFinder", "DEFAULT_GRID_MM", "TRAP", "SUCTION_CUP", "KINDS"]
+__all__ = ["Cavities", "CavityFinder", "enclosed_in_outlines", "DEFAULT_GRID_MM", "TRAP", "SUCTION_CUP", "KINDS"]
 
 #: default cell of the voxel grid, mm
 DEFAULT_GRID_MM = 0.2
@@ -72,6 +81,50 @@ class Cavities:
     @property
     def n_cups(self) -> int:
         return int(np.count_nonzero(self.kind == SUCTION_CUP))
+
+
+def enclosed_in_outlines(result, layer: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """(K,) bool: whether the point ``(x[k], y[k])`` (mm, the result's frame) of layer ``layer[k]`` could lie in
+    empty space that layer's polygons enclose: the layer has a closed hole loop, and the point lies inside one of its
+    closed outer loops (then, being empty, it is in a hole; a point outside all of them reaches the outside). A point
+    on a loop counts as it falls. Only loops whose box holds the point are walked (no Python loop per point)."""
+    from ..ragged import expand_ranges
+    from ..slicing.rings import _as_complex, _winding_numbers
+
+    layer = np.asarray(layer, np.int64)
+    out = np.zeros(layer.size, bool)
+    if not layer.size or result.n_loops == 0:
+        return out
+    closed = np.asarray(result.loop_closed, bool)
+    is_hole = np.asarray(result.loop_is_hole, bool)
+    loop_layer = np.asarray(result.loop_layer, np.int64)
+    has_hole = np.zeros(result.n_layers, bool)
+    has_hole[loop_layer[closed & is_hole]] = True
+    lay_off = np.asarray(result.layer_offsets, np.int64)
+    k, loop = expand_ranges(lay_off[layer], lay_off[layer + 1] - lay_off[layer])
+    keep = has_hole[layer[k]] & closed[loop] & ~is_hole[loop]
+    k, loop = k[keep], loop[keep]
+    if not k.size:
+        return out
+    offsets = np.asarray(result.loop_offsets, np.int64)
+    pts = np.asarray(result.points)
+    used = np.unique(loop)
+    owner, at = expand_ranges(offsets[used], offsets[used + 1] - offsets[used])
+    starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
+    px, py = pts[at, 0], pts[at, 1]
+    box = np.empty((result.n_loops, 4), np.float64)
+    box[used] = np.stack([np.minimum.reduceat(px, starts), np.minimum.reduceat(py, starts),
+                          np.maximum.reduceat(px, starts), np.maximum.reduceat(py, starts)], axis=1)
+    xk, yk = np.asarray(x, np.float64)[k], np.asarray(y, np.float64)[k]
+    b = box[loop]
+    near = (b[:, 0] <= xk) & (xk <= b[:, 2]) & (b[:, 1] <= yk) & (yk <= b[:, 3])
+    k, loop = k[near], loop[near]
+    if not k.size:
+        return out
+    q = np.asarray(x, np.float64) + 1j * np.asarray(y, np.float64)
+    w = _winding_numbers(_as_complex(pts), offsets, k, loop, q)
+    out[k[w != 0]] = True
+    return out
 
 
 class _DSU:
@@ -219,7 +272,10 @@ class CavityFinder:
             self.open_below.append(np.unique(np.concatenate([h[down][border], h[down][q[hole_of[j] < 0]]])))
 
     # ---- the whole model -------------------------------------------------------------------------------------------
-    def result(self) -> Cavities:
+    def result(self, enclosed: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None) -> Cavities:
+        """The traps and suction cups. ``enclosed(layer, x, y)``: (K,) bool, whether the point (mm) of a hole in that
+        layer lies in empty space the layer's polygons enclose (:func:`enclosed_in_outlines`); the other holes are
+        open to the outside in their own layer (module docstring). None: every hole is taken as enclosed."""
         n = self.n_holes
         if n == 0:
             return self._table([])
@@ -240,6 +296,11 @@ class CavityFinder:
             above[part] = True
         for part in self.open_below:
             below[part] = True
+        if enclosed is not None:  # holes the grid made (module docstring): open where they are
+            t = self.to_mm
+            x = t[0, 0] * rep[:, 0] + t[0, 1] * rep[:, 1] + t[0, 2]
+            y = t[1, 0] * rep[:, 0] + t[1, 1] * rep[:, 1] + t[1, 2]
+            below |= ~np.asarray(enclosed(hl, x, y), bool)
         rows = self._traps(n, hl, area, vol, bbox, rep, src, dst, above | below)
         rows += self._cups(n, hl, area, vol, bbox, rep, src, dst, above, below)
         return self._table(rows)

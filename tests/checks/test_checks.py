@@ -311,6 +311,36 @@ def test_a_pocket_opened_by_a_side_channel_ends_there():
     assert cav.volume[0] == pytest.approx(12 * 12 * 3.0, rel=0.02)
 
 
+def slit_block():
+    """A box with a closed 7.6 x 7.6 x 4 mm cavity (z 2 to 6 mm) and, beside it, a block with a 1 mm channel from
+    z = 3 mm up through its top, joined to the block's side by a 0.05 mm slit (overlapping boxes): the channel is
+    open to the outside in every layer, but on the 0.2 mm trap grid the slit closes and the channel is a hole of the
+    grid."""
+    cavity = [_box(10, 10, 2), _box(10, 10, 2, z0=6), _box(10, 1.2, 4, y=4.4, z0=2), _box(10, 1.2, 4, y=-4.4, z0=2),
+              _box(1.2, 10, 4, x=4.4, z0=2), _box(1.2, 10, 4, x=-4.4, z0=2)]
+    cx = 15.0  # the block's centre; the channel at x = cx, the slit towards +x
+    block = [_box(10, 10, 3, x=cx, z0=0), _box(10, 4.6, 7, x=cx, y=-2.75, z0=3), _box(10, 4.6, 7, x=cx, y=2.75, z0=3),
+             _box(4.6, 1.2, 7, x=cx - 2.75, z0=3), _box(4.5, 0.5, 7, x=cx + 2.75, y=-0.275, z0=3),
+             _box(4.5, 0.5, 7, x=cx + 2.75, y=0.275, z0=3)]
+    return _cat(*cavity, *block)
+
+
+def test_a_notch_the_grid_closes_is_no_trap():
+    """A hole of the voxel grid that the layer's polygons do not enclose (a channel open to the side through a slit
+    narrower than a cell) is open in its layer: neither a trap nor a suction cup, whichever layers are rasterised
+    (before, the channel's layers ended with the rasterised ones and it came out as a trap)."""
+    res = _slice(slit_block())
+    cavity = 7.6 * 7.6 * 4.0  # (on the grid: 37 or 38 cells a side, as the cells fall)
+    lo, hi = _first_layer_above(res, 2.0), _first_layer_above(res, 6.0) - 1
+    for spec, options in ((None, None), (RasterSpec(resolution=(180, 80), pixel=0.2, gamma=0.0),
+                                         CheckOptions(trap_grid=0))):
+        cav = _check(res, spec, options=options).cavities
+        assert cav.kind.tolist() == [TRAP, SUCTION_CUP], (spec, cav)
+        assert cav.layer_min.tolist() == [lo, lo] and cav.layer_max.tolist() == [hi, hi]
+        assert cav.volume == pytest.approx([cavity, cavity], rel=0.06)
+        assert np.all(np.abs(cav.x) < 4) and np.all(np.abs(cav.y) < 4)  # the cavity's, not the channel's
+
+
 def test_batches_give_the_same_answers():
     """Traps, cups and islands do not depend on how the layers are batched (the memory bound)."""
     res = _slice(_cat(hollow_sphere(), _at(cup(), x=25)))
@@ -425,6 +455,8 @@ def test_bad_options():
         _check(res, options=CheckOptions(trap_grid=0))  # the printer's pixels, without a printer
     with pytest.raises(ParameterError, match="overhang_tolerance"):
         CheckOptions(overhang_tolerance=-1)
+    with pytest.raises(ParameterError, match=r"trap_grid must be a number \(mm\), got '0.2'"):
+        CheckOptions(trap_grid="0.2")
     with pytest.raises(ParameterError, match="does not fit"):
         _check(res, RasterSpec(resolution=(100, 100), pixel=0.05))
 
