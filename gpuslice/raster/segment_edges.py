@@ -32,12 +32,15 @@ sixty-three more planes per layer, the cost of that option), when
 * every layer of the job's own slice is *segment-exact* (:attr:`SliceResult.segment_exact`: chaining repaired
   nothing, nesting dropped, turned round and rebuilt nothing), which overlapping or inside-out shells, and
   self-intersecting facets that the layers cut, are not;
+* no two shells' boxes meet, except a cavity's (a shell wound inward) inside its model's (:func:`shells_meeting`):
+  two bodies that meet only between two layer planes, or a body thinner than a layer lying there, are cut by the
+  sub-planes alone, which would count their overlap twice;
 * the device has doubles (``cl_khr_fp64``).
 
-What this does not prove: a self-intersection or a shell that lies wholly between two layer planes (thinner than a
-layer), or a zero-volume shell of more than two facets whose loops the layers' planes happen to leave alone, is met
-only by sub-planes, whose greys there are then the plain winding sum of their segments (nesting might have rebuilt,
-dropped or turned loops round). Elsewhere the masks are those of the polygon path, byte for byte
+What this does not prove: a self-intersection of one shell, or of a cavity with its model, that lies wholly between
+two layer planes, or a zero-volume shell of more than two facets whose loops the layers' planes happen to leave
+alone, is met only by sub-planes, whose greys there are then the plain winding sum of their segments (nesting might
+have rebuilt, dropped or turned loops round). Elsewhere the masks are those of the polygon path, byte for byte
 (``tests/raster/test_segment_edges.py``: the closed, consistently wound shared meshes, a ridge and an apex on a
 sub-plane, mirrored and portrait displays, several chunks).
 
@@ -56,7 +59,7 @@ from ..slicing.crossings import DeviceSegments, Segments
 from .edges import LayerEdges, box_tiles, iter_layer_edges, merge_tiles, splice_layers
 from .spec import RasterSpec
 
-__all__ = ["shortcut_refusal", "layers_through_vertices", "short_segments", "iter_sub_plane_edges",
+__all__ = ["shortcut_refusal", "shells_meeting", "layers_through_vertices", "short_segments", "iter_sub_plane_edges",
            "segment_edges_numpy", "SegmentEdgesKernel"]
 
 _BIG = np.iinfo(np.int32).max
@@ -89,8 +92,61 @@ def shortcut_refusal(mesh, result, fill_rule: str, spec: RasterSpec, bounds) -> 
     exact = getattr(result, "segment_exact", None)
     if exact is None or not np.all(exact):
         return "some layers' polygons are not their segments (repaired, overlapping or inside-out shells)"
+    meeting = shells_meeting(mesh)
+    if meeting:
+        return meeting
     if _affine(spec, bounds) is None:
         return "the display's mapping is not finite"
+    return None
+
+
+#: candidate pairs of shells (boxes overlapping in x) beyond which :func:`shells_meeting` refuses without looking
+MAX_SHELL_PAIRS = 4_000_000
+
+
+def shells_meeting(mesh) -> str | None:
+    """Why two shells (vertex-connected parts) of ``mesh`` might overlap where only sub-planes cut them, or None.
+
+    The main layers' slice sees only the overlaps its planes cut: a body thinner than a layer lying wholly between
+    two planes, or two bodies that meet only there, would be cut by sub-planes alone, whose summed windings then
+    count the overlap twice (seen: a 0.03 mm plate across a box's edge, 141 pixels of a layer 51 greys too bright).
+    So the shortcut is refused when the boxes of two shells meet (touching counts), except a cavity (a shell wound
+    inward, negative volume) whose box lies within that of a shell wound outward: a hollowed model. Vectorised: the
+    boxes sorted by their lowest x, each against those starting before it ends."""
+    from ..mesh.graph import components
+
+    f = np.asarray(mesh.faces, np.int64)
+    labels = components(int(mesh.vertices.shape[0]), np.concatenate([f[:, 0], f[:, 1]]),
+                        np.concatenate([f[:, 1], f[:, 2]]), device=getattr(mesh, "device", None))
+    shell_ids, shell = np.unique(np.asarray(labels)[f[:, 0]], return_inverse=True)
+    n = shell_ids.size
+    if n < 2:
+        return None
+    tri = np.asarray(mesh.vertices, np.float64)[f]  # (F, 3 corners, xyz)
+    order = np.argsort(shell, kind="stable")
+    start = np.flatnonzero(np.r_[True, shell[order][1:] != shell[order][:-1]])
+    lo = np.minimum.reduceat(tri.min(axis=1)[order], start)
+    hi = np.maximum.reduceat(tri.max(axis=1)[order], start)
+    volume = np.bincount(shell, np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])), minlength=n)
+    by_x = np.argsort(lo[:, 0], kind="stable")
+    ends = np.searchsorted(lo[by_x, 0], hi[by_x, 0], side="right")  # boxes starting at or before each one's end
+    counts = np.maximum(ends - np.arange(n) - 1, 0)
+    if int(counts.sum()) > MAX_SHELL_PAIRS:
+        return f"{n} shells, too many side by side to check that none meets another"
+    from ..ragged import expand_ranges
+
+    owner, other = expand_ranges(np.arange(n) + 1, counts)
+    a, b = by_x[owner], by_x[other]
+    meet = np.all((lo[a] <= hi[b]) & (lo[b] <= hi[a]), axis=1)
+    a, b = a[meet], b[meet]
+
+    def within(inner, outer):  # a cavity inside a shell wound outward, by their boxes
+        return (volume[inner] < 0) & (volume[outer] > 0) & np.all((lo[outer] <= lo[inner]) & (hi[inner] <= hi[outer]),
+                                                                  axis=1)
+
+    bad = ~(within(a, b) | within(b, a))
+    if bad.any():
+        return f"two of its {n} shells meet, by their boxes (a body that only sub-planes cut could overlap another)"
     return None
 
 

@@ -169,6 +169,12 @@ def test_not_taken_where_polygons_are_not_segments(device):
     assert "not their segments" in _refusal(nested_same_way)
     pillow = np.array([[[20, 0, 1], [22, 0, 4], [21, 2, 8]], [[20, 0, 1], [21, 2, 8], [22, 0, 4]]], float)
     assert "three vertices" in _refusal(np.concatenate([box, pillow]))  # a closed shell of two facets
+    assert _refusal(np.concatenate([box, shapes.box((12.0, 0.0, 0.0), (20.0, 8.0, 6.0))])) is None  # side by side
+    # a plate 0.03 mm thick across the box's edge, between two layers' planes: every layer is its segments, but the
+    # sub-planes through the plate would count the overlap twice (the auditor's case: 141 pixels too bright)
+    thin = np.concatenate([box, shapes.box((8.0, 2.0, 5.06), (14.0, 6.0, 5.09))])
+    assert "shells meet" in _refusal(thin)
+    assert _refusal(np.concatenate([box, shapes.box((10.0, 0.0, 0.0), (12.0, 8.0, 6.0))])) is not None  # touching
 
 
 def test_the_job_takes_it_and_writes_the_same_file(tmp_path, device, monkeypatch):
