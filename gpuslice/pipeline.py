@@ -50,7 +50,7 @@ class ResinOutput:
         from .errors import ParameterError
 
         try:
-            self.options.check_format(self.format)  # a printer that cannot read it: refused before any work
+            self.options.check_format(self.format, self.spec)  # a printer that cannot read it, or another display
         except ParameterError as exc:
             raise ParameterError(f"{self.path}: {exc}") from None
 

@@ -11,9 +11,11 @@ Displays (``--displays``): ``12k`` = 11520x5120 at 0.019 mm (the issue's job; a 
 (``--gammas``), plus ``--z-samples 4`` at gamma 1 for the first format (``--z4``).
 
 Every command is ``gpuslice raster STL --fit F -t 0.05 --resolution R --pixel P [--pixel-y Q] --gamma G -o OUT
---report R.json -q --no-progress`` under ``/usr/bin/time -v`` (wall time and peak RSS of the whole process), run
-``--repeat`` times, the commands interleaved; the medians are printed with the stages of the median run's report
-(load, topology, crossings, chaining, nesting, raster) and layers/s of the whole job. ``--prusa`` adds PrusaSlicer's
+--report R.json -q --no-progress`` (for ``pwmx``: ``--printer P.json``, a preset file of that display reading
+``.pwmx``, as gpuslice refuses a Photon Mono X file of another display) under ``/usr/bin/time -v`` (wall time and
+peak RSS of the whole process), run ``--repeat`` times, the commands interleaved; the medians are printed with
+the stages of the median run's report (load, topology, crossings, chaining, nesting, raster) and layers/s of the
+whole job. ``--prusa`` adds PrusaSlicer's
 SL1 export of the same STL at the same display (once: it takes minutes) as the reference of the same run.
 
 Usage: ``python scripts/bench_resin.py [--jobs armadillo,nefertiti] [--displays 12k,16k]
@@ -62,10 +64,20 @@ def job_stl(name: str, cache: Path) -> Path:
 
 
 def command(stl: Path, fit: float, display: str, gamma: float, out: str, report: Path, z: int = 1) -> list[str]:
+    """The gpuslice command of one run. A Photon Workshop suffix names a machine whose display the file must be
+    (gpuslice refuses another), and none has these displays: such an output gets a preset file of its own, a
+    printer with this display reading that format (as a user's own preset would), beside ``report``."""
     (nx, ny), px, py = DISPLAYS[display]
+    suffix = Path(out).suffix.lstrip(".")
     cmd = [sys.executable, "-m", "gpuslice.cli", "raster", str(stl), "--fit", f"{fit:g}", "-t", "0.05",
-           "--resolution", f"{nx}x{ny}", "--pixel", f"{px:g}", "--gamma", f"{gamma:g}", "-o", out,
-           "--report", str(report), "-q", "--no-progress"]
+           "--gamma", f"{gamma:g}", "-o", out, "--report", str(report), "-q", "--no-progress"]
+    if suffix not in ("", "goo", "ctb", "sl1", "nanodlp", "png"):  # a Photon Workshop machine's suffix
+        preset = report.with_name(f"bench-{display}-{suffix}.json")
+        preset.write_text(json.dumps({"name": f"bench-{display}", "resolution": [nx, ny], "pixel": px,
+                                      **({"pixel_y": py} if py is not None else {}), "build_height": 200,
+                                      "formats": [suffix], "machine": f"bench {display}"}))
+        return [*cmd, "--printer", str(preset), *(["--z-samples", str(z)] if z > 1 else [])]
+    cmd += ["--resolution", f"{nx}x{ny}", "--pixel", f"{px:g}"]
     if py is not None:
         cmd += ["--pixel-y", f"{py:g}"]
     if z > 1:

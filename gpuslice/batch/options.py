@@ -132,8 +132,10 @@ class BatchOptions:
         ropts = ResinOptions(**{k: v for k, v in given.items() if k in resin_keys})
         ropts.check_format(self.raster)
         display = {f.name: given.get(f.name) for f in fields(RasterSpec)}
+        spec = ropts.spec(**display)
+        ropts.check_display(self.raster, spec)
         settings = ropts.settings(**{f.name: given.get(f.name) for f in fields(PrintSettings)})
-        return ropts.spec(**display), ropts, settings
+        return spec, ropts, settings
 
     @property
     def suffix(self) -> str:

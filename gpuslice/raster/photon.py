@@ -43,8 +43,9 @@ stage 2 = (0, 0, retract speed), advanced mode off. The pixel size in the header
 **Machine and version**: the output's suffix names the machine (:data:`MACHINES`: its name as Photon Workshop writes
 it, display, Z travel and file version). A printer preset (``--printer``) overrides the name (``machine``), the Z
 travel (``build_height``) and, when its native format is this suffix, the version (``format_version``: 1, 515, 516,
-517 or 518). The display, pitch and resolution written are always the job's (:class:`RasterSpec`); the firmware
-checks them against its own, so give the printer's display (``--printer`` or ``--resolution``/``--pixel``).
+517 or 518). The display, pitch and resolution written are the job's (:class:`RasterSpec`); the firmware checks
+them against its own, so a job whose display is not the named machine's (the suffix's, or the preset's) is refused
+before any work (:meth:`gpuslice.raster.spec.ResinOptions.check_display`).
 Mirroring is the display's (``--mirror-x``): UVtools' Anycubic printer profiles mirror X. Photon Workshop files
 carry no date, so the bytes depend only on the layers and the options. The M7 generation (``.pm7``, ``.pm7m``,
 ``.pwsz``, ``.pm4u``) uses another, zip-based container: not this writer.

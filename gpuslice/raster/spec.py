@@ -239,8 +239,43 @@ class ResinOptions:
         base = PrintSettings().with_values(preset.settings) if preset is not None else PrintSettings()
         return base.with_values(given)
 
-    def check_format(self, fmt: str) -> None:
-        """:class:`ParameterError` when the preset's printer cannot read the resin output ``fmt``."""
+    def check_format(self, fmt: str, spec: RasterSpec | None = None) -> None:
+        """:class:`ParameterError` when the preset's printer cannot read the resin output ``fmt``, or when ``spec``'s
+        display is not the display of the printer the archive names (:meth:`check_display`)."""
         preset = self.preset
         if preset is not None and not preset.reads(fmt):
             raise ParameterError(f"printer {preset.name} reads {', '.join(preset.formats)}, not {fmt}")
+        if spec is not None:
+            self.check_display(fmt, spec)
+
+    def check_display(self, fmt: str, spec: RasterSpec) -> None:
+        """:class:`ParameterError` when a printer archive ``fmt`` would name a printer whose display ``spec`` is not:
+        the preset's (``--printer`` with another ``--resolution`` or ``--pixel``: the archive carries the preset's
+        machine name), or, without a preset, the machine a Photon Workshop suffix names (``.pm5s`` is the M5s's
+        11520x5120 display). A firmware refuses such a file, or prints it at the wrong size. A PNG stack names no
+        printer. Pixel sizes compare within 0.5 %."""
+        from .printers import ANY_PRINTER_FORMATS
+
+        if fmt in ANY_PRINTER_FORMATS:
+            return
+        preset = self.preset
+        if preset is not None:
+            want = RasterSpec(**preset.display())
+            whose = f"printer {preset.name}'s display"
+            hint = "leave --resolution/--pixel/--pixel-y out, or write a preset file of your printer"
+        else:
+            from .photon import MACHINES
+
+            machine = MACHINES.get(fmt)
+            if machine is None:
+                return
+            size = machine.display
+            want = RasterSpec(resolution=tuple(machine.resolution), pixel=size[0] / machine.resolution[0],
+                              pixel_y=size[1] / machine.resolution[1])
+            whose = f"a .{fmt} file is for the {machine.name}, whose display"
+            hint = "give its --printer preset, or --resolution and --pixel/--pixel-y of that display"
+        same = tuple(spec.resolution) == tuple(want.resolution) and all(
+            abs(a - b) <= 0.005 * b for a, b in ((spec.px, want.px), (spec.py, want.py)))
+        if not same:
+            shown = lambda r: f"{r.resolution[0]}x{r.resolution[1]} px of {r.px:g} x {r.py:g} mm"  # noqa: E731
+            raise ParameterError(f"{whose} is {shown(want)}, not the {shown(spec)} asked ({hint})")

@@ -471,6 +471,14 @@ def test_cli_raster_option_errors_name_raster_opt(tmp_path, capsys):
         assert main(args) == 2
         err = capsys.readouterr().err.strip()
         assert want in err and len(err.splitlines()) == 1, err
+    # a display that is not the one of the printer the archive names: refused before any model
+    for raster, opt in (("pm5s", "resolution=3840x2400"), ("goo", "printer=elegoo-saturn-3-ultra")):
+        extra = ["--raster-opt", "resolution=3840x2400"] if raster == "goo" else []
+        args = ["batch", str(models), "-o", str(tmp_path / "o"), "--raster", raster, "--raster-opt", opt, *extra, "-q"]
+        assert main(args) == 2
+        err = capsys.readouterr().err.strip()
+        assert "display is 11520x5120 px" in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "o").exists()
 
 
 def test_cli_raster_batch_writes_what_raster_writes(tmp_path, monkeypatch):

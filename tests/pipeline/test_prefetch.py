@@ -119,7 +119,7 @@ def test_a_failed_resin_job_leaves_no_thread_while_its_exception_is_kept(tmp_pat
         if k >= 5:
             raise RuntimeError("cancelled")
 
-    spec = RasterSpec(resolution=(1920, 1080), pixel=0.05)
+    spec = RasterSpec(resolution=(3840, 2400) if fmt == "pwmx" else (1920, 1080), pixel=0.05)  # (the Mono X's)
     kept = []
     for i in range(3):
         job = Job(source=str(model), placement=Placement(fit=30.0), params=SliceParams(thickness=0.2),

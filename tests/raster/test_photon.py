@@ -319,8 +319,8 @@ def test_shared_meshes_12k_every_layer(tmp_path, shared_case, device, gamma):
 def test_cli_writes_reproducible_files(tmp_path, device, monkeypatch, capsys):
     stl = tmp_path / "torus.stl"
     shapes.write_stl(shapes.torus(15.0, 5.0, 48, 24), stl)
-    args = ["raster", str(stl), "-t", "0.5", "--resolution", "1200x900", "--pixel", "0.05", "--no-progress",
-            "--bottom-layers", "2", "--exposure", "3"]
+    args = ["raster", str(stl), "-t", "0.5", "--resolution", "3840x2400", "--pixel", "0.05", "--no-progress",
+            "--bottom-layers", "2", "--exposure", "3"]  # (the Photon Mono X's display)
     assert main([*args, "-o", str(tmp_path / "a.pwmx")]) == 0
     assert "wrote" in capsys.readouterr().out
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
@@ -328,7 +328,27 @@ def test_cli_writes_reproducible_files(tmp_path, device, monkeypatch, capsys):
     assert (tmp_path / "a.pwmx").read_bytes() == (tmp_path / "b.pwmx").read_bytes()  # no date in the format
     f = read_photon(tmp_path / "a.pwmx")
     assert len(f.layers) == 20 and f.header["bottom_layers"] == 2 and f.header["exposure"] == 3.0
-    assert f.layer_image(10)[450, 600] == 0 and f.layer_image(10).max() == 255  # the hole at the display centre
+    assert f.layer_image(10)[1200, 1920] == 0 and f.layer_image(10).max() == 255  # the hole at the display centre
+
+
+def test_a_display_not_the_machines_is_refused(tmp_path, capsys):
+    """The suffix names the machine (its name is in the file, and its firmware checks the display): another display
+    is a one-line error before any work, nothing written; a preset's display overridden the same."""
+    stl = tmp_path / "torus.stl"
+    shapes.write_stl(shapes.torus(15.0, 5.0, 48, 24), stl)
+    base = ["raster", str(stl), "-t", "0.5", "--no-progress"]
+    assert main([*base, "-o", str(tmp_path / "a.pm5s")]) == 2  # the default 3840x2400 display: not the M5s's
+    err = capsys.readouterr().err
+    assert "a.pm5s: a .pm5s file is for the Anycubic Photon Mono M5s, whose display is 11520x5120 px of 0.019 x 0.024" \
+        in err and err.count("\n") == 1
+    assert main([*base, "--printer", "anycubic-photon-mono-m5s", "--resolution", "3840x2400",
+                 "-o", str(tmp_path / "b.pm5s")]) == 2
+    assert "printer anycubic-photon-mono-m5s's display is 11520x5120" in capsys.readouterr().err
+    assert main([*base, "--printer", "elegoo-saturn-3-ultra", "--pixel", "0.05", "-o", str(tmp_path / "c.goo")]) == 2
+    assert "not the 11520x5120 px of 0.05 x 0.024 mm asked" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["torus.stl"]
+    assert main([*base, "--resolution", "11520x5120", "--pixel", "0.019", "--pixel-y", "0.024", "-q",
+                 "-o", str(tmp_path / "d.pm5s")]) == 0  # the M5s's display, given by hand
 
 
 def test_errors_leave_no_file(tmp_path, torus):
