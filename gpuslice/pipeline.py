@@ -53,6 +53,9 @@ class ResinOutput:
             self.options.check_format(self.format, self.spec)  # a printer that cannot read it, or another display
         except ParameterError as exc:
             raise ParameterError(f"{self.path}: {exc}") from None
+        from .raster.outputs import RESIN_FORMATS
+
+        RESIN_FORMATS[self.format].check_settings(self.path, self.options, self.settings or self.options.settings())
 
 
 @dataclass(frozen=True)

@@ -135,6 +135,9 @@ class BatchOptions:
         spec = ropts.spec(**display)
         ropts.check_display(self.raster, spec)
         settings = ropts.settings(**{f.name: given.get(f.name) for f in fields(PrintSettings)})
+        from ..raster.outputs import RESIN_FORMATS
+
+        RESIN_FORMATS[self.raster].check_settings(f"--raster {self.raster}", ropts, settings)
         return spec, ropts, settings
 
     @property

@@ -446,18 +446,48 @@ def _header(spec: RasterSpec, settings: PrintSettings, info: CtbInfo, version: i
         SLICER_INFO.size)
 
 
-def ctb_version(target) -> int:
-    """The CTB version for a :class:`~gpuslice.raster.outputs.ResinTarget`: its printer preset's ``format_version``
-    when the preset's native format is CTB, else :data:`DEFAULT_VERSION`."""
-    preset = target.options.preset
+def two_stages_lost(settings) -> str | None:
+    """The flag of a second lift or retract stage that one stage at one speed cannot hold (``--lift-height2`` at a
+    speed other than ``--lift-speed``, or the slow ``--retract-height2`` at a speed other than ``--retract-speed``),
+    for the bottom or the normal layers; None when one stage each holds the motion exactly."""
+    for bottom in (False, True):
+        g = settings.group(bottom)
+        twin = "--bottom-" if bottom else "--"
+        if g["lift_height2"] > 0 and g["lift_speed2"] not in (0.0, g["lift_speed"]):
+            return f"{twin}lift-height2 {g['lift_height2']:g} at {twin}lift-speed2 {g['lift_speed2']:g}"
+        if g["retract_height2"] > 0 and g["retract_speed2"] not in (0.0, g["retract_speed"]):
+            return f"{twin}retract-height2 {g['retract_height2']:g} at {twin}retract-speed2 {g['retract_speed2']:g}"
+    return None
+
+
+def refuse_settings(path, name: str, options, settings) -> None:
+    """CTB's settings check (:meth:`gpuslice.raster.outputs.ResinFormat.check_settings`): v2 and v3 store one lift
+    and one retract stage (module docstring), so a second stage at its own speed is refused rather than folded into
+    the first (the file would move otherwise than asked, and its print time would not be the one printed)."""
+    version = _version(options)
+    lost = two_stages_lost(settings) if version < 4 else None
+    if lost:
+        raise ParameterError(f"{path}: a CTB v{version} file has one lift and one retract stage; {lost} cannot be "
+                             "written (CTB v4, for a printer whose preset asks for it, and GOO store two)")
+
+
+def _version(options) -> int:
+    preset = options.preset
     if preset is not None and preset.native_format == "ctb" and preset.format_version is not None:
         return int(preset.format_version)
     return DEFAULT_VERSION
 
 
+def ctb_version(target) -> int:
+    """The CTB version for a :class:`~gpuslice.raster.outputs.ResinTarget`: its printer preset's ``format_version``
+    when the preset's native format is CTB, else :data:`DEFAULT_VERSION`."""
+    return _version(target.options)
+
+
 def write_target(layers: Iterable[Tile | RunLayer], target) -> dict[str, float]:
     """The registry's writer (:mod:`gpuslice.raster.outputs`): a CTB file of ``target.result``'s layers, version
     :func:`ctb_version`, header values from the preset (machine name, build height) and ``target.settings``."""
+    refuse_settings(target.path, "ctb", target.options, target.settings)
     preset = target.options.preset
     result = target.result
     machine = (preset.machine or preset.title) if preset is not None else ""

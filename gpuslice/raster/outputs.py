@@ -80,6 +80,16 @@ class ResinFormat:
     title: str
     folder: bool = False
     png: bool = False
+    #: ``"module:function"`` that refuses, before any work, print settings the format cannot store (a one-line
+    #: :class:`~gpuslice.errors.ParameterError`; called as ``f(path, name, options, settings)``); None: it stores all
+    settings_check: str | None = None
+
+    def check_settings(self, path, options, settings) -> None:
+        """Refuse ``settings`` (:class:`~gpuslice.raster.settings.PrintSettings`) this format cannot store for
+        ``options`` (its preset: the format's version), naming ``path``; nothing to refuse: returns."""
+        if self.settings_check is not None:
+            module, func = self.settings_check.split(":")
+            getattr(importlib.import_module(f"{__package__}.{module}"), func)(path, self.name, options, settings)
 
     @property
     def suffix(self) -> str:
@@ -103,11 +113,13 @@ RESIN_FORMATS: dict[str, ResinFormat] = {
     f.name: f
     for f in (
         ResinFormat("sl1", (".sl1",), "sl1:write_target", "Prusa SL1 archive (PNG layers, config.ini, thumbnails)",
-                    "SL1 archive", png=True),
+                    "SL1 archive", png=True, settings_check="sl1:refuse_settings"),
         ResinFormat("sl1s", (".sl1s",), "sl1s:write_target", "Prusa SL1S Speed archive (the SL1 archive for the "
-                    "SL1S: 1620x2560 PNGs of 0.05 mm, printerModel SL1S)", "SL1S archive", png=True),
+                    "SL1S: 1620x2560 PNGs of 0.05 mm, printerModel SL1S)", "SL1S archive", png=True,
+                    settings_check="sl1:refuse_settings"),
         ResinFormat("sl1svg", (".sl1_svg",), "sl1svg:write_target", "PrusaSlicer's vector SL1 archive (one SVG of "
-                    "the contours per layer, config.ini, thumbnails)", "SL1 SVG archive"),
+                    "the contours per layer, config.ini, thumbnails)", "SL1 SVG archive",
+                    settings_check="sl1:refuse_settings"),
         ResinFormat("nanodlp", (".nanodlp",), "nanodlp:write_target", "NanoDLP plate (1.png upward, "
                     "meta/plate/profile/options/info json, 3d.png)", "NanoDLP plate", png=True),
         ResinFormat("goo", (".goo",), "goo:write_target", "Elegoo GOO file (8-bit RLE layers, print settings, "
@@ -115,9 +127,11 @@ RESIN_FORMATS: dict[str, ResinFormat] = {
         ResinFormat("prz", (".prz",), "goo:write_target", "Phrozen PRZ file (the GOO layout, no grey-difference "
                     "chunks)", "PRZ file"),
         ResinFormat("ctb", (".ctb",), "ctb:write_target", "Chitubox CTB file, unencrypted, v3 unless the printer "
-                    "preset asks for v2 or v4 (7-bit RLE layers, print settings, RGB15 previews)", "CTB file"),
+                    "preset asks for v2 or v4 (7-bit RLE layers, print settings, RGB15 previews)", "CTB file",
+                    settings_check="ctb:refuse_settings"),
         *(ResinFormat(s, (f".{s}",), "photon:write_target", f"Anycubic {t} file (Photon Workshop: 4-bit PW0 "
-                      "layers, settings, preview)", f"Photon Workshop file ({t})") for s, t in _PHOTON),
+                      "layers, settings, preview)", f"Photon Workshop file ({t})",
+                      settings_check="photon:refuse_settings") for s, t in _PHOTON),
         ResinFormat("png", (), "pngstack:write_target", "a folder of 8-bit PNGs, one per layer", "PNG stack",
                     folder=True, png=True),
     )

@@ -475,6 +475,41 @@ def write_photon(layers: Iterable[Tile | RunLayer], target, *, machine: Machine,
             "machine": name or machine.name, "antialiasing": aa}
 
 
+def _machine_version(name: str, options) -> tuple[Machine, int | None]:
+    """The machine a suffix names, and the file version its preset asks for (None: the machine's)."""
+    if name not in MACHINES:
+        raise ParameterError(f"not a Photon Workshop suffix: .{name} (use .{', .'.join(MACHINES)})")
+    preset = options.preset
+    if preset is not None and preset.format_version is not None and preset.native_format == name:
+        return MACHINES[name], int(preset.format_version)
+    return MACHINES[name], None
+
+
+def refuse_settings(path, name: str, options, settings) -> None:
+    """Photon Workshop's settings check (:meth:`gpuslice.raster.outputs.ResinFormat.check_settings`), before any
+    work: one rest for every layer (:func:`_wait`); before version 516 one lift and one retract stage (as CTB v2/v3);
+    from 516 two stages, whose slow retract is the first lift stage's height, so a ``retract_height2`` other than
+    ``lift_height`` (or 0) is refused rather than changed (the module docstring's stage mapping)."""
+    from .ctb import two_stages_lost
+
+    machine, version = _machine_version(name, options)
+    version = machine.version if version is None else version
+    _wait(settings, Path(os.fspath(path)))
+    if version < 516:
+        lost = two_stages_lost(settings)
+        if lost:
+            raise ParameterError(f"{path}: a Photon Workshop file of version {version} has one lift and one retract "
+                                 f"stage; {lost} cannot be written")
+        return
+    for bottom in (False, True):
+        g = settings.group(bottom)
+        if g["retract_height2"] > 0 and abs(g["retract_height2"] - g["lift_height"]) > 1e-9:
+            twin = "--bottom-" if bottom else "--"
+            raise ParameterError(f"{path}: a Photon Workshop file's slow retract is its first lift stage "
+                                 f"({twin}lift-height {g['lift_height']:g} mm); {twin}retract-height2 "
+                                 f"{g['retract_height2']:g} cannot be written (give it equal, or 0)")
+
+
 def write_target(layers: Iterable[Tile | RunLayer], target) -> dict[str, Any]:
     """The registry's writer (:mod:`gpuslice.raster.outputs`): the format's name (``target.format``, the registry's
     name of each suffix), else the suffix of ``target.path``, picks the machine (:data:`MACHINES`); a printer preset
@@ -483,12 +518,11 @@ def write_target(layers: Iterable[Tile | RunLayer], target) -> dict[str, Any]:
     suffix = target.format if target.format is not None else path.suffix.lower().lstrip(".")
     if suffix not in MACHINES:
         raise ParameterError(f"{path}: not a Photon Workshop suffix (use .{', .'.join(MACHINES)})")
-    machine = MACHINES[suffix]
+    refuse_settings(path, suffix, target.options, target.settings)
+    machine, version = _machine_version(suffix, target.options)
     preset = target.options.preset
-    version = name = machine_z = None
+    name = machine_z = None
     if preset is not None:
         name = preset.machine or None
         machine_z = float(preset.build_height) if preset.build_height > 0 else None
-        if preset.format_version is not None and preset.native_format == suffix:
-            version = int(preset.format_version)
     return write_photon(layers, target, machine=machine, version=version, name=name, machine_z=machine_z)

@@ -66,15 +66,22 @@ def sl1_print_time(info: SL1Info, n_layers: int) -> float:
     return info.initial_exposure_time + max(n_layers - 1, 0) * info.exposure_time + n_layers * info.tilt_time
 
 
+def refuse_settings(path, name: str, options, settings) -> None:
+    """The SL1 family's settings check (:meth:`gpuslice.raster.outputs.ResinFormat.check_settings`): config.ini has
+    no count of bottom layers, so ``bottom_layers`` other than 1 is refused rather than dropped."""
+    if settings.bottom_layers != 1:
+        raise ParameterError(f"{path}: an SL1 archive has one bottom layer (expTimeFirst), then "
+                             f"--transition-layers fade layers; --bottom-layers {settings.bottom_layers} cannot be "
+                             "written")
+
+
 def sl1_values(target) -> dict[str, object]:
     """The :class:`SL1Info` values of a job's print settings and preset, for the SL1 family's writers. SL1's
     config.ini exposes the first layer with ``expTimeFirst`` and fades over ``numFade`` layers; it has no count of
     bottom layers and no lift settings (the printer tilts its vat): ``bottom_layers`` other than 1 is refused
     (:class:`ParameterError` naming the output) rather than dropped."""
     s, preset = target.settings, target.options.preset
-    if s.bottom_layers != 1:
-        raise ParameterError(f"{target.path}: an SL1 archive has one bottom layer (expTimeFirst), then "
-                             f"--transition-layers fade layers; --bottom-layers {s.bottom_layers} cannot be written")
+    refuse_settings(target.path, "sl1", target.options, s)
     values: dict[str, object] = {"exposure_time": s.exposure, "initial_exposure_time": s.bottom_exposure,
                                  "faded_layers": s.transition_layers}
     if preset is not None and preset.machine:  # the firmware refuses a project made for another model

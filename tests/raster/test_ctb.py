@@ -163,6 +163,8 @@ SETTINGS = PrintSettings(bottom_layers=3, bottom_exposure=20.0, exposure=3.0, tr
                          retract_height2=1.5, retract_speed2=50.0, bottom_lift_height=6.0, bottom_lift_speed=40.0,
                          wait_before_cure=0.5, wait_after_cure=0.25, wait_after_lift=0.75, light_pwm=200,
                          bottom_light_pwm=250, resin_density=1.2)
+#: the same for one-stage files (v2, v3): the second stages at the first's speeds, which one stage holds exactly
+SETTINGS_ONE = SETTINGS.with_values({"lift_speed2": 60.0, "retract_speed2": 200.0, "bottom_lift_speed2": 40.0})
 
 
 def _preset(tmp_path, version: int | None, **extra) -> str:
@@ -177,7 +179,7 @@ def _preset(tmp_path, version: int | None, **extra) -> str:
     return str(p)
 
 
-def _target(path, spec, res, settings=SETTINGS, options=None, now=NOW) -> ResinTarget:
+def _target(path, spec, res, settings=SETTINGS_ONE, options=None, now=NOW) -> ResinTarget:
     return ResinTarget(path=Path(path), spec=spec, options=options or ResinOptions(), result=res, name="torus",
                        now=now, workers=2, settings=settings)
 
@@ -190,9 +192,10 @@ def test_header_and_layer_table_per_version(tmp_path, torus, version):
     options = ResinOptions(printer=_preset(tmp_path, version))
     spec = options.spec(gamma=1.0)
     out = tmp_path / "t.ctb"
-    stats = write_target(iter_tiles(torus, spec, backend="numpy"), _target(out, spec, torus, options=options))
+    s = SETTINGS if version == 4 else SETTINGS_ONE
+    stats = write_target(iter_tiles(torus, spec, backend="numpy"), _target(out, spec, torus, s, options=options))
     f = read_ctb(out)
-    h, p, si, n, s = f.header, f.params, f.slicer, torus.n_layers, SETTINGS
+    h, p, si, n = f.header, f.params, f.slicer, torus.n_layers
     assert stats["layers"] == n == h["layer_count"] == 20 and stats["format_version"] == version
     assert stats["ctb_bytes"] == out.stat().st_size
     assert (h["magic"], h["version"]) == ((0x12FD0106 if version == 4 else 0x12FD0086), version)

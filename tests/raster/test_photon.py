@@ -230,7 +230,8 @@ def test_every_version_and_the_preset(tmp_path, torus, version):
 def test_two_stage_motion_and_waits(tmp_path, torus):
     s = PrintSettings(lift_height=2.0, lift_speed=60.0, lift_height2=5.0, lift_speed2=240.0, retract_speed=300.0,
                       retract_height2=2.0, retract_speed2=90.0, bottom_lift_height=3.0, bottom_lift_speed=30.0,
-                      bottom_retract_speed=120.0, wait_before_cure=1.0, wait_after_cure=0.5, wait_after_lift=0.25)
+                      bottom_retract_height2=3.0, bottom_retract_speed=120.0, wait_before_cure=1.0,
+                      wait_after_cure=0.5, wait_after_lift=0.25)  # (the slow retract: each group's first stage)
     out = tmp_path / "t.pm3"
     write_target(iter_tiles(torus, SPEC, backend="numpy"), target(out, torus, settings=s))
     f = read_photon(out)
@@ -244,7 +245,39 @@ def test_two_stage_motion_and_waits(tmp_path, torus):
     with pytest.raises(ParameterError, match="rest the same before every layer"):
         write_target(iter([]), target(tmp_path / "w.pm3", torus, settings=s.with_values({"bottom_wait_after_cure":
                                                                                           2.0})))
+    # a slow retract other than the first stage's height has nowhere to go: refused, not changed (it was written
+    # as the first stage's 3 mm)
+    with pytest.raises(ParameterError, match=r"slow retract is its first lift stage \(--bottom-lift-height 3 mm\); "
+                                             r"--bottom-retract-height2 2 cannot"):
+        write_target(iter([]), target(tmp_path / "r.pm3", torus, settings=s.with_values({"bottom_retract_height2":
+                                                                                          2.0})))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["t.pm3"]
+
+
+def test_settings_a_file_cannot_store_are_refused_before_any_work(tmp_path, capsys):
+    """A second lift stage at its own speed in a CTB v3 file (one stage), or a slow retract other than a Photon
+    file's first stage: a one-line error from the command before slicing, nothing written (they were folded into
+    one stage, so the file moved otherwise than asked and its print time was not the one printed)."""
+    stl = tmp_path / "torus.stl"
+    shapes.write_stl(shapes.torus(15.0, 5.0, 48, 24), stl)
+    base = ["raster", str(stl), "-t", "0.5", "--no-progress", "--lift-height", "3", "--lift-height2", "4",
+            "--lift-speed2", "180"]
+    assert main([*base, "--printer", "elegoo-saturn", "-o", str(tmp_path / "a.ctb")]) == 2
+    err = capsys.readouterr().err
+    assert "a.ctb: a CTB v3 file has one lift and one retract stage; --lift-height2 4 at --lift-speed2 180" in err
+    assert main([*base, "--printer", "anycubic-photon-mono-x", "--retract-height2", "1.5", "--retract-speed2", "50",
+                 "-o", str(tmp_path / "b.pwmx")]) == 2
+    assert "--retract-height2 1.5 cannot be written" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["torus.stl"]
+    from gpuslice.pipeline import ResinOutput  # the refusal is the output's, made before the device or the mesh
+    from gpuslice.raster import ResinOptions
+
+    opts = ResinOptions(printer="elegoo-saturn")
+    with pytest.raises(ParameterError, match="a CTB v3 file has one lift"):
+        ResinOutput("x.ctb", "ctb", opts.spec(), opts, opts.settings(lift_height2=4.0, lift_speed2=180.0))
+    assert main([*base, "--printer", "elegoo-mars-3", "-q", "-o", str(tmp_path / "c.ctb")]) == 0  # CTB v4: two
+    assert main([*base, "--printer", "anycubic-photon-mono-x", "--retract-height2", "3", "--retract-speed2", "50",
+                 "-q", "-o", str(tmp_path / "d.pwmx")]) == 0
 
 
 def test_registry_names_every_machine():
