@@ -325,6 +325,15 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
 
         raise ParameterError(f"{job.model_name}: no layers to write {_too_thin(out.mesh, job)}")
     check_fits(out.result, r.spec, bounds, name=job.model_name)
+    from .raster.settings import MAX_PRINT_TIME_S, print_time_s
+
+    settings = r.settings if r.settings is not None else r.options.settings()
+    if print_time_s(settings, out.result.n_layers) > MAX_PRINT_TIME_S:
+        from .errors import ParameterError
+
+        raise ParameterError(f"{r.path}: {out.result.n_layers} layers at these settings would print for "
+                             f"{print_time_s(settings, out.result.n_layers) / 3.156e7:.0f} years, more than an "
+                             "archive's print time holds")
     if k > 1 and backend != "opencl":
         from .errors import ParameterError
 
@@ -343,7 +352,6 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
     name = utf8(r.options.job_name or Path(job.model_name).stem).decode("utf-8")
     n = out.result.n_layers
     tick = (lambda k: progress(k, n)) if progress is not None else None
-    settings = r.settings if r.settings is not None else r.options.settings()
     png_by_numpy = RESIN_FORMATS[r.format].png and _png_processes()  # (GPUSLICE_PNG_PROCESSES=1)
     target = ResinTarget(Path(r.path.rstrip("/\\") or "."), r.spec, r.options, out.result, name, now,
                          r.options.workers, tick, settings, bounds=bounds,

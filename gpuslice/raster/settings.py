@@ -49,6 +49,15 @@ BOTTOM_TWINS = ("lift_height", "lift_speed", "lift_height2", "lift_speed2", "ret
                 "retract_speed2", "wait_before_cure", "wait_after_cure", "wait_after_lift")
 
 
+#: upper bounds of the settings (an hour of exposure or rest a layer, a metre of lift, 1 m/s: beyond any resin
+#: printer; the archives hold times in 32-bit fields)
+MAX_SECONDS = 3600.0
+MAX_HEIGHT_MM = 1000.0
+MAX_SPEED = 60000.0
+#: the longest print time an archive's 32-bit field holds, s (136 years)
+MAX_PRINT_TIME_S = 2**32 - 1
+
+
 @dataclass(frozen=True)
 class PrintSettings:
     """The print settings of a resin job (times s, heights mm, speeds mm/min); see the module docstring."""
@@ -117,6 +126,16 @@ class PrintSettings:
                 v = getattr(self, n)
                 if v is not None and not (_is_number(v) and v > 0):
                     raise ParameterError(f"{n} must be > 0 mm/min, got {shown(v)}", param=n)
+        for names, top, unit in ((("bottom_exposure", "exposure", "wait_before_cure", "wait_after_cure",
+                                   "wait_after_lift"), MAX_SECONDS, "s"),
+                                 (("lift_height", "lift_height2", "retract_height2"), MAX_HEIGHT_MM, "mm"),
+                                 (("lift_speed", "lift_speed2", "retract_speed", "retract_speed2"), MAX_SPEED,
+                                  "mm/min")):
+            for name in names:
+                for n in (name, f"bottom_{name}"):
+                    v = getattr(self, n, None)
+                    if v is not None and v > top:
+                        raise ParameterError(f"{n} must be at most {top:g} {unit}, got {shown(v)}", param=n)
         for name in ("light_pwm", "bottom_light_pwm"):
             v = getattr(self, name)
             if not (_is_int(v) and 1 <= v <= 255):

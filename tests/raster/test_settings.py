@@ -119,6 +119,10 @@ def test_resin_ml_is_the_solid_volume(tri, volume_mm3):
     ({"light_pwm": 0}, "light_pwm", "from 1 to 255"),
     ({"bottom_light_pwm": 256}, "bottom_light_pwm", "from 1 to 255"),
     ({"resin_density": 0}, "resin_density", "> 0"),
+    ({"exposure": 1e9}, "exposure", "exposure must be at most 3600 s"),  # (was an internal error in CTB/Photon)
+    ({"bottom_wait_after_cure": 4000.0}, "bottom_wait_after_cure", "at most 3600 s"),
+    ({"lift_height": 2000.0}, "lift_height", "at most 1000 mm"),
+    ({"retract_speed2": 1e6}, "retract_speed2", "at most 60000 mm/min"),
     # contradictions
     ({"lift_height2": 3.0}, "lift_speed2", "lift_speed2 must be > 0 mm/min when lift_height2 is set"),
     ({"retract_height2": 1.0}, "retract_speed2", "when retract_height2 is set"),
@@ -201,6 +205,20 @@ def test_cli_bad_settings_fail_before_work(tmp_path, capsys, flags, flag):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and err.startswith("gpuslice: error:") and flag in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cube.stl"]  # nothing written, not even a temporary
+
+
+def test_a_print_time_no_archive_holds_is_refused_before_writing(tmp_path, capsys):
+    """Settings each within bounds, but a print time over an archive's 32-bit field (136 years): one line, exit 2,
+    nothing written (a CTB or Photon file ended in an internal error, GOO clamped it, SL1 wrote it)."""
+    stl = _cube_stl(tmp_path)
+    for suffix in ("ctb", "sl1"):
+        out = tmp_path / f"cube.{suffix}"
+        args = ["raster", str(stl), "-t", "0.01", "--resolution", "500x500", *FAST, "--lift-speed", "0.0001",
+                "--bottom-layers", "1", "-o", str(out)]
+        assert main(args) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and f"cube.{suffix}: " in err and "years" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cube.stl"]
 
 
 def test_model_taller_than_the_printer_is_refused_before_slicing(tmp_path, capsys):
