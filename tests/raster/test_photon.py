@@ -5,6 +5,7 @@ layer of real meshes on a 12K display against the rasteriser, the command line, 
 from __future__ import annotations
 
 import hashlib
+import os
 import struct
 from pathlib import Path
 
@@ -414,6 +415,33 @@ def test_real_file_layout_facts():
         at = np.cumsum(list(s.values()))
         assert tuple(at) == first, version
     assert struct.calcsize("<10f3I2f5I") == 80
+
+
+FOREIGN = os.environ.get("GPUSLICE_FOREIGN_ARCHIVES")
+
+
+@pytest.mark.skipif(not FOREIGN, reason="set GPUSLICE_FOREIGN_ARCHIVES to a folder of Photon Workshop files written "
+                    "by Anycubic's software (futurelink/msla-imaging's sample_data: public, but with no licence to "
+                    "copy them here)")
+def test_files_photon_workshop_wrote_read_back():
+    """The test decoder reads files Anycubic's Photon Workshop wrote, and what it reads makes sense: the display and
+    pitch of the machine the suffix names (:data:`MACHINES`: what the writer and its display check use), positive
+    settings, every layer's run records covering the display exactly, and its lit pixels equal to the count the
+    file's own LAYERDEF gives (layers 0, the middle and the last)."""
+    files = sorted(p for p in Path(FOREIGN).iterdir() if p.suffix.lstrip(".") in MACHINES)
+    assert files, f"no Photon Workshop file in {FOREIGN}"
+    for path in files:
+        f = read_photon(path)
+        m, h = MACHINES[path.suffix.lstrip(".")], f.header
+        assert f.version in (1, 515, 516, 517, 518) and len(f.layers) > 0, path.name
+        assert (h["res_x"], h["res_y"]) == m.resolution, path.name
+        assert h["pixel_um"] == pytest.approx(1000 * max(m.display[0] / m.resolution[0],
+                                                         m.display[1] / m.resolution[1]), abs=0.5), path.name
+        assert h["layer_height"] > 0 and h["exposure"] > 0 and h["bottom_exposure"] > 0 and h["bottom_layers"] >= 1
+        for i in (0, len(f.layers) // 2, len(f.layers) - 1):
+            start, length, grey = f.layer_runs(i)
+            assert int(length.sum()) == int(f.layers[i]["nonzero"]), (path.name, i)
+            assert f.layers[i]["exposure"] > 0 and f.layers[i]["thickness"] > 0
 
 
 def test_name_fields_are_cut_at_a_character_boundary():

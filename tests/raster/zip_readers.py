@@ -1,8 +1,9 @@
 """Readers of the zip-of-layers archives (SL1/SL1S, SL1_SVG, NanoDLP), for the tests only.
 
 Written apart from the writers in ``gpuslice/raster`` (``zipfile``, PIL and a small SVG path parser; nothing from
-the writers' modules), so that a test compares what a writer meant with an independent reading of its bytes. Each
-reader also reads the same formats written by other programs (PrusaSlicer's SL1S, UVtools' demo file).
+the writers' modules), so that a test compares what a writer meant with an independent reading of its bytes. The SL1
+reader also reads PrusaSlicer's own SL1S export (``tests/raster/test_zip_formats.py``, where PrusaSlicer is
+installed); no SL1_SVG or NanoDLP file written by another program was found to test against.
 """
 
 from __future__ import annotations
