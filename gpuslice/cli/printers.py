@@ -12,12 +12,28 @@ __all__ = ["printers"]
 COLUMNS = ("name", "pixels", "pixel um", "build mm", "display", "format")
 
 
+#: marks a format gpuslice does not write (the preset's printer then gets PNG stacks only)
+UNWRITTEN = "*"
+
+
+def _written(fmt: str) -> bool:
+    from ..raster.outputs import RESIN_FORMATS
+
+    return fmt in RESIN_FORMATS
+
+
+def _shown(fmt: str) -> str:
+    return fmt if _written(fmt) else f"{fmt} (not written by gpuslice)"
+
+
 def _row(p) -> tuple[str, ...]:
     px = f"{p.pixel * 1000:g}" if p.pixel_y is None else f"{p.pixel * 1000:g}x{p.py * 1000:g}"
     x, y, z = p.build_mm
     fmt = p.native_format or "any"
     if p.native_format and p.format_version is not None:
         fmt += f" v{p.format_version}"
+    if p.native_format and not _written(p.native_format):
+        fmt += f" {UNWRITTEN}"
     return (p.name, f"{p.resolution[0]}x{p.resolution[1]}", px, f"{x:g} x {y:g} x {z:g}", p.orientation, fmt)
 
 
@@ -32,7 +48,7 @@ def _details(p) -> str:
     lines = [f"{p.name}: {p.title}",
              f"  display   {p.resolution[0]} x {p.resolution[1]} px, {px}, {p.orientation}",
              f"  build     {x:g} x {y:g} x {z:g} mm",
-             f"  formats   {', '.join(p.formats) or 'any'}"
+             f"  formats   {', '.join(_shown(f) for f in p.formats) or 'any'}"
              + (f" (native {p.native_format} version {p.format_version})" if p.format_version is not None else ""),
              f"  machine   {p.machine or '-'}"]
     if p.settings:
@@ -59,4 +75,8 @@ def printers(name: str | None, as_json: bool) -> None:
     elif name is not None:
         click.echo(_details(chosen[0]))
     else:
-        click.echo(_table([COLUMNS, *(_row(p) for p in chosen)]))
+        rows = [_row(p) for p in chosen]
+        click.echo(_table([COLUMNS, *rows]))
+        if any(r[-1].endswith(UNWRITTEN) for r in rows):
+            click.echo(f"{UNWRITTEN} a format gpuslice does not write: a PNG stack (-o DIR/) is all it gives that "
+                       "printer")

@@ -168,10 +168,13 @@ def test_printers_command_table_json_and_details(tmp_path, capsys):
     assert main(["printers"]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].split()[:3] == ["name", "pixels", "pixel"]
-    names = [line.split()[0] for line in lines[1:]]
+    names = [line.split()[0] for line in lines[1:-1]]
     assert names == sorted(PRINTERS)
     row = lines[1 + names.index("elegoo-saturn-3-ultra")].split()
-    assert row[1:3] == ["11520x5120", "19x24"] and "goo" in row and "218.88" in row
+    assert row[1:3] == ["11520x5120", "19x24"] and "goo" in row and "218.88" in row and row[-1] != "*"
+    # a native format gpuslice does not write is marked, and the footnote says what that printer gets
+    assert lines[1 + names.index("creality-halot-one")].split()[-1] == "*"
+    assert lines[-1].startswith("* a format gpuslice does not write: a PNG stack")
     assert main(["printers", "--json"]) == 0
     data = json.loads(capsys.readouterr().out)
     assert [d["name"] for d in data] == sorted(PRINTERS)
@@ -180,6 +183,8 @@ def test_printers_command_table_json_and_details(tmp_path, capsys):
     assert main(["printers", "anycubic-photon-mono-x-6k"]) == 0
     out = capsys.readouterr().out
     assert "pwmb (native pwmb version 516)" in out and "Photon Mono X 6K" in out and "UVtools" in out
+    assert main(["printers", "anycubic-photon-mono-m7-pro"]) == 0
+    assert "pwsz (not written by gpuslice)" in capsys.readouterr().out
     own = tmp_path / "mine.json"
     own.write_text(json.dumps({"resolution": [100, 200], "pixel": 0.1, "settings": {"exposure": 2}}))
     assert main(["printers", str(own), "--json"]) == 0
