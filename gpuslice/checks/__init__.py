@@ -33,8 +33,9 @@ class CheckOptions:
     """Options of the pre-print checks (lengths in mm)."""
 
     overhang_tolerance: float | None = option(
-        None, "Grow the layer below by this much before measuring a layer's unsupported area (default: one pixel "
-        "of the printer's display, or of the default 0.05 mm display)", unit="mm")
+        None, "Grow the layer below by this much before measuring a layer's unsupported area; in contours also the "
+        "pixel whose half area is the least contact that holds a region and whose half is the widest gap that joins "
+        "two (default: one pixel of the printer's display, or of the default 0.05 mm display)", unit="mm")
     trap_grid: float = option(DEFAULT_GRID_MM, "Cell of the voxel grid for resin traps and suction cups (0: the "
                               "printer's pixels, with --printer)", unit="mm")
 

@@ -148,6 +148,29 @@ def test_floating_box_is_one_island_of_exact_area():
         assert u[layer] == pytest.approx(isl.area[0], abs=1e-6) and np.count_nonzero(u > 1e-9) == 1
 
 
+def test_a_region_held_by_a_tip_no_pixel_prints_is_an_island():
+    """A 5 x 5 mm box held above a block only by a 0.02 mm pillar (its overlap, 0.0004 mm², is less than half a
+    0.05 mm pixel): an island in contours as on the pixels, where the pillar prints nothing (it was "supported")."""
+    res = _slice(_cat(_box(10, 10, 5), _box(0.02, 0.02, 1.2, z0=4.9), _box(5, 5, 1, z0=6)))
+    layer = _first_layer_above(res, 6.0)
+    for spec in (None, SPEC_4K):
+        isl = _check(res, spec).islands
+        assert isl.layer.tolist() == [layer], spec
+        assert isl.area[0] == pytest.approx(25.0, abs=1e-3 if spec is None else 20 * SPEC_4K.px)
+    assert run_checks(res, backend="numpy", options=CheckOptions(overhang_tolerance=0.01)).n_islands == 0  # 0.00005
+
+
+def test_a_part_nearer_than_half_a_pixel_to_a_held_one_is_held():
+    """The floating box of the first test 0.01 mm from the block instead of 2.5 mm: a gap the 0.05 mm pixels do not
+    resolve, so it prints fused to the block; one region with it in contours too (no island), and beyond half a
+    pixel (0.04 mm) an island again."""
+    for gap, islands in ((0.01, 0), (0.04, 1)):
+        res = _slice(_cat(_box(10, 10, 10), _box(5, 5, 5, x=7.5 + gap, z0=5)))
+        assert _check(res).n_islands == islands, gap
+        if gap < 0.025:
+            assert _check(res, SPEC_4K).n_islands == 0
+
+
 @pytest.mark.parametrize("upside_down", [True, False])
 def test_t_shape_has_no_island(upside_down):
     res = _slice(t_shape(upside_down))
@@ -184,11 +207,15 @@ def test_interlocked_rings():
 def test_contour_and_pixel_islands_agree_on_shared_meshes(shared_meshes):
     """Same layers, areas within the pixel quantisation: per layer |A_contour - A_pixel| <= P·pixel + 4·pixel²
     (P the islands' perimeter: each pixel the outline crosses is in or out by at most its own area). Islands thin
-    enough to vanish on the grid are within that bound too. Not every mesh agrees: prusa_extruder_idler has a
-    0.12 mm² region held in contours by a 0.0003 mm² sliver that no pixel keeps (an island on the pixels only)."""
+    enough to vanish on the grid are within that bound too. Among them the meshes where contact no pixel prints
+    used to hold a region in contours (a 0.0003 mm² sliver under a 0.12 mm² region of prusa_extruder_idler, a tip
+    under armadillo's, a 0.009 mm wall under p_ascii_multibody's strip) and where parts a gap narrower than a pixel
+    apart are one region on the grid (prusa_mk4_gantry)."""
     px = SPEC_4K.px
-    for name in ("cow", "benchy", "rear_case"):
-        res = slice_mesh(shared_meshes / f"{name}.stl", thickness=0.05)
+    for name, fit in (("cow", None), ("benchy", None), ("rear_case", None), ("prusa_extruder_idler", None),
+                      ("stanford_bunny", 40.0), ("prusa_mk4_gantry", 40.0), ("p_ascii_multibody", 40.0),
+                      ("armadillo", 80.0)):
+        res = slice_mesh(shared_meshes / f"{name}.stl", thickness=0.05, fit=fit)
         c = contour_islands(res, None)
         p = pixel_islands(res, SPEC_4K)
         layers = sorted(set(c.layer.tolist()) | set(p.layer.tolist()))
