@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from ..raster.settings import format_duration
 from .cavities import KINDS, SUCTION_CUP, TRAP, Cavities
 from .islands import Islands
 
@@ -28,6 +29,12 @@ def peel_and_time(result, settings) -> dict[str, Any]:
     return {"area": area, "max_area": float(area[k]) if n else 0.0, "max_area_layer": k,
             "print_time_s": print_time_s(settings, n) if n else 0.0, "resin_ml": ml,
             "resin_g": ml * float(settings.resin_density), "resin_density": float(settings.resin_density)}
+
+
+def hours_minutes(seconds: float) -> str:
+    """A print time as ``"H h MM min"``, rounded to the minute as ``raster`` prints it (``format_duration``)."""
+    h, m = format_duration(seconds).split(":")
+    return f"{h} h {m} min"
 
 
 @dataclass
@@ -104,7 +111,6 @@ class CheckReport:
         """A few lines of text: the counts and the estimates (for logs and one-line summaries)."""
         cav, unsup = self.cavities, self.islands.unsupported
         worst = int(np.argmax(np.where(np.isfinite(unsup), unsup, -1.0))) if unsup.size else -1  # NaN: not computed
-        h, m = divmod(int(round(self.print_time_s)) // 60, 60)
         return [
             f"islands: {self.n_islands} in {self.island_layers.size} layers"
             + (f" (first at layer {int(self.islands.layer[0])})" if self.n_islands else ""),
@@ -113,7 +119,7 @@ class CheckReport:
             f"resin traps: {cav.n_traps} ({float(cav.volume[cav.kind == TRAP].sum()):.1f} mm3), suction cups: "
             f"{cav.n_cups} (grid {cav.grid_mm:g} mm)",
             f"largest cross-section: {self.max_area:.1f} mm2 at layer {self.max_area_layer}",
-            f"print time: {h} h {m:02d} min, resin: {self.resin_ml:.2f} ml, {self.resin_g:.2f} g",
+            f"print time: {hours_minutes(self.print_time_s)}, resin: {self.resin_ml:.2f} ml, {self.resin_g:.2f} g",
         ]
 
     def view_data(self) -> dict[str, list]:

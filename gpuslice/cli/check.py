@@ -35,8 +35,9 @@ MAX_ROWS = 10
 
 
 def _duration(seconds: float) -> str:
-    m = int(round(seconds / 60.0))
-    return f"{m // 60} h {m % 60:02d} min"
+    from ..checks.summary import hours_minutes
+
+    return hours_minutes(seconds)
 
 
 def print_report(report, name: str, *, console=None, max_rows: int = MAX_ROWS) -> None:

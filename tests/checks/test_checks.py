@@ -476,6 +476,24 @@ def test_report_json_keys_time_and_resin():
     assert set(cav[0]) >= {"volume_mm3", "layer_min", "layer_max", "x", "y", "z", "kind"}
 
 
+def test_print_time_is_rounded_alike_everywhere():
+    """`check`'s table, the report's lines (`view --check`) and `raster` round the print time to the nearest minute
+    alike (the lines floored it: 56 min in one place, 55 in another, for 3353 s)."""
+    from gpuslice.checks.summary import hours_minutes
+    from gpuslice.raster.settings import format_duration
+
+    res = _slice(floating_box())
+    t = _check(res).print_time_s
+    wait = ((45.0 - t % 60.0) % 60.0) / res.n_layers  # a total of N min 45 s
+    rep = _check(res, settings=PrintSettings(wait_before_cure=wait))
+    assert rep.print_time_s % 60 == pytest.approx(45.0, abs=1e-6)
+    minutes = int(rep.print_time_s // 60) + 1
+    want = f"{minutes // 60} h {minutes % 60:02d} min"
+    assert hours_minutes(rep.print_time_s) == want and format_duration(rep.print_time_s) == want.replace(
+        " h ", ":").removesuffix(" min")
+    assert f"print time: {want}," in rep.lines()[-1]
+
+
 def test_bad_options():
     res = _slice(floating_box())
     with pytest.raises(ParameterError, match="trap_grid"):
