@@ -28,9 +28,11 @@ rows and columns); :func:`iter_tiles` yields them, :func:`iter_masks` full (ny, 
 Backends: ``"opencl"`` (run-length runs, :mod:`gpuslice.raster.runs` + ``kernels/runs.cl``: the greys of
 ``kernels/raster.cl`` byte for byte, 10x faster, never a display-sized bitmap; tiles are filled from the runs),
 ``"opencl-bitmap"`` (``kernels/raster.cl``, :class:`RasterKernel`: the bitmap accumulator the runs replaced, kept for
-benchmarks), ``"numpy"`` (:func:`coverage_numpy`, the bitmap kernel's float64 twin; it may differ from it by one grey
-level: on the shared meshes up to 0.8 % of the pixels covered (most models 0.01-0.1 %), and at gamma 0 a pixel within
-a level of 50 % then falls on the other side, up to a few tens of pixels a model), ``"gl"`` (moderngl/EGL,
+benchmarks), ``"numpy"`` (the runs' numpy twin, :func:`gpuslice.raster.runs_twin.runs_numpy`: the OpenCL runs' greys
+byte for byte, so ``masks()``, the viewer and ``raster`` give the same pixels on either backend), ``"numpy-bitmap"``
+(:func:`coverage_numpy`, the bitmap kernel's float64 twin, the numpy backend before: it may differ from the runs by
+one grey level, on the shared meshes up to 0.8 % of the pixels covered, and at gamma 0 a pixel within a level of
+50 % then falls on the other side), ``"gl"`` (moderngl/EGL,
 :mod:`gpuslice.raster.gl`, supersampled). ``"auto"`` is the runs (OpenCL): GL is the optional GPU pass, taken only
 when asked (probing EGL for a hardware GPU costs 0.1 s at start-up; llvmpipe, Mesa's software GL, is 50-135x slower
 than the runs on a CPU: docs/BENCHMARKS.md).
@@ -245,7 +247,7 @@ def iter_tiles(
         check_fits(result, spec, bounds, layers=layers)
     index = np.arange(result.n_layers) if layers is None else np.asarray(layers, dtype=np.int64)
     lut = gamma_lut(spec.gamma)
-    if backend == "numpy":
+    if backend == "numpy-bitmap":  # the bitmap kernel's float64 twin (the reference of opencl-bitmap's tests)
         for k in range(index.size):
             r0, c0, h, w = (int(x) for x in le.tiles[k])
             e = le.edges[le.edge_offsets[k] : le.edge_offsets[k + 1]]
@@ -260,6 +262,16 @@ def iter_tiles(
             e = le.edges[le.edge_offsets[k] : le.edge_offsets[k + 1]]
             yield Tile(int(index[k]), r0, c0, gl.coverage(e, h, w, lut))
         return
+    from .runs import iter_runs
+
+    if backend == "numpy":  # the runs' numpy twin: the OpenCL runs' greys, byte for byte
+        k = 0
+        for runs in iter_runs(result, spec, backend="numpy", layers=layers, edges=le, clip=True):
+            for j in range(len(runs.layers)):
+                r0, c0, h, w = (int(x) for x in le.tiles[k])
+                yield Tile(int(index[k]), r0, c0, tile_from_runs(runs, j, r0, c0, h, w))
+                k += 1
+        return
     from ..device import get_device
 
     dev = device if device is not None else get_device()
@@ -270,8 +282,6 @@ def iter_tiles(
             for k, data in zip(batch, datas, strict=True):
                 yield Tile(int(index[k]), int(le.tiles[k, 0]), int(le.tiles[k, 1]), data)
         return
-    from .runs import iter_runs
-
     k = 0
     for runs in iter_runs(result, spec, backend="opencl", device=dev, layers=layers, edges=le, clip=True):
         for j in range(len(runs.layers)):

@@ -30,6 +30,7 @@ other lane's kernels fill those waits.
 
 from __future__ import annotations
 
+import numbers
 import threading
 from collections import deque
 from collections.abc import Iterable, Iterator, Sequence
@@ -350,6 +351,8 @@ def iter_runs(
     spec = spec or RasterSpec()
     if merged is None and edges is None and not clip:
         check_fits(result, spec, bounds, layers=layers)
+    if isinstance(z_samples, bool) or not isinstance(z_samples, numbers.Integral) or not 1 <= z_samples <= 64:
+        raise ParameterError(f"z_samples must be a whole number from 1 to 64, got {z_samples!r}", param="z_samples")
     k = int(z_samples)
     if merged is not None:
         if layers is not None or edges is not None:

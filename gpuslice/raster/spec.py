@@ -19,9 +19,9 @@ from .settings import PrintSettings
 
 __all__ = ["RasterSpec", "ResinOptions", "PRINTERS", "BACKENDS", "gamma_lut", "with_printer"]
 
-#: rasterisers: ``auto`` (= ``opencl``), ``opencl`` (runs), ``numpy`` (the twin), ``gl``
-#: (moderngl), ``opencl-bitmap`` (the bitmap kernel runs replaced)
-BACKENDS = ("auto", "opencl", "numpy", "gl", "opencl-bitmap")
+#: rasterisers: ``auto`` (= ``opencl``), ``opencl`` (runs), ``numpy`` (the runs' numpy twin: the same bytes), ``gl``
+#: (moderngl), ``opencl-bitmap`` (the bitmap kernel runs replaced) and ``numpy-bitmap`` (its float64 twin)
+BACKENDS = ("auto", "opencl", "numpy", "gl", "opencl-bitmap", "numpy-bitmap")
 #: the largest pixel a display may have, mm (a resin display's are 0.01-0.1 mm; larger ones only overflow the
 #: formats' float32 header fields)
 MAX_PIXEL_MM = 1000.0

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from gpuslice import mesh_from_triangles, slice_mesh
+from gpuslice.errors import ParameterError
 from gpuslice.mesh import shapes
 from gpuslice.raster import RasterSpec, gamma_lut, layer_edges, masks
 from gpuslice.raster.runs import Runs, RunsKernel, _units, iter_runs, layer_runs, runs_numpy, runs_to_mask
@@ -105,6 +106,26 @@ def test_shared_meshes_match_raster(device, shared_meshes, name, gamma):
     check_against_raster(res, spec, _spread(res, 5), device)
     # every layer: the OpenCL runs equal the numpy twin's
     assert_runs_equal(layer_runs(res, spec, backend="numpy"), layer_runs(res, spec, backend="opencl", device=device))
+
+
+@pytest.mark.parametrize("gamma", [1.0, 0.0])
+def test_numpy_backend_masks_are_the_runs(device, shared_meshes, gamma):
+    """``masks(backend="numpy")`` (and so the viewer's and ``raster``'s numpy path) comes from the runs' twin: the
+    OpenCL masks byte for byte (the bitmap twin it used before is within a grey level: 67 pixels of prusa_A)."""
+    res = slice_mesh(_shared(shared_meshes, "prusa_A", 20.0), thickness=0.5, backend="numpy")
+    spec = RasterSpec(resolution=(3840, 2400), pixel=0.05, gamma=gamma)
+    got = masks(res, spec, backend="numpy")
+    assert got.any() and np.array_equal(got, masks(res, spec, backend="opencl", device=device))
+    bitmap = masks(res, spec, backend="numpy-bitmap")
+    assert np.abs(bitmap.astype(int) - got).max() <= (1 if gamma else 255)
+
+
+@pytest.mark.parametrize("k", [0, -5, 2.7, True, 65, "2"])
+def test_iter_runs_refuses_a_bad_z_samples(k):
+    """The library's z_samples is checked as the command line checks it (0 and -5 ran as 1, 2.7 as 2, silently)."""
+    res = slice_mesh(mesh_from_triangles(shapes.box()), thickness=1.0, backend="numpy")
+    with pytest.raises(ParameterError, match="z_samples must be a whole number from 1 to 64"):
+        list(iter_runs(res, RasterSpec(resolution=(500, 500), pixel=0.05), backend="numpy", z_samples=k))
 
 
 @pytest.mark.parametrize("gamma", [1.0, 0.0])
