@@ -363,6 +363,12 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
         if close is not None:
             close()
     out.stats["raster_backend"] = backend
+    if backend == "gl":  # say which renderer drew it: Mesa's software one where no GPU is (50-135x slower)
+        from .raster.gl import gl_info
+
+        info = gl_info() or {}
+        if info.get("software"):
+            out.stats["raster_backend"] = f"gl (software: {info.get('renderer', '').split(' (')[0] or 'Mesa'})"
     t_sub = out.timings.get("z_samples", 0.0)
     out.timings["raster"] = time.perf_counter() - t - t_sub  # the z sub-slices have their own line
 

@@ -189,6 +189,23 @@ def test_gl_matches_opencl(device, torus):
             assert np.count_nonzero(a[i] & b[i]) / union >= 0.999
 
 
+def test_cli_gl_says_when_it_drew_in_software(tmp_path, capsys):
+    """`raster --raster-backend gl` names the renderer in its summary when it is Mesa's software one (no GPU: 50-135x
+    slower than the runs), so nobody times llvmpipe believing it a GPU."""
+    reason = _gl_available()
+    if reason:
+        pytest.skip(reason)
+    from gpuslice.cli import main
+    from gpuslice.raster.gl import gl_info
+
+    stl = tmp_path / "torus.stl"
+    shapes.write_stl(shapes.torus(15.0, 5.0, 48, 24), stl)
+    assert main(["raster", str(stl), "-t", "2", "--resolution", "1200x900", "--raster-backend", "gl", "--no-progress",
+                 "-o", str(tmp_path / "t.goo")]) == 0
+    out = capsys.readouterr().out
+    assert ("raster gl (software: " in out) == gl_info()["software"], out
+
+
 def test_iterators_and_empty_layers(torus):
     res = slice_mesh(mesh_from_triangles(shapes.torus(15.0, 5.0, 48, 24)), z=np.array([-1.0, 5.0, 50.0]),
                      backend="numpy")
