@@ -119,7 +119,7 @@ RESIN_FORMATS: dict[str, ResinFormat] = {
                     settings_check="sl1:refuse_settings"),
         ResinFormat("sl1svg", (".sl1_svg",), "sl1svg:write_target", "PrusaSlicer's vector SL1 archive (one SVG of "
                     "the contours per layer, config.ini, thumbnails)", "SL1 SVG archive",
-                    settings_check="sl1:refuse_settings"),
+                    settings_check="sl1svg:refuse_settings"),
         ResinFormat("nanodlp", (".nanodlp",), "nanodlp:write_target", "NanoDLP plate (1.png upward, "
                     "meta/plate/profile/options/info json, 3d.png)", "NanoDLP plate", png=True),
         ResinFormat("goo", (".goo",), "goo:write_target", "Elegoo GOO file (8-bit RLE layers, print settings, "

@@ -60,6 +60,15 @@ def benchy(shared_meshes):
     return slice_mesh(mesh, z=z, layer_thickness=0.05, backend="numpy")
 
 
+@pytest.fixture(scope="module")
+def nefertiti(shared_meshes):
+    """Nefertiti at 80 mm, 24 layers of 0.05 mm spread over its height (a subset of its 1600)."""
+    mesh = load_mesh(shared_meshes / "nefertiti.stl", fit=80)
+    top = float(mesh.vertices[:, 2].max())
+    z = (np.floor(np.linspace(0.0, top - 0.05, 24) / 0.05) + 0.5) * 0.05
+    return slice_mesh(mesh, z=z, layer_thickness=0.05, backend="numpy")
+
+
 def _target(tmp_path, name, result, spec, printer=None, **kw):
     opts = ResinOptions(printer=printer, workers=2)
     # the SL1 family holds one bottom layer (expTimeFirst): the others take the shared settings' three
@@ -325,6 +334,39 @@ def test_nanodlp_benchy_runs(tmp_path, device, benchy):
     t = _target(tmp_path, "b.nanodlp", benchy, replace(SMALL, resolution=(1400, 800)))
     _write("nanodlp", t, backend="opencl", device=device)
     _check_nanodlp(t.path, benchy, t.spec, SETTINGS, backend="opencl", device=device)
+
+
+@pytest.mark.parametrize("fmt", ["sl1", "nanodlp"])
+@pytest.mark.parametrize("model", ["benchy", "nefertiti"])
+def test_png_archives_on_the_12k_non_square_preset(tmp_path, device, request, fmt, model):
+    """SL1 and NanoDLP at the Saturn 3 Ultra's 11520x5120 display of 0.019 x 0.024 mm pixels (mirrored in x):
+    every written layer decodes to masks() exactly (24 layers spread over the model, 0.05 mm)."""
+    from gpuslice.raster import with_printer
+
+    res = request.getfixturevalue(model)
+    spec = replace(with_printer("elegoo-saturn-3-ultra"), mirror_x=True)
+    assert spec.px != spec.py and spec.shape == (5120, 11520)
+    t = _target(tmp_path, f"m.{fmt}", res, spec)
+    _write(fmt, t, backend="opencl", device=device)
+    a = zr.read_sl1(t.path) if fmt == "sl1" else zr.read_nanodlp(t.path)
+    assert len(a.layers) == res.n_layers == 24
+    lit = 0
+    for k, name in enumerate(a.layers):
+        got = zr.png_layer(a.read(name))
+        want = masks(res, spec, layers=[k], device=device)[0]
+        assert got.shape == want.shape and np.array_equal(got, want), (k, int(np.count_nonzero(got != want)))
+        lit += int(np.count_nonzero(want))
+    assert lit > 1_000_000
+
+
+def test_sl1svg_refuses_z_samples(tmp_path, capsys):
+    """Anti-aliasing in Z cannot reach an SVG of contours (it only changed the thumbnails): refused, nothing written."""
+    stl = tmp_path / "cube.stl"
+    shapes.write_stl(shapes.box(), stl)
+    out = tmp_path / "x.sl1_svg"
+    assert main(["raster", str(stl), "-t", "1", "--z-samples", "2", "--no-progress", "-o", str(out)]) == 2
+    assert "x.sl1_svg: an SL1_SVG archive stores each layer's contours" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cube.stl"]
 
 
 def test_nanodlp_refuses_adaptive_layers(tmp_path, torus):
