@@ -51,22 +51,24 @@ def nested():
     return slice_mesh(mesh_from_triangles(shapes.hollow_box(20, 10, core=6)), thickness=2.0, backend="numpy")
 
 
+def _spread(path, fit: float, n: int = 24):
+    """The model at ``path`` fitted to ``fit`` mm, ``n`` layers of 0.05 mm spread over its height."""
+    mesh = load_mesh(path, fit=fit)
+    top = float(mesh.vertices[:, 2].max())
+    z = (np.floor(np.linspace(0.0, top - 0.05, n) / 0.05) + 0.5) * 0.05
+    return slice_mesh(mesh, z=z, layer_thickness=0.05, backend="numpy")
+
+
 @pytest.fixture(scope="module")
 def benchy(shared_meshes):
     """3DBenchy at 60 mm, 24 layers of 0.05 mm spread over its height (a subset of its 960)."""
-    mesh = load_mesh(shared_meshes / "benchy.stl", fit=60)
-    top = float(mesh.vertices[:, 2].max())
-    z = (np.floor(np.linspace(0.0, top - 0.05, 24) / 0.05) + 0.5) * 0.05
-    return slice_mesh(mesh, z=z, layer_thickness=0.05, backend="numpy")
+    return _spread(shared_meshes / "benchy.stl", 60)
 
 
 @pytest.fixture(scope="module")
 def nefertiti(shared_meshes):
     """Nefertiti at 80 mm, 24 layers of 0.05 mm spread over its height (a subset of its 1600)."""
-    mesh = load_mesh(shared_meshes / "nefertiti.stl", fit=80)
-    top = float(mesh.vertices[:, 2].max())
-    z = (np.floor(np.linspace(0.0, top - 0.05, 24) / 0.05) + 0.5) * 0.05
-    return slice_mesh(mesh, z=z, layer_thickness=0.05, backend="numpy")
+    return _spread(shared_meshes / "nefertiti.stl", 80)
 
 
 def _target(tmp_path, name, result, spec, printer=None, **kw):
