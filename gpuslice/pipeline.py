@@ -55,7 +55,8 @@ class ResinOutput:
             raise ParameterError(f"{self.path}: {exc}") from None
         from .raster.outputs import RESIN_FORMATS
 
-        RESIN_FORMATS[self.format].check_settings(self.path, self.options, self.settings or self.options.settings())
+        RESIN_FORMATS[self.format].check_settings(self.path, self.options, self.settings or self.options.settings(),
+                                                  self.spec)
 
 
 @dataclass(frozen=True)

@@ -137,7 +137,7 @@ class BatchOptions:
         settings = ropts.settings(**{f.name: given.get(f.name) for f in fields(PrintSettings)})
         from ..raster.outputs import RESIN_FORMATS
 
-        RESIN_FORMATS[self.raster].check_settings(f"--raster {self.raster}", ropts, settings)
+        RESIN_FORMATS[self.raster].check_settings(f"--raster {self.raster}", ropts, settings, spec)
         return spec, ropts, settings
 
     @property

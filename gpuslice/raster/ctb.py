@@ -460,7 +460,7 @@ def two_stages_lost(settings) -> str | None:
     return None
 
 
-def refuse_settings(path, name: str, options, settings) -> None:
+def refuse_settings(path, name: str, options, settings, spec=None) -> None:
     """CTB's settings check (:meth:`gpuslice.raster.outputs.ResinFormat.check_settings`): v2 and v3 store one lift
     and one retract stage (module docstring), so a second stage at its own speed is refused rather than folded into
     the first (the file would move otherwise than asked, and its print time would not be the one printed)."""

@@ -80,16 +80,18 @@ class ResinFormat:
     title: str
     folder: bool = False
     png: bool = False
-    #: ``"module:function"`` that refuses, before any work, print settings the format cannot store (a one-line
-    #: :class:`~gpuslice.errors.ParameterError`; called as ``f(path, name, options, settings)``); None: it stores all
+    #: ``"module:function"`` that refuses, before any work, print settings or a display the format cannot store (a
+    #: one-line :class:`~gpuslice.errors.ParameterError`; called as ``f(path, name, options, settings, spec)``);
+    #: None: it stores all
     settings_check: str | None = None
 
-    def check_settings(self, path, options, settings) -> None:
-        """Refuse ``settings`` (:class:`~gpuslice.raster.settings.PrintSettings`) this format cannot store for
-        ``options`` (its preset: the format's version), naming ``path``; nothing to refuse: returns."""
+    def check_settings(self, path, options, settings, spec) -> None:
+        """Refuse ``settings`` (:class:`~gpuslice.raster.settings.PrintSettings`) or a display ``spec`` this format
+        cannot store for ``options`` (its preset: the format's version), naming ``path``; nothing to refuse:
+        returns."""
         if self.settings_check is not None:
             module, func = self.settings_check.split(":")
-            getattr(importlib.import_module(f"{__package__}.{module}"), func)(path, self.name, options, settings)
+            getattr(importlib.import_module(f"{__package__}.{module}"), func)(path, self.name, options, settings, spec)
 
     @property
     def suffix(self) -> str:

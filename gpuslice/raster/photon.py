@@ -45,7 +45,8 @@ it, display, Z travel and file version). A printer preset (``--printer``) overri
 travel (``build_height``) and, when its native format is this suffix, the version (``format_version``: 1, 515, 516,
 517 or 518). The display, pitch and resolution written are the job's (:class:`RasterSpec`); the firmware checks
 them against its own, so a job whose display is not the named machine's (the suffix's, or the preset's) is refused
-before any work (:meth:`gpuslice.raster.spec.ResinOptions.check_display`).
+before any work (:func:`refuse_settings`; with a preset, the preset's display:
+:meth:`gpuslice.raster.spec.ResinOptions.check_display`).
 Mirroring is the display's (``--mirror-x``): UVtools' Anycubic printer profiles mirror X. Photon Workshop files
 carry no date, so the bytes depend only on the layers and the options. The M7 generation (``.pm7``, ``.pm7m``,
 ``.pwsz``, ``.pm4u``) uses another, zip-based container: not this writer.
@@ -485,14 +486,24 @@ def _machine_version(name: str, options) -> tuple[Machine, int | None]:
     return MACHINES[name], None
 
 
-def refuse_settings(path, name: str, options, settings) -> None:
+def refuse_settings(path, name: str, options, settings, spec=None) -> None:
     """Photon Workshop's settings check (:meth:`gpuslice.raster.outputs.ResinFormat.check_settings`), before any
-    work: one rest for every layer (:func:`_wait`); before version 516 one lift and one retract stage (as CTB v2/v3);
-    from 516 two stages, whose slow retract is the first lift stage's height, so a ``retract_height2`` other than
-    ``lift_height`` (or 0) is refused rather than changed (the module docstring's stage mapping)."""
+    work: without a preset, the display ``spec`` must be the one of the machine the suffix names (its firmware
+    checks it: ``.pm5s`` is the M5s's 11520x5120 of 0.019 x 0.024 mm); one rest for every layer (:func:`_wait`);
+    before version 516 one lift and one retract stage (as CTB v2/v3); from 516 two stages, whose slow retract is the
+    first lift stage's height, so a ``retract_height2`` other than ``lift_height`` (or 0) is refused rather than
+    changed (the module docstring's stage mapping)."""
     from .ctb import two_stages_lost
+    from .spec import RasterSpec, display_text, same_display
 
     machine, version = _machine_version(name, options)
+    if spec is not None and options.preset is None:
+        want = RasterSpec(resolution=tuple(machine.resolution), pixel=machine.display[0] / machine.resolution[0],
+                          pixel_y=machine.display[1] / machine.resolution[1])
+        if not same_display(spec, want):
+            raise ParameterError(f"{path}: a .{name} file is for the {machine.name}, whose display is "
+                                 f"{display_text(want)}, not the {display_text(spec)} asked (give its --printer "
+                                 "preset, or --resolution and --pixel/--pixel-y of that display)")
     version = machine.version if version is None else version
     _wait(settings, Path(os.fspath(path)))
     if version < 516:
@@ -518,7 +529,7 @@ def write_target(layers: Iterable[Tile | RunLayer], target) -> dict[str, Any]:
     suffix = target.format if target.format is not None else path.suffix.lower().lstrip(".")
     if suffix not in MACHINES:
         raise ParameterError(f"{path}: not a Photon Workshop suffix (use .{', .'.join(MACHINES)})")
-    refuse_settings(path, suffix, target.options, target.settings)
+    refuse_settings(path, suffix, target.options, target.settings)  # (the display: checked by the job, up front)
     machine, version = _machine_version(suffix, target.options)
     preset = target.options.preset
     name = machine_z = None

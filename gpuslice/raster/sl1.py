@@ -66,7 +66,7 @@ def sl1_print_time(info: SL1Info, n_layers: int) -> float:
     return info.initial_exposure_time + max(n_layers - 1, 0) * info.exposure_time + n_layers * info.tilt_time
 
 
-def refuse_settings(path, name: str, options, settings) -> None:
+def refuse_settings(path, name: str, options, settings, spec=None) -> None:
     """The SL1 family's settings check (:meth:`gpuslice.raster.outputs.ResinFormat.check_settings`): config.ini has
     no count of bottom layers, so ``bottom_layers`` other than 1 is refused rather than dropped."""
     if settings.bottom_layers != 1:

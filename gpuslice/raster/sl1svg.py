@@ -243,12 +243,12 @@ def write_sl1svg(
     return {"layers": float(n_layers), "svg_bytes": float(svg_bytes)}
 
 
-def refuse_settings(path, name: str, options, settings) -> None:
+def refuse_settings(path, name: str, options, settings, spec=None) -> None:
     """The settings check of the SL1 family (:func:`gpuslice.raster.sl1.refuse_settings`), and ``z_samples``: its
     layers are contours, which anti-aliasing in Z cannot change (it only reached the thumbnails)."""
     from .sl1 import refuse_settings as sl1_refuse
 
-    sl1_refuse(path, name, options, settings)
+    sl1_refuse(path, name, options, settings, spec)
     if options.z_samples > 1:
         raise ParameterError(f"{path}: an SL1_SVG archive stores each layer's contours, not its pixels; "
                              f"--z-samples {options.z_samples} cannot be written (use .sl1 for grey layers)")

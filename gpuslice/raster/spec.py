@@ -169,6 +169,17 @@ def gamma_lut(gamma: float) -> np.ndarray:
     return np.floor(255.0 * k**gamma + 0.5).astype(np.uint8)
 
 
+def same_display(a: RasterSpec, b: RasterSpec) -> bool:
+    """Whether two displays have the same pixels and pixel sizes (within 0.5 %): one printer's."""
+    return tuple(a.resolution) == tuple(b.resolution) and all(
+        abs(x - y) <= 0.005 * y for x, y in ((a.px, b.px), (a.py, b.py)))
+
+
+def display_text(s: RasterSpec) -> str:
+    """``"11520x5120 px of 0.019 x 0.024 mm"``."""
+    return f"{s.resolution[0]}x{s.resolution[1]} px of {s.px:g} x {s.py:g} mm"
+
+
 def with_printer(name: str, **overrides) -> RasterSpec:
     """A :class:`RasterSpec` of the preset ``name`` (:data:`PRINTERS`, or a preset file) with ``overrides``."""
     return replace(RasterSpec(**find_printer(name).display()), **overrides)
@@ -249,33 +260,18 @@ class ResinOptions:
             self.check_display(fmt, spec)
 
     def check_display(self, fmt: str, spec: RasterSpec) -> None:
-        """:class:`ParameterError` when a printer archive ``fmt`` would name a printer whose display ``spec`` is not:
-        the preset's (``--printer`` with another ``--resolution`` or ``--pixel``: the archive carries the preset's
-        machine name), or, without a preset, the machine a Photon Workshop suffix names (``.pm5s`` is the M5s's
-        11520x5120 display). A firmware refuses such a file, or prints it at the wrong size. A PNG stack names no
-        printer. Pixel sizes compare within 0.5 %."""
+        """:class:`ParameterError` when a printer archive ``fmt`` would carry the preset's machine name at a display
+        ``spec`` that is not the preset's (``--printer`` with another ``--resolution`` or ``--pixel``): a firmware
+        refuses such a file, or prints it at the wrong size. A PNG stack names no printer. Pixel sizes compare
+        within 0.5 % (:func:`same_display`). Without a preset, a format whose suffix names a machine checks the
+        display itself (Photon Workshop: :func:`gpuslice.raster.photon.refuse_settings`)."""
         from .printers import ANY_PRINTER_FORMATS
 
-        if fmt in ANY_PRINTER_FORMATS:
-            return
         preset = self.preset
-        if preset is not None:
-            want = RasterSpec(**preset.display())
-            whose = f"printer {preset.name}'s display"
-            hint = "leave --resolution/--pixel/--pixel-y out, or write a preset file of your printer"
-        else:
-            from .photon import MACHINES
-
-            machine = MACHINES.get(fmt)
-            if machine is None:
-                return
-            size = machine.display
-            want = RasterSpec(resolution=tuple(machine.resolution), pixel=size[0] / machine.resolution[0],
-                              pixel_y=size[1] / machine.resolution[1])
-            whose = f"a .{fmt} file is for the {machine.name}, whose display"
-            hint = "give its --printer preset, or --resolution and --pixel/--pixel-y of that display"
-        same = tuple(spec.resolution) == tuple(want.resolution) and all(
-            abs(a - b) <= 0.005 * b for a, b in ((spec.px, want.px), (spec.py, want.py)))
-        if not same:
-            shown = lambda r: f"{r.resolution[0]}x{r.resolution[1]} px of {r.px:g} x {r.py:g} mm"  # noqa: E731
-            raise ParameterError(f"{whose} is {shown(want)}, not the {shown(spec)} asked ({hint})")
+        if fmt in ANY_PRINTER_FORMATS or preset is None:
+            return
+        want = RasterSpec(**preset.display())
+        if not same_display(spec, want):
+            raise ParameterError(f"printer {preset.name}'s display is {display_text(want)}, not the "
+                                 f"{display_text(spec)} asked (leave --resolution/--pixel/--pixel-y out, or write a "
+                                 "preset file of your printer)")
