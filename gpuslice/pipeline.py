@@ -55,6 +55,9 @@ class ResinOutput:
             raise ParameterError(f"{self.path}: {exc}") from None
         from .raster.outputs import RESIN_FORMATS
 
+        if self.format not in RESIN_FORMATS:
+            raise ParameterError(f"{self.path}: unknown resin format '{self.format}' (use "
+                                 f"{', '.join(RESIN_FORMATS)})")
         RESIN_FORMATS[self.format].check_settings(self.path, self.options, self.settings or self.options.settings(),
                                                   self.spec)
 
@@ -369,7 +372,7 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
 
         info = gl_info() or {}
         if info.get("software"):
-            out.stats["raster_backend"] = f"gl (software: {info.get('renderer', '').split(' (')[0] or 'Mesa'})"
+            out.stats["gl_renderer"] = f"software: {info.get('renderer', '').split(' (')[0] or 'Mesa'}"
     t_sub = out.timings.get("z_samples", 0.0)
     out.timings["raster"] = time.perf_counter() - t - t_sub  # the z sub-slices have their own line
 

@@ -244,9 +244,9 @@ def _overlay_area(op, a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _holds(poly: np.ndarray, below: np.ndarray, support: float, join: float) -> np.ndarray:
     """Whether each polygon's overlap with its layer below holds it: at least ``support`` mm² (or half the polygon's
-    own area, for a part itself below a pixel), and, for a polygon wider than that, not a sliver narrower than
-    ``join`` mm throughout (an overlap that ``buffer(-join / 2)`` erases prints no pixel: a wall 0.009 mm thick
-    held a 5 mm² strip of p_ascii_multibody)."""
+    own area, for a part itself below a pixel), and, for a polygon wider than ``join`` somewhere, not a sliver
+    narrower than ``join`` mm throughout (an overlap that ``buffer(-join / 2)`` erases prints no pixel: a wall
+    0.009 mm thick held a 5 mm² strip of p_ascii_multibody)."""
     import shapely
 
     inter = _overlay(shapely.intersection, poly, below)
@@ -255,6 +255,8 @@ def _holds(poly: np.ndarray, below: np.ndarray, support: float, join: float) -> 
     held = area >= np.minimum(support, 0.5 * own)
     wide = np.flatnonzero(held & (own >= 2 * support))
     if join > 0 and wide.size:
+        # a part that is itself narrower than that throughout (a fin 0.02 mm thick going on up) keeps the area rule
+        wide = wide[~shapely.is_empty(shapely.buffer(poly[wide], -0.5 * join, quad_segs=1))]
         held[wide] = ~shapely.is_empty(shapely.buffer(inter[wide], -0.5 * join, quad_segs=1))
     return held
 

@@ -149,7 +149,9 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
                          report)
     if not quiet:
         pitch = f"{spec.px:g}" if spec.py == spec.px else f"{spec.px:g} x {spec.py:g}"
+        drawn = f"raster {stats['raster_backend']}" + (f" ({stats['gl_renderer']})" if "gl_renderer" in stats else "")
+        size = stats.get("png_bytes", stats.get("svg_bytes", 0.0))  # (SL1_SVG: its SVG layers)
         click.echo(f"{Path(model).name}: {n} layers of {spec.png_size[0]}x{spec.png_size[1]} px ({pitch} mm), "
-                   f"raster {stats['raster_backend']}, {stats['png_bytes'] / 1e6:.1f} MB of layer images, "
+                   f"{drawn}, {size / 1e6:.1f} MB of layer images, "
                    f"{timings['total']:.2f} s; print about {format_duration(estimate['print_time_s'])} (h:mm), "
                    f"{ml:.1f} ml of resin; wrote {output}")

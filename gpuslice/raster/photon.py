@@ -488,16 +488,16 @@ def _machine_version(name: str, options) -> tuple[Machine, int | None]:
 
 def refuse_settings(path, name: str, options, settings, spec=None) -> None:
     """Photon Workshop's settings check (:meth:`gpuslice.raster.outputs.ResinFormat.check_settings`), before any
-    work: without a preset, the display ``spec`` must be the one of the machine the suffix names (its firmware
-    checks it: ``.pm5s`` is the M5s's 11520x5120 of 0.019 x 0.024 mm); one rest for every layer (:func:`_wait`);
-    before version 516 one lift and one retract stage (as CTB v2/v3); from 516 two stages, whose slow retract is the
-    first lift stage's height, so a ``retract_height2`` other than ``lift_height`` (or 0) is refused rather than
-    changed (the module docstring's stage mapping)."""
+    work: where the file carries the suffix's machine name (no preset, or one without a ``machine``), the display
+    ``spec`` must be that machine's (its firmware checks it: ``.pm5s`` is the M5s's 11520x5120 of 0.019 x 0.024
+    mm); one rest for every layer (:func:`_wait`); before version 516 one lift and one retract stage (as CTB v2/v3);
+    from 516 two stages, whose slow retract is the first lift stage's height, so a ``retract_height2`` other than
+    ``lift_height`` (or 0) is refused rather than changed (the module docstring's stage mapping)."""
     from .ctb import two_stages_lost
     from .spec import RasterSpec, display_text, same_display
 
     machine, version = _machine_version(name, options)
-    if spec is not None and options.preset is None:
+    if spec is not None and not (options.preset is not None and options.preset.machine):  # the suffix's name goes in
         want = RasterSpec(resolution=tuple(machine.resolution), pixel=machine.display[0] / machine.resolution[0],
                           pixel_y=machine.display[1] / machine.resolution[1])
         if not same_display(spec, want):

@@ -160,6 +160,16 @@ def test_a_region_held_by_a_tip_no_pixel_prints_is_an_island():
     assert run_checks(res, backend="numpy", options=CheckOptions(overhang_tolerance=0.01)).n_islands == 0  # 0.00005
 
 
+def test_a_fin_thinner_than_half_a_pixel_going_up_is_no_island():
+    """A fin 0.02 mm thick and 10 mm long standing on a block: each layer of it stands on the one below (a
+    reviewer's case: 60 islands in 60 layers, while the pixels, where it prints nothing, and the unsupported area
+    said none)."""
+    res = _slice(_cat(_box(10, 10, 5), _box(0.02, 10, 6, z0=4.9)))
+    rep = _check(res)
+    assert rep.n_islands == 0 and np.all(rep.islands.unsupported < 1e-9)
+    assert _check(res, SPEC_4K).n_islands == 0
+
+
 def test_a_part_nearer_than_half_a_pixel_to_a_held_one_is_held():
     """The floating box of the first test 0.01 mm from the block instead of 2.5 mm: a gap the 0.05 mm pixels do not
     resolve, so it prints fused to the block; one region with it in contours too (no island), and beyond half a

@@ -380,6 +380,9 @@ def test_a_display_not_the_machines_is_refused(tmp_path, capsys):
     assert "printer anycubic-photon-mono-m5s's display is 11520x5120" in capsys.readouterr().err
     assert main([*base, "--printer", "elegoo-saturn-3-ultra", "--pixel", "0.05", "-o", str(tmp_path / "c.goo")]) == 2
     assert "not the 11520x5120 px of 0.05 x 0.024 mm asked" in capsys.readouterr().err
+    # a preset that names no machine (generic-4k reads any format) leaves the suffix's name in the file: the same
+    assert main([*base, "--printer", "generic-4k", "-o", str(tmp_path / "e.pm5s")]) == 2
+    assert "a .pm5s file is for the Anycubic Photon Mono M5s" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["torus.stl"]
     assert main([*base, "--resolution", "11520x5120", "--pixel", "0.019", "--pixel-y", "0.024", "-q",
                  "-o", str(tmp_path / "d.pm5s")]) == 0  # the M5s's display, given by hand

@@ -116,8 +116,8 @@ def test_numpy_backend_masks_are_the_runs(device, shared_meshes, gamma):
     spec = RasterSpec(resolution=(3840, 2400), pixel=0.05, gamma=gamma)
     got = masks(res, spec, backend="numpy")
     assert got.any() and np.array_equal(got, masks(res, spec, backend="opencl", device=device))
-    bitmap = masks(res, spec, backend="numpy-bitmap")
-    assert np.abs(bitmap.astype(int) - got).max() <= (1 if gamma else 255)
+    if gamma:  # (at gamma 0 a grey off by one may cross the threshold: 0 against 255)
+        assert np.abs(masks(res, spec, backend="numpy-bitmap").astype(int) - got).max() <= 1
 
 
 @pytest.mark.parametrize("k", [0, -5, 2.7, True, 65, "2"])

@@ -361,6 +361,16 @@ def test_png_archives_on_the_12k_non_square_preset(tmp_path, device, request, fm
     assert lit > 1_000_000
 
 
+def test_cli_sl1svg_prints_its_summary(tmp_path, capsys):
+    """`raster -o x.sl1_svg` without -q: the summary counts its SVG layers (it ended in an internal error, KeyError
+    'png_bytes', after writing the file)."""
+    stl = tmp_path / "cube.stl"
+    shapes.write_stl(shapes.box(), stl)
+    assert main(["raster", str(stl), "-t", "1", "--no-progress", "-o", str(tmp_path / "x.sl1_svg")]) == 0
+    out = capsys.readouterr().out
+    assert "MB of layer images" in out and "wrote" in out and (tmp_path / "x.sl1_svg").is_file()
+
+
 def test_sl1svg_refuses_z_samples(tmp_path, capsys):
     """Anti-aliasing in Z cannot reach an SVG of contours (it only changed the thumbnails): refused, nothing written."""
     stl = tmp_path / "cube.stl"
