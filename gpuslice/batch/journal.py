@@ -15,7 +15,7 @@ import json
 import os
 from pathlib import Path
 
-__all__ = ["JOURNAL_NAME", "record_finished", "read_journal", "unchanged"]
+__all__ = ["JOURNAL_NAME", "record_finished", "record_written_since", "read_journal", "unchanged", "forget_journal"]
 
 #: the journal in the output folder, beside the manifest
 JOURNAL_NAME = ".gpuslice-batch.done"
@@ -44,6 +44,22 @@ def record_finished(folder: Path, names: list[str]) -> None:
             os.write(fd, line.encode("utf-8"))  # (one write of one line: appended whole)
         finally:
             os.close(fd)
+
+
+def record_written_since(folder: Path, names: list[str], since_ns: int) -> None:
+    """Journal ``names`` when every one of them was put in place at or after ``since_ns`` (a worker renames an
+    output whole when it is complete): a model finished as a batch was stopped, its result never back."""
+    stamps = [_stamp(folder / name) for name in names]
+    if all(s is not None and s[1] >= since_ns for s in stamps):
+        record_finished(folder, names)
+
+
+def forget_journal(folder: Path) -> None:
+    """Empty the journal (the options changed, ``--force``: its files were made with the old ones). An empty journal,
+    not none: the folder's remaining outputs are then refused by name, not taken as finished by the older rule."""
+    from ..io.atomic import atomic_write_text
+
+    atomic_write_text(folder / JOURNAL_NAME, "")
 
 
 def read_journal(folder: Path) -> dict[str, list[int]] | None:

@@ -181,6 +181,9 @@ class BatchOptions:
                          ((k, getattr(p, k)) for k in _SCHEDULE_FIELDS)} if p.adaptive else {}
         if self.check:  # only then: folders made without --check keep their fingerprint
             d["check"] = True
+        preset = dict(self.raster_options).get("printer")
+        if preset is not None and Path(str(preset)).is_file():  # a user's preset file: what it says, not its name
+            d["printer_file_sha256"] = hashlib.sha256(Path(str(preset)).read_bytes()).hexdigest()[:16]
         return d
 
     def fingerprint(self) -> str:

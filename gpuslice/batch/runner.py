@@ -31,7 +31,7 @@ from typing import Any
 from ..errors import BatchError, one_line
 from ..io.atomic import atomic_write_tree
 from .discover import Model, discover
-from .journal import JOURNAL_NAME, read_journal, record_finished, unchanged
+from .journal import JOURNAL_NAME, forget_journal, read_journal, record_finished, record_written_since, unchanged
 from .options import BatchOptions, check_path
 from .report import checks_summary
 from .task import _cores, _worker_device, default_workers, init_worker, pocl_thread_env, run_model
@@ -114,12 +114,16 @@ class BatchRunner:
                 have = json.loads(manifest.read_text())
             except (OSError, ValueError):
                 have = {}
-            if have.get("fingerprint") != want["fingerprint"] and not self.force:
-                old = have.get("options", {})
-                diff = ", ".join(f"{k} {old.get(k)!r} -> {v!r}" for k, v in want["options"].items()
-                                 if old.get(k) != v) or "unreadable manifest"
-                raise BatchError(f"{out}: holds outputs made with other options ({diff}); use --force to redo "
-                                 "them, or another output folder")
+            if have.get("fingerprint") != want["fingerprint"]:
+                if not self.force:
+                    old = have.get("options", {})
+                    diff = ", ".join(f"{k} {old.get(k)!r} -> {v!r}" for k, v in want["options"].items()
+                                     if old.get(k) != v) or "unreadable manifest"
+                    raise BatchError(f"{out}: holds outputs made with other options ({diff}); use --force to redo "
+                                     "them, or another output folder")
+                # --force with other options: what the journal lists was made with the old ones; forgotten now,
+                # so a run stopped early, or one of a part of the models, leaves no old output a re-run would skip
+                forget_journal(out)
         ours = manifest.exists()  # a batch wrote here before: existing outputs are its finished models
         done = [] if self.force else [i for i in range(len(self.models)) if all((out / f).exists() for f in
                                                                                 self._files(i))]
@@ -140,6 +144,13 @@ class BatchRunner:
             self._finish(i, {"model": self.models[i].rel, "output": self.models[i].out, "status": "skipped",
                              "error": None}, None)
         return [_Task(i) for i in sorted(set(range(len(self.models))) - set(done))]
+
+    def _record_committed(self, since_ns: int) -> None:
+        """After Ctrl-C: journal the models without a result whose files a worker put in place during this run
+        (:func:`.journal.record_written_since`): a re-run skips them (it refused them by name)."""
+        for i in range(len(self.models)):
+            if i not in self.records:
+                record_written_since(self.out_dir, self._files(i), since_ns)
 
     def _cleanup_temporaries(self) -> None:
         """Remove temporaries left by killed workers beside this batch's outputs (``.NAME.tmp-…``): one listing
@@ -368,6 +379,7 @@ class BatchRunner:
         if transfer not in ("shared", "bytes"):
             raise BatchError(f"unknown transfer '{transfer}' (use shared or bytes)")
         t0 = time.perf_counter()
+        started_ns = time.time_ns()
         tasks = self._prepare_output()
         mode = "dask" if client is not None else "serial" if workers == 0 else "local"
         self.info.update(mode=mode, transfer=transfer if client is not None else "shared")
@@ -390,6 +402,7 @@ class BatchRunner:
                     self._run_local(tasks, n, t)
         except KeyboardInterrupt:
             self.interrupted = True
+            self._record_committed(started_ns)
             raise
         finally:
             self._cleanup_temporaries()

@@ -107,6 +107,18 @@ def _collect(path: Path) -> bytes | dict[str, bytes]:
     return path.read_bytes()
 
 
+def _remove_written(paths: list[Path], since_ns: int) -> None:
+    """Remove those of a failed model's files that this attempt put in place (at or after ``since_ns``): its check
+    report is written before its archive, and its contour file before its checks, so a model that failed half way
+    left one without the other. Files from before (an earlier run's) are left."""
+    from ..io.atomic import remove_path
+
+    for p in paths:
+        with contextlib.suppress(OSError):
+            if p.stat().st_mtime_ns >= since_ns:
+                remove_path(p)
+
+
 def check_summary(report) -> dict[str, Any]:
     """A model's pre-print checks in its batch record: the counts (``islands``, ``island_layers``, ``traps``,
     ``suction_cups``), the largest unsupported area of a layer (mm²) and the print time (s) and resin (ml)."""
@@ -140,8 +152,12 @@ def run_model(model: Model, opts: BatchOptions, out_root: str | None, data: byte
         travels as bytes, ``check_payload`` (the check report's bytes, written next to the output by the driver).
     """
     t0 = time.perf_counter()
+    started_ns = time.time_ns()
     rec: dict[str, Any] = {"model": model.rel, "output": model.out, "status": "failed", "error": None,
                            "pid": os.getpid(), "host": socket.gethostname()}
+    mine = [Path(out_root) / model.out] if out_root is not None else []
+    if mine and opts.check:
+        mine.append(check_path(mine[0]))
     timings: dict[str, float] = {}
     try:
         from ..pipeline import run_job
@@ -179,8 +195,12 @@ def run_model(model: Model, opts: BatchOptions, out_root: str | None, data: byte
                    device=done.device.name if done.device is not None else "numpy (reference)")
         rec["status"] = "done"
     except Exception as exc:  # a failing model must not stop the batch: one line in its record
+        _remove_written(mine, started_ns)
         msg = one_line(exc)
         rec["error"] = msg if model.src in msg or model.rel in msg else f"{model.src}: {msg}"
+    except BaseException:  # stopped (Ctrl-C, SIGTERM): none of its files, or all
+        _remove_written(mine, started_ns)
+        raise
     timings["total"] = time.perf_counter() - t0
     rec["timings_s"] = timings
     if "distributed" in sys.modules:  # on a Dask worker: its address, so a retry can avoid it
