@@ -25,6 +25,17 @@ from .options import (
 __all__ = ["view"]
 
 
+def _checks(check: bool, preset):
+    """The page's pre-print checks: none, the contours' (no --printer) or the printer's pixels with its settings."""
+    from ..pipeline import CheckOutput
+
+    if not check:
+        return None
+    if preset is None:
+        return CheckOutput()
+    return CheckOutput(preset.spec(), preset.settings())
+
+
 def _size(n: int) -> str:
     return f"{n / 1e6:.1f} MB" if n >= 1e6 else f"{n / 1e3:.1f} kB"
 
@@ -36,8 +47,10 @@ def _size(n: int) -> str:
 @with_options(slicing_options(defaults=False))  # None unless given: they are refused with a saved .npz
 @click.option("--raster", is_flag=True, help="Add each layer's resin mask (gpuslice.raster), drawn under the contours "
               "(layers 0.05 mm unless -t is given, as `gpuslice raster`).")
-@click.option("--printer", default="generic-4k", show_default=True,
-              help="--raster: the printer preset (a name `gpuslice printers` lists, or a .toml/.json file).")
+@click.option("--printer", default=None,
+              help="The printer preset (a name `gpuslice printers` lists, or a .toml/.json file): --raster draws its "
+              "display's masks (default generic-4k); --check checks its pixels with its print settings, as `gpuslice "
+              "check --printer` (default: the contours, default settings).")
 @click.option("--mask-every", type=int, default=1, show_default=True,
               help="--raster: a mask for every N-th layer only (smaller page).")
 @click.option("--title", default=None, help="Page title (default: the model's file name).")
@@ -48,7 +61,7 @@ def view(source: str, output: str | None, raster: bool, printer: str, mask_every
          check: bool, quiet: bool, **kw) -> None:
     """Write a self-contained HTML layer viewer for SOURCE (a mesh, sliced with the `slice` options, or a saved
     .npz result). Open it in any browser, offline: slider and arrow keys step through the layers."""
-    from ..pipeline import CheckOutput, Job, ViewOutput, run_job
+    from ..pipeline import Job, ViewOutput, run_job
 
     src = Path(source)
     if output is None:
@@ -64,7 +77,13 @@ def view(source: str, output: str | None, raster: bool, printer: str, mask_every
         given = [flags[k] for k, v in kw.items() if v is not None and k in flags]
         if given:
             fail(f"{source}: a saved result is already sliced; {', '.join(given)} only apply to meshes")
-    masks = None
+    masks = preset = None
+    if printer is not None:
+        from ..raster.spec import ResinOptions
+
+        preset = ResinOptions(printer=printer)  # an unknown name or a bad file: refused here, with or without flags
+        if not (raster or check):
+            fail("--printer applies with --raster or --check")
     if raster:
         try:
             import PIL  # noqa: F401
@@ -72,14 +91,14 @@ def view(source: str, output: str | None, raster: bool, printer: str, mask_every
             fail("--raster needs pillow (pip install 'gpuslice[raster]')")
         from ..raster.spec import with_printer
 
-        masks = with_printer(printer)  # a preset name or a .toml/.json preset file
+        masks = with_printer(printer or "generic-4k")  # a preset name or a .toml/.json preset file
     # resin masks or pre-print checks: sliced as `raster` and `check` slice (0.05 mm) unless -t is given
     params, placement = slicing_values(kw, RESIN_DEFAULTS if raster or check else None)
     if raster or check:
         check_resin_layers(params)
     t0 = time.perf_counter()
     done = run_job(Job(source=source, placement=placement, params=params, mesh_check=False, saved_result=True,
-                       view=ViewOutput(output, title, masks, mask_every), checks=CheckOutput() if check else None))
+                       view=ViewOutput(output, title, masks, mask_every), checks=_checks(check, preset)))
     t1 = done.timings.get("view", 0.0)
     if not quiet:
         m = done.stats.get("masks")

@@ -562,6 +562,28 @@ def test_view_check_marks_the_page(sphere_stl, tmp_path):
     assert [row[0] for row in data["cavities"]] == [TRAP, SUCTION_CUP] and data["islands"] == []
 
 
+def test_view_check_takes_the_printer(sphere_stl, tmp_path, capsys):
+    """`view --check --printer X` checks X's pixels with X's print settings, as `check --printer X` (it ran contour
+    checks with default settings, whatever --printer said); an unknown --printer, or one with neither --raster nor
+    --check, is an error (it was dropped silently)."""
+    page = tmp_path / "v.html"
+    args = ["view", str(sphere_stl), "-t", "0.5", "--check", "-o", str(page)]
+    assert main([*args, "--printer", "prusa-sl1"]) == 0
+    view_lines = capsys.readouterr().out
+    report = tmp_path / "c.json"
+    assert main(["check", str(sphere_stl), "-t", "0.5", "--printer", "prusa-sl1", "--json", str(report)]) == 0
+    capsys.readouterr()
+    rep = json.loads(report.read_text())
+    assert "(tolerance 0.04725 mm)" in view_lines and rep["mode"] == "pixels"
+    from gpuslice.checks.summary import hours_minutes
+
+    assert f"print time: {hours_minutes(rep['print_time_s'])}" in view_lines
+    assert main([*args, "--printer", "nope"]) == 2
+    assert "unknown printer 'nope'" in capsys.readouterr().err
+    assert main(["view", str(sphere_stl), "-t", "0.5", "--printer", "prusa-sl1", "-o", str(page)]) == 2
+    assert "--printer applies with --raster or --check" in capsys.readouterr().err
+
+
 def test_pipeline_stage_and_timing(tmp_path):
     from gpuslice.pipeline import CheckOutput, Job, run_job
 
