@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import io
 import os
+import re
 import stat
 import zipfile
 import zlib
@@ -134,6 +135,11 @@ def zip_inflate_limit(zip_size: int) -> int:
     return int(min(ZIP_MAX_INFLATED, max(ZIP_RATIO_FLOOR, ZIP_MAX_RATIO * zip_size)))
 
 
+#: the 3MF slice extension's mark of an object whose mesh is not for fabrication (gpuslice's own 3MF slice stacks
+#: carry their bounding box so): trimesh would read that box as the part
+_LOWRES = re.compile(rb"meshresolution\s*=\s*[\"']lowres[\"']")
+
+
 def inflate_3mf(name: str, data: bytes | None = None) -> io.BytesIO:
     """Inflate the 3MF (a zip) ``data`` (or the file ``name``) under :func:`zip_inflate_limit`, into an in-memory
     zip of stored (uncompressed) members for trimesh to read.
@@ -183,8 +189,12 @@ def _read_with_trimesh(name: str, file_type: str, data: bytes | None = None) -> 
     if file_type == "3mf":
         source = inflate_3mf(name, data)
         with zipfile.ZipFile(source) as zf:  # trimesh says only "StopIteration" when there is no model part
-            if not any(n.lower().endswith(".model") for n in zf.namelist()):
+            parts = [n for n in zf.namelist() if n.lower().endswith(".model")]
+            if not parts:
                 raise MeshFileError(f"{name}: not a 3MF file: the zip holds no 3D model part (3D/3dmodel.model)")
+            if any(_LOWRES.search(zf.read(n)) for n in parts):  # (stored members: read without inflating again)
+                raise MeshFileError(f"{name}: a 3MF slice stack (its mesh is a low-resolution stand-in, "
+                                    's:meshresolution="lowres", not the part): slice the model it was made from')
         source.seek(0)
     try:
         if isinstance(source, str):

@@ -609,3 +609,22 @@ def test_property_damaged_binary_raises_only_mesh_errors(data: bytes) -> None:
 @given(_damage(VALID_ASCII))
 def test_property_damaged_ascii_raises_only_mesh_errors(data: bytes) -> None:
     _only_mesh_errors(data)
+
+
+def test_a_3mf_slice_stack_is_not_read_as_a_model(tmp_path: Path) -> None:
+    """gpuslice's own 3MF output (a slice stack whose mesh is its bounding box, marked lowres) was read back as that
+    box: sliced as a 20 mm cube by the next batch that found it. Refused, naming the file; a plain 3MF still reads."""
+    import trimesh
+
+    from gpuslice import mesh_from_triangles, slice_mesh
+    from gpuslice.formats import export
+    from gpuslice.mesh import shapes
+
+    res = slice_mesh(mesh_from_triangles(shapes.hollow_box(20.0, 10.0)), thickness=2.0, backend="numpy")
+    stack = tmp_path / "stack.3mf"
+    export(res, stack)
+    with pytest.raises(MeshFileError, match=r"stack\.3mf: a 3MF slice stack \(its mesh is a low-resolution"):
+        read_mesh_file(stack)
+    plain = tmp_path / "plain.3mf"
+    trimesh.creation.box([10, 10, 10]).export(plain)
+    assert read_mesh_file(plain).triangles.shape == (12, 3, 3)
