@@ -28,6 +28,10 @@ __all__ = ["CheckOptions", "CheckReport", "Islands", "Cavities", "run_checks", "
            "layer_intervals", "KINDS", "TRAP", "SUCTION_CUP", "DEFAULT_GRID_MM"]
 
 
+#: the coarsest trap grid, mm (the grid is a display of such cells: a display's largest pixel)
+MAX_TRAP_GRID_MM = 1000.0
+
+
 @dataclass(frozen=True)
 class CheckOptions:
     """Options of the pre-print checks (lengths in mm)."""
@@ -47,6 +51,8 @@ class CheckOptions:
                 raise ParameterError(f"{name} must be a number (mm), got {value!r}", param=name)
             if not (math.isfinite(value) and value >= 0):
                 raise ParameterError(f"{name} must be >= 0 mm, got {value}", param=name)
+            if name == "trap_grid" and value > MAX_TRAP_GRID_MM:  # (its cells are a display's pixels: their bound)
+                raise ParameterError(f"trap_grid must be at most {MAX_TRAP_GRID_MM:g} mm, got {value:g}", param=name)
 
 
 def _check_arguments(result, spec, settings, options, bounds, backend: str, workers) -> None:

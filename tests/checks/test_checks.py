@@ -512,6 +512,8 @@ def test_bad_options():
         CheckOptions(overhang_tolerance=-1)
     with pytest.raises(ParameterError, match=r"trap_grid must be a number \(mm\), got '0.2'"):
         CheckOptions(trap_grid="0.2")
+    with pytest.raises(ParameterError, match="trap_grid must be at most 1000 mm"):  # (it named --pixel)
+        CheckOptions(trap_grid=1e9)
     with pytest.raises(ParameterError, match="does not fit"):
         _check(res, RasterSpec(resolution=(100, 100), pixel=0.05))
 
