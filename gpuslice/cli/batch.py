@@ -147,6 +147,10 @@ def batch(inputs, out_dir, pattern, raster_opt, workers, threads, scheduler, tra
         fail("--transfer only applies with --scheduler")
     if kw["raster"] is None and raster_opt:
         fail("--raster-opt needs --raster")
+    if kw["raster"] is not None and click.get_current_context().get_parameter_source("fmt") in (
+            click.core.ParameterSource.COMMANDLINE, click.core.ParameterSource.ENVIRONMENT):
+        fail(f"--format and --raster: each model gets one output, its --raster {kw['raster']} archive (--format "
+             "names a contour format)")
     check_output_file(report, creates=out_dir)  # refused now, not after every model is done
     opts = _batch_options(kw, raster_opt)
     if opts.raster is not None:

@@ -541,6 +541,9 @@ def test_cli_raster_option_errors_name_raster_opt(tmp_path, capsys):
         assert main(args) == 2
         err = capsys.readouterr().err.strip()
         assert want in err and len(err.splitlines()) == 1, err
+    args = ["batch", str(models), "-o", str(tmp_path / "o"), "--raster", "goo", "--format", "svg", "-q"]
+    assert main(args) == 2  # --format was ignored without a word
+    assert "--format and --raster" in capsys.readouterr().err
     # a display that is not the one of the printer the archive names: refused before any model
     for raster, opt in (("pm5s", "resolution=3840x2400"), ("goo", "printer=elegoo-saturn-3-ultra")):
         extra = ["--raster-opt", "resolution=3840x2400"] if raster == "goo" else []
