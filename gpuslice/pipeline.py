@@ -79,14 +79,16 @@ class CheckOutput:
     resin or view output: on ``spec``'s pixels (a printer's display, placed as the archive places it; None:
     contour-exact), with the print ``settings`` (None: the defaults) and ``options``
     (:class:`gpuslice.checks.CheckOptions`; None: the defaults); ``path``: also write the JSON report there;
-    ``on_report(report)``: called as soon as the report is made (``raster --check`` prints it before writing).
-    The report goes to ``JobResult.stats["checks"]``."""
+    ``on_report(report)``: called as soon as the report is made (``raster --check`` prints it before writing);
+    ``printer``: the preset whose display ``spec`` is (a model taller than its build height is refused before
+    slicing, as ``raster`` refuses it). The report goes to ``JobResult.stats["checks"]``."""
 
     spec: RasterSpec | None = None
     settings: PrintSettings | None = None
     options: Any = None
     path: str | None = None
     on_report: Callable[[Any], None] | None = field(default=None, compare=False)
+    printer: Any = None
 
 
 @dataclass(frozen=True)
@@ -215,8 +217,10 @@ def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | Non
             _prestart_encoders(job.resin)
         dev = prepare_device(job.params, device, timings)
         mesh = load_job_mesh(job, dev, timings)
-        if job.resin is not None:
-            _check_printer_fits(job, mesh)  # before slicing: a model larger than the printer is refused now
+        if job.resin is not None:  # before slicing: a model larger than the printer is refused now
+            _check_printer_fits(job.model_name, mesh, job.resin.spec, job.resin.options.preset)
+        elif job.checks is not None and job.checks.printer is not None:
+            _check_printer_fits(job.model_name, mesh, job.checks.spec, job.checks.printer)
         result = _slice(job, mesh, dev, timings)
         if job.resin is not None:  # the slicer's scratch memory back before the layers' (peak RSS: issue 18)
             from .device import release_scratch
@@ -293,18 +297,17 @@ def _bounds(mesh: Mesh | None) -> tuple[float, float, float, float] | None:
     return float(b[0, 0]), float(b[0, 1]), float(b[1, 0]), float(b[1, 1])
 
 
-def _check_printer_fits(job: Job, mesh: Mesh) -> None:
-    """:class:`ParameterError` when the placed mesh's XY box leaves the display or its height exceeds the printer
-    preset's build height (the exact per-layer check follows after slicing: ``raster.edges.check_fits``)."""
+def _check_printer_fits(name: str, mesh: Mesh, spec, preset) -> None:
+    """:class:`ParameterError` when the placed mesh's XY box leaves the display ``spec`` or its height exceeds the
+    printer ``preset``'s build height (the exact per-layer check follows after slicing: ``raster.edges.check_fits``)."""
     from .errors import ParameterError
     from .raster.edges import check_points_fit
 
-    r = job.resin
-    preset = r.options.preset
     b = mesh.bounds
-    check_points_fit(b[:, :2].astype(np.float64), r.spec, _bounds(mesh), job.model_name)  # the XY box's corners
+    if spec is not None:
+        check_points_fit(b[:, :2].astype(np.float64), spec, _bounds(mesh), name)  # the XY box's corners
     if preset is not None and preset.build_height > 0 and mesh.height > preset.build_height + 1e-6:
-        raise ParameterError(f"{job.model_name}: the model is {mesh.height:.2f} mm tall, more than the "
+        raise ParameterError(f"{name}: the model is {mesh.height:.2f} mm tall, more than the "
                              f"{preset.name}'s build height ({preset.build_height:g} mm)")
 
 

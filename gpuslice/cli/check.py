@@ -128,7 +128,7 @@ def check(model: str, json_path: str | None, quiet: bool, **kw) -> None:
     spec = options.spec() if options.printer is not None else None
     settings = options.settings(**values(PrintSettings, kw))
     try:
-        checks = CheckOutput(spec, settings, build(CheckOptions, kw), json_path)
+        checks = CheckOutput(spec, settings, build(CheckOptions, kw), json_path, printer=options.preset)
         done = run_job(Job(source=model, placement=placement, params=params, mesh_check=False, checks=checks))
     except ParameterError as exc:  # CheckOptions' fields as this command's flags (cli.options knows the others)
         raise _with_flags(exc) from None

@@ -33,7 +33,7 @@ def _checks(check: bool, preset):
         return None
     if preset is None:
         return CheckOutput()
-    return CheckOutput(preset.spec(), preset.settings())
+    return CheckOutput(preset.spec(), preset.settings(), printer=preset.preset)
 
 
 def _size(n: int) -> str:

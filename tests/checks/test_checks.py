@@ -586,6 +586,19 @@ def test_view_check_takes_the_printer(sphere_stl, tmp_path, capsys):
     assert "--printer applies with --raster or --check" in capsys.readouterr().err
 
 
+def test_check_printer_refuses_a_model_taller_than_its_build_height(tmp_path, capsys):
+    """`check --printer` compares the model with the printer's build height before slicing, as `raster` does (a
+    155 mm model passed on the 150 mm prusa-sl1)."""
+    from gpuslice.mesh import shapes
+
+    stl = tmp_path / "tall.stl"
+    shapes.write_stl(shapes.box((0, 0, 0), (10, 10, 155)), stl)
+    assert main(["check", str(stl), "-t", "1", "--printer", "prusa-sl1"]) == 2
+    err = capsys.readouterr().err
+    assert "tall.stl: the model is 155.00 mm tall, more than the prusa-sl1's build height (150 mm)" in err
+    assert main(["check", str(stl), "-t", "1", "-q"]) == 0  # no printer: nothing to compare with
+
+
 def test_pipeline_stage_and_timing(tmp_path):
     from gpuslice.pipeline import CheckOutput, Job, run_job
 
