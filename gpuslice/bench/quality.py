@@ -63,7 +63,10 @@ def mean_cusp(mesh: Mesh, schedule: Schedule | SliceResult, slopes=None) -> floa
     f = np.concatenate(([-t[0]], [0.0], np.cumsum(t * t), [np.sum(t * t) + t[-1] * (big - edges[-1])]))
     lo, hi = zmin[slanted].astype(np.float64), zmax[slanted].astype(np.float64)
     tbar = (np.interp(hi, knots, f) - np.interp(lo, knots, f)) / (hi - lo)
-    return float(np.sum(area * nz[slanted] * tbar) / np.sum(area))
+    total = float(np.sum(area))
+    if not total > 0:  # slanted facets of no area (slivers): nothing to weigh (was NaN: invalid JSON)
+        return 0.0
+    return float(np.sum(area * nz[slanted] * tbar) / total)
 
 
 def cusp_summary(mesh: Mesh, schedule: Schedule | SliceResult, device=None) -> dict:

@@ -66,7 +66,7 @@ def check_output_file(*paths: str | None, creates: str | None = None) -> None:
         if out is None:
             continue
         path = Path(out)
-        if path.is_dir():
+        if path.is_dir() or out.endswith(("/", "\\")):  # (`--report newdir/` wrote a file named newdir)
             fail(f"{out}: is a folder; name the file to write")
         refuse_special(path)  # (a device, FIFO or socket: the atomic rename would replace it)
         parent = path.parent

@@ -14,6 +14,12 @@ __all__ = ["shape"]
 @click.option("-o", "--output", type=click.Path(path_type=str), required=True, help="Binary STL to write.")
 def shape(name: str, output: str) -> None:
     """Write a built-in test solid NAME (mm, closed, outward-wound) as a binary STL, e.g. for a first run."""
+    from pathlib import Path
+
+    if Path(output).suffix.lower() != ".stl":  # (a .obj got STL bytes, which nothing then read)
+        from .options import fail
+
+        fail(f"{output}: shape writes binary STL; name the output .stl")
     tri = SHAPES[name]()
     write_stl(tri, output, header=f"gpuslice shape {name}".encode())
     click.echo(f"wrote {output}: {name}, {len(tri)} facets")

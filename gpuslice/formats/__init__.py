@@ -125,4 +125,8 @@ def export(result: SliceResult, path: str | os.PathLike, fmt: str | None = None,
             raise ParameterError(f"{p}: {fmt.suffix} output takes no options, got {', '.join(unknown)}")
         raise ParameterError(f"{p}: {fmt.suffix} output takes no option {', '.join(unknown)} "
                              f"(it takes {', '.join(fmt.options())})")
-    fmt.load()(result, p, **options)
+    try:
+        fmt.load()(result, p, **options)
+    except ParameterError as exc:  # a writer's own refusal (coordinates too large, ...): named by its file
+        text = str(exc)
+        raise (exc if text.startswith(str(p)) else ParameterError(f"{p}: {text}")) from None

@@ -1,0 +1,59 @@
+"""Command-line refusals found by an audit of the commands (fifteenth session)."""
+
+from __future__ import annotations
+
+from gpuslice.cli import main
+from gpuslice.mesh import shapes
+
+
+def test_a_report_path_ending_in_a_slash_is_a_folder(tmp_path, capsys):
+    """`--report newdir/` wrote a file named newdir: refused, as an existing folder is."""
+    stl = tmp_path / "cube.stl"
+    shapes.write_stl(shapes.box(), stl)
+    report = str(tmp_path / "new") + "/"
+    assert main(["slice", str(stl), "-t", "1", "-o", str(tmp_path / "x.npz"), "--report", report]) == 2
+    assert "is a folder; name the file to write" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cube.stl"]
+
+
+def test_shape_writes_stl_only(tmp_path, capsys):
+    """`shape cube -o c.obj` wrote STL bytes under an OBJ name, which nothing could read back."""
+    assert main(["shape", "cube", "-o", str(tmp_path / "c.obj")]) == 2
+    assert "shape writes binary STL" in capsys.readouterr().err and not list(tmp_path.iterdir())
+    assert main(["shape", "cube", "-o", str(tmp_path / "c.STL")]) == 0
+
+
+def test_a_writers_refusal_names_the_file(tmp_path, capsys):
+    """A contour writer's own refusal (coordinates beyond what it writes) names the output, as every error does."""
+    import numpy as np
+
+    from gpuslice import mesh_from_triangles, slice_mesh
+    from gpuslice.errors import ParameterError
+    from gpuslice.formats import export
+
+    res = slice_mesh(mesh_from_triangles(shapes.box() * 1e8), thickness=4e8, backend="numpy")
+    out = tmp_path / "big.svg"
+    try:
+        export(res, out)
+    except ParameterError as exc:
+        assert str(exc).startswith(f"{out}: ") and "too large" in str(exc)
+    else:
+        raise AssertionError("expected a refusal")
+    assert np.isfinite(res.points).all()
+
+
+def test_mean_cusp_of_slanted_facets_without_area_is_zero_not_nan():
+    """A mesh whose only slanted facets have no area (a sliver) gave mean_cusp_mm NaN: invalid JSON in --report."""
+    import json
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from gpuslice.bench.quality import mean_cusp
+
+    verts = np.array([[0, 0, 0], [1, 0, 1], [2, 0, 2]], np.float32)  # collinear: no area, but it rises
+    mesh = SimpleNamespace(vertices=verts, faces=np.array([[0, 1, 2]]), height=2.0)
+    schedule = SimpleNamespace(thickness=np.full(20, 0.1), z=(np.arange(20) + 0.5) * 0.1)
+    slopes = (np.array([0.0]), np.array([2.0]), np.array([0.5]))
+    value = mean_cusp(mesh, schedule, slopes=slopes)
+    assert value == 0.0 and json.loads(json.dumps({"mean_cusp_mm": value})) == {"mean_cusp_mm": 0.0}
