@@ -16,9 +16,10 @@ def shape(name: str, output: str) -> None:
     """Write a built-in test solid NAME (mm, closed, outward-wound) as a binary STL, e.g. for a first run."""
     from pathlib import Path
 
-    if Path(output).suffix.lower() != ".stl":  # (a .obj got STL bytes, which nothing then read)
-        from .options import fail
+    from .options import check_output_file, fail
 
+    check_output_file(output)  # (a folder, a device or a FIFO first: said as for every command)
+    if Path(output).suffix.lower() != ".stl":  # (a .obj got STL bytes, which nothing then read)
         fail(f"{output}: shape writes binary STL; name the output .stl")
     tri = SHAPES[name]()
     write_stl(tri, output, header=f"gpuslice shape {name}".encode())
