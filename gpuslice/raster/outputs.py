@@ -103,7 +103,7 @@ class ResinFormat:
         return getattr(importlib.import_module(f"{__package__}.{module}"), func)
 
 
-#: Photon Workshop suffixes and the Anycubic printer each names (gpuslice/raster/photon.py's MACHINES)
+#: Photon Workshop suffixes and the Anycubic printer each names (gpuslice/raster/photon_machines.py's MACHINES)
 _PHOTON = (("pwmo", "Photon Mono"), ("pwms", "Photon Mono SE"), ("pwma", "Photon Mono 4K"), ("pwmx", "Photon Mono X"),
            ("pmsq", "Photon Mono SQ"), ("pm3", "Photon M3"), ("pm3m", "Photon M3 Max"), ("pm3n", "Photon Mono 2"),
            ("pm4n", "Photon Mono 4"), ("pwmb", "Photon Mono X 6K / M3 Plus"), ("pmx2", "Photon Mono X2"),
@@ -133,7 +133,7 @@ RESIN_FORMATS: dict[str, ResinFormat] = {
                     settings_check="ctb:refuse_settings"),
         *(ResinFormat(s, (f".{s}",), "photon:write_target", f"Anycubic {t} file (Photon Workshop: 4-bit PW0 "
                       "layers, settings, preview)", f"Photon Workshop file ({t})",
-                      settings_check="photon:refuse_settings") for s, t in _PHOTON),
+                      settings_check="photon_machines:refuse_settings") for s, t in _PHOTON),
         ResinFormat("png", (), "pngstack:write_target", "a folder of 8-bit PNGs, one per layer", "PNG stack",
                     folder=True, png=True),
     )

@@ -265,7 +265,7 @@ class ResinOptions:
         ``spec`` that is not the preset's (``--printer`` with another ``--resolution`` or ``--pixel``): a firmware
         refuses such a file, or prints it at the wrong size. A PNG stack names no printer. Pixel sizes compare
         within 0.5 % (:func:`same_display`). Without a preset, a format whose suffix names a machine checks the
-        display itself (Photon Workshop: :func:`gpuslice.raster.photon.refuse_settings`)."""
+        display itself (Photon Workshop: :func:`gpuslice.raster.photon_machines.refuse_settings`)."""
         from .printers import ANY_PRINTER_FORMATS
 
         preset = self.preset
