@@ -232,6 +232,8 @@ def run_checks(result, spec=None, settings=None, *, options: CheckOptions | None
     display = None
     if spec is not None:
         display = {"resolution": [spec.nx, spec.ny], "pixel": [spec.px, spec.py], "portrait": spec.portrait}
+    open_ = ~np.asarray(result.loop_closed, bool)
     return CheckReport(islands, cavities, peel["area"], peel["max_area"], peel["max_area_layer"],
                        peel["print_time_s"], peel["resin_ml"], peel["resin_g"], peel["resin_density"],
-                       "pixels" if spec is not None else "contours", tol, display, np.asarray(result.z), timings)
+                       "pixels" if spec is not None else "contours", tol, display, np.asarray(result.z), timings,
+                       int(open_.sum()), int(np.unique(np.asarray(result.loop_layer)[open_]).size))

@@ -47,6 +47,8 @@ class CheckReport:
     print_time_s, resin_ml, resin_g, resin_density : the estimates and the density used (g/ml).
     mode : ``"contours"`` (islands contour-exact) or ``"pixels"`` (on ``display``'s grid); display : the printer's
     display (resolution, pixel) or None; overhang_tolerance : mm. timings : seconds per part of the checks.
+    open_chains, open_chain_layers : the result's chains left open and the layers they are in (a broken mesh: they
+    bound no area, so no island, overhang, trap or cup is found along them).
     """
 
     islands: Islands
@@ -63,6 +65,9 @@ class CheckReport:
     display: dict[str, Any] | None = None
     z: np.ndarray | None = None
     timings: dict[str, float] = field(default_factory=dict)
+    #: chains left open (a broken mesh): they bound nothing, so nothing is checked along them
+    open_chains: int = 0
+    open_chain_layers: int = 0
 
     @property
     def n_islands(self) -> int:
@@ -93,7 +98,7 @@ class CheckReport:
             "overhang_tolerance_mm": self.overhang_tolerance,
             "trap_grid_mm": cav.grid_mm,
             "counts": {"islands": self.n_islands, "island_layers": int(self.island_layers.size),
-                       "traps": cav.n_traps, "suction_cups": cav.n_cups},
+                       "traps": cav.n_traps, "suction_cups": cav.n_cups, "open_chains": self.open_chains},
             "islands": islands,
             "unsupported_area_mm2": [float(v) if np.isfinite(v) else None for v in isl.unsupported],  # None: failed
             "traps": traps,
@@ -120,7 +125,8 @@ class CheckReport:
             f"{cav.n_cups} (grid {cav.grid_mm:g} mm)",
             f"largest cross-section: {self.max_area:.1f} mm2 at layer {self.max_area_layer}",
             f"print time: {hours_minutes(self.print_time_s)}, resin: {self.resin_ml:.2f} ml, {self.resin_g:.2f} g",
-        ]
+        ] + ([f"not checked: {self.open_chains} open chains in {self.open_chain_layers} layers (a broken mesh: "
+              "they bound nothing)"] if self.open_chains else [])
 
     def view_data(self) -> dict[str, list]:
         """What the viewer marks: ``islands`` rows [layer, x, y, area, xmin, ymin, xmax, ymax] and ``cavities`` rows

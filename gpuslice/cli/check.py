@@ -72,6 +72,9 @@ def print_report(report, name: str, *, console=None, max_rows: int = MAX_ROWS) -
                   f"(z {z[report.max_area_layer]:.3f} mm)")
     t.add_row("print time", _duration(report.print_time_s))
     t.add_row("resin", f"{report.resin_ml:.2f} ml, {report.resin_g:.2f} g at {report.resin_density:g} g/ml")
+    if report.open_chains:  # a broken mesh: what bounds nothing is not checked (it read as a clean bill)
+        t.add_row("not checked", f"[yellow]{report.open_chains} open chains in {report.open_chain_layers} layers: "
+                  "they bound nothing (a broken mesh)[/yellow]")
     console.print(t)
     if n_isl:
         ti = Table(title="islands", title_justify="left")

@@ -599,6 +599,24 @@ def test_check_printer_refuses_a_model_taller_than_its_build_height(tmp_path, ca
     assert main(["check", str(stl), "-t", "1", "-q"]) == 0  # no printer: nothing to compare with
 
 
+def test_open_chains_are_said_not_checked(tmp_path, capsys):
+    """A mesh that slices to open chains (a box without one wall: every layer a U) got a clean report without a word
+    that what bounds nothing was not checked: the table, the report's lines and the JSON counts say so now."""
+    from gpuslice.mesh import shapes
+
+    tri = shapes.box((0, 0, 0), (10, 10, 10))
+    keep = ~np.all(np.isclose(tri[:, :, 0], 0.0), axis=1)  # the x = 0 wall's two facets gone
+    stl = tmp_path / "open.stl"
+    shapes.write_stl(tri[keep], stl)
+    report = tmp_path / "r.json"
+    assert main(["check", str(stl), "-t", "1", "--json", str(report)]) == 0
+    out = capsys.readouterr().out
+    counts = json.loads(report.read_text())["counts"]
+    assert counts["open_chains"] > 0 and "not checked" in out and "open chains" in out
+    res = _slice(floating_box())
+    assert _check(res).open_chains == 0 and not any("not checked" in line for line in _check(res).lines())
+
+
 def test_pipeline_stage_and_timing(tmp_path):
     from gpuslice.pipeline import CheckOutput, Job, run_job
 
