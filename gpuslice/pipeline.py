@@ -335,12 +335,12 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
     from .raster.settings import MAX_PRINT_TIME_S, print_time_s
 
     settings = r.settings if r.settings is not None else r.options.settings()
-    if print_time_s(settings, out.result.n_layers) > MAX_PRINT_TIME_S:
+    t_print = print_time_s(settings, out.result.n_layers)
+    if t_print > MAX_PRINT_TIME_S:
         from .errors import ParameterError
 
         raise ParameterError(f"{r.path}: {out.result.n_layers} layers at these settings would print for "
-                             f"{print_time_s(settings, out.result.n_layers) / 3.156e7:.0f} years, more than an "
-                             "archive's print time holds")
+                             f"{t_print / 3.156e7:.0f} years, more than an archive's print time holds")
     if k > 1 and backend != "opencl":
         from .errors import ParameterError
 

@@ -121,9 +121,7 @@ class BatchRunner:
                                      if old.get(k) != v) or "unreadable manifest"
                     raise BatchError(f"{out}: holds outputs made with other options ({diff}); use --force to redo "
                                      "them, or another output folder")
-                # --force with other options: what the journal lists was made with the old ones; forgotten now,
-                # so a run stopped early, or one of a part of the models, leaves no old output a re-run would skip
-                forget_journal(out)
+                forget_journal(out)  # its files have the old options: a partial forced run leaves none to skip
         ours = manifest.exists()  # a batch wrote here before: existing outputs are its finished models
         done = [] if self.force else [i for i in range(len(self.models)) if all((out / f).exists() for f in
                                                                                 self._files(i))]

@@ -25,15 +25,16 @@ from .options import (
 __all__ = ["view"]
 
 
-def _checks(check: bool, preset):
-    """The page's pre-print checks: none, the contours' (no --printer) or the printer's pixels with its settings."""
+def _checks(check: bool, ropts):
+    """The page's pre-print checks: none, the contours' (no --printer: ``ropts`` None) or the printer's pixels with
+    its settings (``ropts``: :class:`~gpuslice.raster.spec.ResinOptions` naming it)."""
     from ..pipeline import CheckOutput
 
     if not check:
         return None
-    if preset is None:
+    if ropts is None:
         return CheckOutput()
-    return CheckOutput(preset.spec(), preset.settings(), printer=preset.preset)
+    return CheckOutput(ropts.spec(), ropts.settings(), printer=ropts.preset)
 
 
 def _size(n: int) -> str:
@@ -77,11 +78,11 @@ def view(source: str, output: str | None, raster: bool, printer: str, mask_every
         given = [flags[k] for k, v in kw.items() if v is not None and k in flags]
         if given:
             fail(f"{source}: a saved result is already sliced; {', '.join(given)} only apply to meshes")
-    masks = preset = None
-    if printer is not None:
-        from ..raster.spec import ResinOptions
+    from ..raster.spec import ResinOptions
 
-        preset = ResinOptions(printer=printer)  # an unknown name or a bad file: refused here, with or without flags
+    masks = ropts = None
+    if printer is not None:
+        ropts = ResinOptions(printer=printer)  # an unknown name or a bad file: refused here, with or without flags
         if not (raster or check):
             fail("--printer applies with --raster or --check")
     if raster:
@@ -89,16 +90,14 @@ def view(source: str, output: str | None, raster: bool, printer: str, mask_every
             import PIL  # noqa: F401
         except ImportError:
             fail("--raster needs pillow (pip install 'gpuslice[raster]')")
-        from ..raster.spec import with_printer
-
-        masks = with_printer(printer or "generic-4k")  # a preset name or a .toml/.json preset file
+        masks = (ropts or ResinOptions(printer="generic-4k")).spec()  # a preset name or a .toml/.json preset file
     # resin masks or pre-print checks: sliced as `raster` and `check` slice (0.05 mm) unless -t is given
     params, placement = slicing_values(kw, RESIN_DEFAULTS if raster or check else None)
     if raster or check:
         check_resin_layers(params)
     t0 = time.perf_counter()
     done = run_job(Job(source=source, placement=placement, params=params, mesh_check=False, saved_result=True,
-                       view=ViewOutput(output, title, masks, mask_every), checks=_checks(check, preset)))
+                       view=ViewOutput(output, title, masks, mask_every), checks=_checks(check, ropts)))
     t1 = done.timings.get("view", 0.0)
     if not quiet:
         m = done.stats.get("masks")

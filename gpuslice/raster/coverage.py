@@ -262,19 +262,10 @@ def iter_tiles(
             e = le.edges[le.edge_offsets[k] : le.edge_offsets[k + 1]]
             yield Tile(int(index[k]), r0, c0, gl.coverage(e, h, w, lut))
         return
+    from ..device import get_device
     from .runs import iter_runs
 
-    if backend == "numpy":  # the runs' numpy twin: the OpenCL runs' greys, byte for byte
-        k = 0
-        for runs in iter_runs(result, spec, backend="numpy", layers=layers, edges=le, clip=True):
-            for j in range(len(runs.layers)):
-                r0, c0, h, w = (int(x) for x in le.tiles[k])
-                yield Tile(int(index[k]), r0, c0, tile_from_runs(runs, j, r0, c0, h, w))
-                k += 1
-        return
-    from ..device import get_device
-
-    dev = device if device is not None else get_device()
+    dev = None if backend == "numpy" else device if device is not None else get_device()
     if backend == "opencl-bitmap":  # the bitmap kernel the runs replaced (kept for benchmarks and tests)
         kern = RasterKernel.of(dev)
         for batch in _batches(le.tiles, max_batch_pixels):
@@ -282,8 +273,9 @@ def iter_tiles(
             for k, data in zip(batch, datas, strict=True):
                 yield Tile(int(index[k]), int(le.tiles[k, 0]), int(le.tiles[k, 1]), data)
         return
-    k = 0
-    for runs in iter_runs(result, spec, backend="opencl", device=dev, layers=layers, edges=le, clip=True):
+    k = 0  # the runs, OpenCL or their numpy twin (the same bytes)
+    for runs in iter_runs(result, spec, backend="numpy" if backend == "numpy" else "opencl", device=dev,
+                          layers=layers, edges=le, clip=True):
         for j in range(len(runs.layers)):
             r0, c0, h, w = (int(x) for x in le.tiles[k])
             yield Tile(int(index[k]), r0, c0, tile_from_runs(runs, j, r0, c0, h, w))

@@ -446,26 +446,12 @@ def _header(spec: RasterSpec, settings: PrintSettings, info: CtbInfo, version: i
         SLICER_INFO.size)
 
 
-def two_stages_lost(settings) -> str | None:
-    """The flag of a second lift or retract stage that one stage at one speed cannot hold (``--lift-height2`` at a
-    speed other than ``--lift-speed``, or the slow ``--retract-height2`` at a speed other than ``--retract-speed``),
-    for the bottom or the normal layers; None when one stage each holds the motion exactly."""
-    for bottom in (False, True):
-        g = settings.group(bottom)
-        twin = "--bottom-" if bottom else "--"
-        if g["lift_height2"] > 0 and g["lift_speed2"] not in (0.0, g["lift_speed"]):
-            return f"{twin}lift-height2 {g['lift_height2']:g} at {twin}lift-speed2 {g['lift_speed2']:g}"
-        if g["retract_height2"] > 0 and g["retract_speed2"] not in (0.0, g["retract_speed"]):
-            return f"{twin}retract-height2 {g['retract_height2']:g} at {twin}retract-speed2 {g['retract_speed2']:g}"
-    return None
-
-
 def refuse_settings(path, name: str, options, settings, spec=None) -> None:
     """CTB's settings check (:meth:`gpuslice.raster.outputs.ResinFormat.check_settings`): v2 and v3 store one lift
     and one retract stage (module docstring), so a second stage at its own speed is refused rather than folded into
     the first (the file would move otherwise than asked, and its print time would not be the one printed)."""
     version = _version(options)
-    lost = two_stages_lost(settings) if version < 4 else None
+    lost = settings.two_stages_lost() if version < 4 else None
     if lost:
         raise ParameterError(f"{path}: a CTB v{version} file has one lift and one retract stage; {lost} cannot be "
                              "written (CTB v4, for a printer whose preset asks for it, and GOO store two)")

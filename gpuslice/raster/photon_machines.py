@@ -88,7 +88,6 @@ def refuse_settings(path, name: str, options, settings, spec=None) -> None:
     mm); one rest for every layer (:func:`_wait`); before version 516 one lift and one retract stage (as CTB v2/v3);
     from 516 two stages, whose slow retract is the first lift stage's height, so a ``retract_height2`` other than
     ``lift_height`` (or 0) is refused rather than changed (the module docstring's stage mapping)."""
-    from .ctb import two_stages_lost
     from .spec import RasterSpec, display_text, same_display
 
     machine, version = machine_version(name, options)
@@ -102,7 +101,7 @@ def refuse_settings(path, name: str, options, settings, spec=None) -> None:
     version = machine.version if version is None else version
     wait_s(settings, Path(os.fspath(path)))
     if version < 516:
-        lost = two_stages_lost(settings)
+        lost = settings.two_stages_lost()
         if lost:
             raise ParameterError(f"{path}: a Photon Workshop file of version {version} has one lift and one retract "
                                  f"stage; {lost} cannot be written")

@@ -166,6 +166,21 @@ class PrintSettings:
         g["retract_height"] = max(g["lift_height"] + g["lift_height2"] - g["retract_height2"], 0.0)
         return g
 
+    def two_stages_lost(self) -> str | None:
+        """The flag of a second lift or retract stage that one stage at one speed cannot hold (``--lift-height2`` at a
+        speed other than ``--lift-speed``, or the slow ``--retract-height2`` at a speed other than
+        ``--retract-speed``), for the bottom or the normal layers; None when one stage each holds the motion exactly
+        (the formats with one stage: CTB v2/v3, Photon Workshop before 516)."""
+        for bottom in (False, True):
+            g = self.group(bottom)
+            twin = "--bottom-" if bottom else "--"
+            if g["lift_height2"] > 0 and g["lift_speed2"] not in (0.0, g["lift_speed"]):
+                return f"{twin}lift-height2 {g['lift_height2']:g} at {twin}lift-speed2 {g['lift_speed2']:g}"
+            if g["retract_height2"] > 0 and g["retract_speed2"] not in (0.0, g["retract_speed"]):
+                return (f"{twin}retract-height2 {g['retract_height2']:g} at {twin}retract-speed2 "
+                        f"{g['retract_speed2']:g}")
+        return None
+
     @property
     def retract_height(self) -> float:
         """The fast retract stage of a normal layer, mm: ``lift_height + lift_height2 - retract_height2``."""
