@@ -205,38 +205,49 @@ def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | Non
         from .raster.outputs import source_date
 
         now = source_date()
-    if job.is_saved_result:
-        from .slicing.result import SliceResult
+    stream = None  # the contour file written while the layers are sliced (an .npz), when its format can be
+    try:
+        if job.is_saved_result:
+            from .slicing.result import SliceResult
 
-        t = time.perf_counter()
-        result = SliceResult.load(job.source)
-        timings["load"] = time.perf_counter() - t
-        mesh, dev = None, None
-    else:
-        if job.resin is not None:  # (first: the encoder processes start while pyopencl is imported)
-            _prestart_encoders(job.resin)
-        dev = prepare_device(job.params, device, timings)
-        mesh = load_job_mesh(job, dev, timings)
-        if job.resin is not None:  # before slicing: a model larger than the printer is refused now
-            _check_printer_fits(job.model_name, mesh, job.resin.spec, job.resin.options.preset)
-        elif job.checks is not None and job.checks.printer is not None:
-            _check_printer_fits(job.model_name, mesh, job.checks.spec, job.checks.printer)
-        result = _slice(job, mesh, dev, timings)
-        if job.resin is not None:  # the slicer's scratch memory back before the layers' (peak RSS: issue 18)
-            from .device import release_scratch
+            t = time.perf_counter()
+            result = SliceResult.load(job.source)
+            timings["load"] = time.perf_counter() - t
+            mesh, dev = None, None
+        else:
+            if job.resin is not None:  # (first: the encoder processes start while pyopencl is imported)
+                _prestart_encoders(job.resin)
+            dev = prepare_device(job.params, device, timings)
+            mesh = load_job_mesh(job, dev, timings)
+            if job.resin is not None:  # before slicing: a model larger than the printer is refused now
+                _check_printer_fits(job.model_name, mesh, job.resin.spec, job.resin.options.preset)
+            elif job.checks is not None and job.checks.printer is not None:
+                _check_printer_fits(job.model_name, mesh, job.checks.spec, job.checks.printer)
+            stream = _open_contour_stream(job)
+            result = _slice(job, mesh, dev, timings, stream)
+            if job.resin is not None:  # the slicer's scratch memory back before the layers' (peak RSS: issue 18)
+                from .device import release_scratch
 
-            release_scratch(dev)
-    out = JobResult(mesh, result, dev, timings, stats)
-    if result.n_layers == 0 and (job.contours is not None or job.checks is not None or job.view is not None):
-        from .errors import ParameterError
+                release_scratch(dev)
+        out = JobResult(mesh, result, dev, timings, stats)
+        if result.n_layers == 0 and (job.contours is not None or job.checks is not None or job.view is not None):
+            from .errors import ParameterError
 
-        raise ParameterError(f"{job.model_name}: no layers to write {_too_thin(mesh, job)}")
-    if job.contours is not None:
-        from .formats import export
+            raise ParameterError(f"{job.model_name}: no layers to write {_too_thin(mesh, job)}")
+        if job.contours is not None:
+            t = time.perf_counter()
+            if stream is not None:
+                stream.commit(result)
+                timings["write"] = stream.seconds  # (its points were written as the slicer nested them)
+            else:
+                from .formats import export
 
-        t = time.perf_counter()
-        export(result, job.contours, job.contours_format)
-        timings["write"] = time.perf_counter() - t
+                export(result, job.contours, job.contours_format)
+                timings["write"] = time.perf_counter() - t
+    except BaseException:
+        if stream is not None:  # (its temporary file goes; nothing is left under the output's name)
+            stream.abort()
+        raise
     if job.cusp and mesh is not None:  # the schedule's cusp heights, for the report (not in the written file)
         from .bench.quality import cusp_summary
 
@@ -268,10 +279,23 @@ def _prestart_encoders(r: ResinOutput) -> None:
         prestart(r.options.workers or os.cpu_count())
 
 
-def _slice(job: Job, mesh: Mesh, dev, timings: dict[str, float]) -> SliceResult:
+def _open_contour_stream(job: Job):
+    """The contour output's stream (:func:`gpuslice.formats.open_stream`: the ``.npz`` written while the layers are
+    sliced, its points never held twice), or None: no contour output, a format written at the end, or Windows
+    (where a file mapped into memory, as the stream's points are, cannot be renamed)."""
+    import os
+
+    if job.contours is None or os.name == "nt":
+        return None
+    from .formats import open_stream
+
+    return open_stream(job.contours, job.contours_format)
+
+
+def _slice(job: Job, mesh: Mesh, dev, timings: dict[str, float], stream=None) -> SliceResult:
     from .slicing.slicer import slice_mesh
 
-    result = slice_mesh(mesh, job.params)
+    result = slice_mesh(mesh, job.params, points_sink=stream)
     meta = result.meta
     for key, value in meta.pop("timings_s", {}).items():
         timings[key] = timings.get(key, 0.0) + value

@@ -24,18 +24,22 @@ from ..errors import ParameterError
 if TYPE_CHECKING:
     from ..slicing.result import SliceResult
 
-__all__ = ["CONTOUR_FORMATS", "ContourFormat", "export", "format_for", "format_names", "suffixes"]
+__all__ = ["CONTOUR_FORMATS", "ContourFormat", "export", "format_for", "format_names", "open_stream", "suffixes"]
 
 
 @dataclass(frozen=True)
 class ContourFormat:
     """One contour output format: ``name`` (``--format`` value), ``suffixes`` (lower case, the first is the one
-    batch gives its outputs), ``writer`` as ``"module:function"`` inside :mod:`gpuslice.formats`, ``help``."""
+    batch gives its outputs), ``writer`` as ``"module:function"`` inside :mod:`gpuslice.formats`, ``help``;
+    ``stream``: optionally a ``"module:Class"`` that writes the file while the layers are sliced (made with the
+    path before slicing, the slicer's ``points_sink``, then ``commit(result)`` or ``abort()``: the bytes the writer
+    gives), used by :func:`open_stream`."""
 
     name: str
     suffixes: tuple[str, ...]
     writer: str
     help: str
+    stream: str | None = None
 
     @property
     def suffix(self) -> str:
@@ -56,7 +60,7 @@ class ContourFormat:
 CONTOUR_FORMATS: dict[str, ContourFormat] = {
     f.name: f
     for f in (
-        ContourFormat("npz", (".npz",), "npz:write_npz", "every array of the result (numpy .npz)"),
+        ContourFormat("npz", (".npz",), "npz:write_npz", "every array of the result (numpy .npz)", "npz:NpzStream"),
         ContourFormat("svg", (".svg",), "svg:write_svg", "all layers in one SVG, a <g> per layer, 1 unit = 1 mm"),
         ContourFormat("cli", (".cli",), "commonlayer:write_cli", "Common Layer Interface 2.0, ASCII"),
         ContourFormat("dxf", (".dxf",), "dxf:write_dxf", "a DXF layer per slice, closed LWPOLYLINEs, mm (ezdxf)"),
@@ -95,6 +99,19 @@ def format_for(path: str | os.PathLike, name: str | None = None) -> ContourForma
         if kind in f.suffixes:
             return f
     raise ParameterError(f"{p}: unknown output format '{p.suffix}' (use {_choices()})")
+
+
+def open_stream(path: str | os.PathLike, fmt: str | None = None) -> Any:
+    """The format's stream (:attr:`ContourFormat.stream`) opened on ``path``, or None when the format has none
+    (it is then written at the end by :func:`export`); :class:`ParameterError` as :func:`export` gives."""
+    p = Path(os.fspath(path))
+    if fmt is None and p.is_dir():
+        raise ParameterError(f"{p}: is a directory")
+    f = format_for(p, fmt)
+    if f.stream is None:
+        return None
+    module, cls = f.stream.split(":")
+    return getattr(importlib.import_module(f"{__name__}.{module}"), cls)(p)
 
 
 def export(result: SliceResult, path: str | os.PathLike, fmt: str | None = None, **options: Any) -> None:

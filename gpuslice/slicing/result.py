@@ -245,15 +245,21 @@ class SliceResult:
         """Write a ``.npz`` (uncompressed, byte-identical for identical results), atomically."""
         from ..io.atomic import atomic_path
 
-        arrays = {name: getattr(self, name) for name in _ARRAYS}
-        for kind, counts in sorted(self.repairs.items()):
-            arrays[f"repairs__{kind}"] = counts
-        # timings differ run to run: they go to the report, not into the file (byte-identical outputs)
-        meta = {k: v for k, v in self.meta.items() if k != "timings_s"}
-        arrays["meta_json"] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
+        arrays = self.npz_arrays()
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
                 np.savez(fh, **arrays)
+
+    def npz_arrays(self) -> dict[str, np.ndarray]:
+        """The ``.npz`` file's members in its order (names without ``.npy``): the layout's arrays, ``points`` first,
+        then ``repairs__KIND`` per repair kind (sorted) and ``meta_json`` (the meta as sorted JSON, without the
+        timings, which differ run to run: byte-identical outputs)."""
+        arrays = {name: getattr(self, name) for name in _ARRAYS}
+        for kind, counts in sorted(self.repairs.items()):
+            arrays[f"repairs__{kind}"] = counts
+        meta = {k: v for k, v in self.meta.items() if k != "timings_s"}
+        arrays["meta_json"] = np.frombuffer(json.dumps(meta, sort_keys=True).encode(), dtype=np.uint8)
+        return arrays
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> SliceResult:

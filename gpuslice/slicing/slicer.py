@@ -85,6 +85,7 @@ def slice_mesh(
     z: np.ndarray | None = None,
     layer_thickness: np.ndarray | float | None = None,
     schedule: Schedule | None = None,
+    points_sink: Any = None,
     **overrides,
 ) -> SliceResult:
     """Slice ``mesh`` into closed, nested contours for every layer.
@@ -102,6 +103,9 @@ def slice_mesh(
     z : optional explicit cutting planes, mm above the bed, strictly increasing; ``layer_thickness`` gives their
         thicknesses (an array or one number; default: from the midpoints between planes).
     schedule : optional :class:`~gpuslice.schedule.Schedule` (takes precedence over ``z``).
+    points_sink : optional; takes each batch's points as soon as they are nested (``append((n, 2) float32)``),
+        and gives all of them back at the end (``array()``: the result's ``points``), so that the slicer does not
+        hold them: :class:`gpuslice.formats.npz.NpzStream` writes them to an ``.npz`` while the next batch is cut.
 
     Returns
     -------
@@ -197,18 +201,25 @@ def slice_mesh(
 
         # several batches: batch k + 1 is cut and chained (device kernels, GEOS and numpy, which release the GIL) while
         # batch k is nested; the stages' times then overlap and add up to more than the wall time
-        points = _PointsBuffer(2 * int(per_layer.sum()) if len(batches) > 1 else 0)
+        gather = len(batches) > 1 or points_sink is not None
+        if points_sink is not None:
+            points = points_sink
+        else:
+            points = _PointsBuffer(2 * int(per_layer.sum()) if gather else 0)
         for a, b, loops, count in prefetch(chained(), 1 if len(batches) > 1 else 0):
             n_segments += count
             t = time.perf_counter()
             nested = nest_loops(loops, b - a, params.fill_rule)
-            if len(batches) > 1:  # the batch's points join the others' now, and its own array goes
+            if gather and points_sink is None:  # the batch's points join the others' now, and its own array goes
                 points.append(nested.points)
                 nested = replace(nested, points=_GATHERED)
             timings["nesting"] += time.perf_counter() - t
+            if points_sink is not None:  # (the sink's own time: written while the next batch is cut and chained)
+                points_sink.append(nested.points)
+                nested = replace(nested, points=_GATHERED)
             parts.append((a, nested, loops.repairs))
             del loops, nested
-        result = _assemble(parts, sched, n_layers, points.array() if len(batches) > 1 else None)
+        result = _assemble(parts, sched, n_layers, points.array() if gather else None)
     result.segment_exact = _segment_exact(parts, result, n_layers)
     if getattr(sched, "info", None):
         result.meta["adaptive"] = sched.info
@@ -281,13 +292,13 @@ def _assemble(parts, sched: Schedule, n_layers: int, points: np.ndarray | None =
     points, when :class:`_PointsBuffer` gathered them (each part's ``points`` is then :data:`_GATHERED`)."""
     if not parts:
         return SliceResult(
-            points=np.zeros((0, 2), np.float32), loop_offsets=np.zeros(1, np.int64),
+            points=points if points is not None else np.zeros((0, 2), np.float32), loop_offsets=np.zeros(1, np.int64),
             layer_offsets=np.zeros(n_layers + 1, np.int64), loop_layer=np.zeros(0, np.int32),
             loop_is_hole=np.zeros(0, bool), loop_parent=np.zeros(0, np.int32), loop_closed=np.zeros(0, bool),
             z=sched.z, thickness=sched.thickness, area=np.zeros(n_layers),
             repairs={k: np.zeros(n_layers, np.int32) for k in (*REPAIR_KINDS, "unfilled_loops", "overlaps_resolved")},
         )
-    if len(parts) == 1:
+    if len(parts) == 1 and points is None:
         _, nd, rep = parts[0]
         repairs = dict(rep)
         repairs["unfilled_loops"] = nd.unfilled_loops

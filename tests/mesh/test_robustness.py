@@ -518,18 +518,25 @@ def test_error_while_writing_leaves_nothing(tmp_path, monkeypatch, capsys):
     assert main(["slice", str(path), "-o", str(old), "-q"]) == 0
     before = old.read_bytes()
 
-    def broken_savez(fh, **arrays):
-        fh.write(b"PK\x03\x04 half a zip")
+    from gpuslice.formats.npz import NpzStream
+
+    def broken_array(fh, *args, **kw):  # (the .npz's members: np.savez and the stream both write them so)
+        fh.write(b"\x93NUMPY half an array")
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(np, "savez", broken_savez)
-    for out in (tmp_path / "new.npz", old):
-        assert main(["slice", str(path), "-o", str(out), "-q"]) != 0
-        err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and "No space left on device" in err[0]
-    assert sorted(os.listdir(tmp_path)) == ["cube.stl", "old.npz"]
-    assert old.read_bytes() == before
-    monkeypatch.undo()
+    def broken_points(self, points):  # the disk full while the points are written, during the slicing
+        self._fh.write(b"half the points")
+        raise OSError(28, "No space left on device")
+
+    for obj, name, broken in ((np.lib.format, "write_array", broken_array), (NpzStream, "_append", broken_points)):
+        monkeypatch.setattr(obj, name, broken)
+        for out in (tmp_path / "new.npz", old):
+            assert main(["slice", str(path), "-o", str(out), "-q"]) != 0
+            err = capsys.readouterr().err.strip().splitlines()
+            assert len(err) == 1 and err[0].endswith(f"{out}: No space left on device")  # (named: the disk's own
+        assert sorted(os.listdir(tmp_path)) == ["cube.stl", "old.npz"]                    # error names no file)
+        assert old.read_bytes() == before
+        monkeypatch.undo()
 
     import gpuslice.io.report as report_module
     from gpuslice.io.atomic import atomic_path
