@@ -237,11 +237,27 @@ def slicing_options(*, defaults: bool = True, overrides: dict[str, Any] | None =
             *click_options(Placement, defaults=defaults)]
 
 
+def _given() -> list[str]:
+    """The current command's parameters the user gave (on the command line or through the environment), not
+    left at their defaults."""
+    from click.core import ParameterSource
+
+    ctx = click.get_current_context(silent=True)
+    if ctx is None:
+        return []
+    return [name for name in ctx.params
+            if ctx.get_parameter_source(name) not in (None, ParameterSource.DEFAULT, ParameterSource.DEFAULT_MAP)]
+
+
 def slicing_values(kwargs: dict[str, Any], overrides: dict[str, Any] | None = None):
     """(:class:`SliceParams`, :class:`Placement`) from a command's arguments (taken out of them); ``overrides``:
     the command's own defaults (as given to :func:`slicing_options`)."""
     from ..mesh.mesh import Placement
     from ..slicing.params import SliceParams
 
-    given = {**(overrides or {}), **values(SliceParams, kwargs)}
-    return SliceParams(**given), build(Placement, kwargs)
+    params = SliceParams(**{**(overrides or {}), **values(SliceParams, kwargs)})
+    for name, modes in params.not_for_mode(_given()):  # (uniform layers or another mode would ignore it, silently)
+        kind = "uniform" if modes == (None,) else f"--adaptive {' or '.join(modes)}"
+        fail(f"{flag_for(name)} shapes {kind} layers"
+             + (f", not {params.adaptive} ones" if params.adaptive else "; add --adaptive " + modes[0]))
+    return params, build(Placement, kwargs)

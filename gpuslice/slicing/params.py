@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 from ..errors import ParameterError
 from ..options import is_real, option, parse_floats, python_number
@@ -63,6 +64,20 @@ class SliceParams:
         None, "roi: points per layer marking the region of interest (one value, or one per step)", parse=parse_floats)
     roi_quantile: float = option(0.75, "roi: without --roi-threshold, this quantile of each level's points per layer")
     roi_windows: int = option(1, "roi: windows kept per level (0: all)")
+
+    #: the options that shape one kind of schedule, and the modes (``adaptive``; None: uniform) each is for; the
+    #: others ignore them (the command line refuses one given without its mode: :meth:`not_for_mode`)
+    FOR_MODES: ClassVar[dict[str, tuple[str | None, ...]]] = {
+        "thickness": (None,), "max_cusp": ("cusp",), "max_area": ("area",), "min_height": ("cusp", "area"),
+        "max_height": ("cusp", "area"),
+        "smooth": ("cusp", "area"), "roi_ladder": ("roi",), "roi_threshold": ("roi",), "roi_quantile": ("roi",),
+        "roi_windows": ("roi",),
+    }
+
+    def not_for_mode(self, names) -> list[tuple[str, tuple[str | None, ...]]]:
+        """Of the option ``names`` (those a user gave), the ones this schedule ignores, with the modes they are
+        for: ``max_cusp`` without ``adaptive="cusp"``, ``roi_ladder`` without ``"roi"``, ..."""
+        return [(n, self.FOR_MODES[n]) for n in names if n in self.FOR_MODES and self.adaptive not in self.FOR_MODES[n]]
 
     def __post_init__(self) -> None:
         # types first (a string or a bool where a number goes fails here, named, not deep in a stage); ranges are

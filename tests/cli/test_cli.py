@@ -45,6 +45,14 @@ def test_slice_writes_npz_svg_cli_and_report(torus, tmp_path, capsys):
     assert (tmp_path / "t.svg").read_text().count("<g ") >= 40
 
 
+def test_adaptive_options_with_their_mode_are_taken(torus, tmp_path):
+    out = tmp_path / "c.npz"
+    assert main(["slice", str(torus), "--adaptive", "cusp", "--min-height", "0.1", "--max-cusp", "0.08",
+                 "-o", str(out), "-q"]) == 0
+    params = SliceResult.load(out).meta["params"]
+    assert params["min_height"] == 0.1 and params["max_cusp"] == 0.08
+
+
 def test_numpy_backend_and_options(torus, tmp_path):
     out = tmp_path / "p.npz"
     args = ["slice", str(torus), "-t", "0.5", "--z-mode", "paper", "--backend", "numpy", "--fill-rule", "evenodd"]
@@ -73,6 +81,14 @@ def test_info_and_devices(torus, capsys):
         ("torus", ["slice", "{torus}", "--fit", "0"], "--fit"),
         ("torus", ["slice", "{torus}", "-o", "{out_png}"], "unknown output format"),
         ("torus", ["slice", "{torus}", "--device", "no-such-device"], "device"),
+        # an adaptive schedule's option without its mode was ignored, silently: uniform layers came out
+        ("torus", ["slice", "{torus}", "--max-cusp", "0.1"], "--max-cusp shapes --adaptive cusp layers; add"),
+        ("torus", ["slice", "{torus}", "--adaptive", "roi", "--min-height", "0.1"],
+         "--min-height shapes --adaptive cusp or area layers, not roi ones"),
+        ("torus", ["slice", "{torus}", "--adaptive", "roi", "-t", "0.2"],
+         "--thickness shapes uniform layers, not roi ones"),
+        ("torus", ["raster", "{torus}", "--adaptive", "cusp", "--roi-windows", "2", "-o", "{dir}/layers/"],
+         "--roi-windows shapes"),
     ],
 )
 def test_user_errors_are_one_line_exit_2_and_write_nothing(torus, tmp_path, capsys, make, args, message):
