@@ -26,7 +26,9 @@ def info(model: str, as_json: bool, **kw) -> None:
         click.echo(json.dumps(data, indent=1))
         return
     for key, value in data.items():
-        if isinstance(value, float):
+        if key == "volume" and value is None:
+            value = "n/a (open or inconsistently wound: slice --report's volume_mm3 is what prints)"
+        elif isinstance(value, float):
             value = f"{value:.6g}"
         elif isinstance(value, list):
             value = " ".join(f"{v:.6g}" for v in value)

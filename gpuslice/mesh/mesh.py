@@ -140,7 +140,12 @@ class Mesh:
         return state
 
     def info(self) -> dict:
-        """Summary figures: facets, vertices, distinct normals, bbox, watertight, bodies, volume (mm, mm^3)."""
+        """Summary figures: facets, vertices, distinct normals, bbox, watertight, bodies, volume (mm, mm^3).
+
+        ``signed_volume`` is the facets' signed sum (negative for a closed mesh turned inside out, meaningless for an
+        open or inconsistently wound one); ``volume`` is its size where the mesh is closed and consistently wound,
+        None elsewhere (the slices' ``SliceResult.volume`` is then what prints); ``inside_out``: closed, consistent
+        and wound with its normals inwards (sliced as the solid it bounds all the same)."""
         counts = self.edge_face_counts()
         normals = self.face_normals()
         distinct_normals = int(np.unique(normals.view(np.dtype((np.void, 12))).reshape(-1)).size) if len(
@@ -148,7 +153,8 @@ class Mesh:
         ) else 0
         directed_ok = _directed_edges_paired(self)
         t = self.triangles.astype(np.float64)
-        volume = float(np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6.0)
+        signed = float(np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6.0)
+        closed = bool(counts.size > 0 and np.all(counts == 2))
         mismatch = None
         if self.stored_normals is not None:
             mismatch = int(stored_normal_mismatch(self.stored_normals, normals).sum())
@@ -164,12 +170,14 @@ class Mesh:
             "bbox_max": b[1].tolist(),
             "size": (b[1] - b[0]).tolist(),
             "scale": self.scale,
-            "watertight": bool(counts.size > 0 and np.all(counts == 2)),
+            "watertight": closed,
             "winding_consistent": directed_ok,
             "boundary_edges": int(np.sum(counts == 1)),
             "nonmanifold_edges": int(np.sum(counts > 2)),
             "bodies": count_bodies(self),
-            "volume": volume,
+            "volume": abs(signed) if closed and directed_ok else None,
+            "signed_volume": signed,
+            "inside_out": bool(closed and directed_ok and signed < 0),
             "degenerate_dropped": self.dropped_degenerate,
             "stored_normal_mismatch": mismatch,
             "solids": self.solids,

@@ -70,6 +70,10 @@ def test_info_matches_catalog(shared_meshes):
         if row["watertight"] == "True" and row["winding_consistent"] == "True":
             vol = float(row["volume"])
             got["volume_ok"], want["volume_ok"] = abs(info["volume"] - vol) <= 1e-5 * abs(vol), True
+        # a volume only where the mesh (as gpuslice welds it) is closed and consistently wound: the signed sum of
+        # an open or inconsistently wound mesh means nothing
+        closed = info["watertight"] and info["winding_consistent"]
+        got["volume_defined"], want["volume_defined"] = info["volume"] is not None, closed
         if got != want:
             mismatches.append((row["name"], {k: (got[k], want[k]) for k in got if got[k] != want[k]}))
     assert not mismatches
@@ -124,3 +128,16 @@ def test_a_replaced_mesh_keeps_nothing_of_the_original():
     np.testing.assert_allclose(mirrored.face_normals(), normals * [1, -1, -1], atol=1e-6)  # det -1: turned
     np.testing.assert_array_equal(m.face_normals(), normals)
     assert mesh_repairs(m)["inverted_shells"] == 0
+
+
+def test_an_inside_out_mesh_has_a_positive_volume_and_says_so():
+    # every facet turned round: the signed sum is negative, the solid it bounds is not (info printed -1000 mm^3)
+    tri = S.box((0, 0, 0), (10, 10, 10))
+    m = mesh_from_triangles(tri[:, ::-1])
+    info = m.info()
+    assert info["watertight"] and info["winding_consistent"]
+    assert info["volume"] == pytest.approx(1000.0) and info["signed_volume"] == pytest.approx(-1000.0)
+    assert info["inside_out"] and not mesh_from_triangles(tri).info()["inside_out"]
+    flipped_one = tri.copy()
+    flipped_one[0] = flipped_one[0, ::-1]
+    assert mesh_from_triangles(flipped_one).info()["volume"] is None
