@@ -478,6 +478,13 @@ def _run_checks(job: Job, out: JobResult) -> None:
     backend = "numpy" if job.params.backend == "numpy" else "auto"
     report = run_checks(out.result, c.spec, c.settings, options=c.options, bounds=_bounds(out.mesh), backend=backend,
                         device=out.device, name=job.model_name)
+    fmt = job.resin.format if job.resin is not None else getattr(c.printer, "native_format", None)
+    from .raster.outputs import RESIN_FORMATS
+
+    if fmt in RESIN_FORMATS and RESIN_FORMATS[fmt].print_time is not None:  # the archive's own (the SL1s tilt)
+        from .raster.settings import PrintSettings
+
+        report.print_time_s = RESIN_FORMATS[fmt].print_time_s(c.settings or PrintSettings(), out.result.n_layers)
     out.stats["checks"] = report
     out.timings["checks"] = time.perf_counter() - t
     if c.path is not None:

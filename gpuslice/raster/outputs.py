@@ -84,6 +84,19 @@ class ResinFormat:
     #: one-line :class:`~gpuslice.errors.ParameterError`; called as ``f(path, name, options, settings, spec)``);
     #: None: it stores all
     settings_check: str | None = None
+    #: ``"module:function"`` giving the print time (s) the archive itself states, where its printer moves otherwise
+    #: than :func:`~gpuslice.raster.settings.print_time_s`'s lifts and retracts (the SL1 family tilts its vat):
+    #: ``f(settings, n_layers)``; the pre-print checks then state the same time. None: the settings' own
+    print_time: str | None = None
+
+    def print_time_s(self, settings, n_layers: int) -> float:
+        """The print time (s) of ``n_layers`` at ``settings`` as this format's archive states it."""
+        if self.print_time is None:
+            from .settings import print_time_s
+
+            return print_time_s(settings, n_layers)
+        module, func = self.print_time.split(":")
+        return float(getattr(importlib.import_module(f"{__package__}.{module}"), func)(settings, n_layers))
 
     def check_settings(self, path, options, settings, spec) -> None:
         """Refuse ``settings`` (:class:`~gpuslice.raster.settings.PrintSettings`) or a display ``spec`` this format
@@ -115,13 +128,13 @@ RESIN_FORMATS: dict[str, ResinFormat] = {
     f.name: f
     for f in (
         ResinFormat("sl1", (".sl1",), "sl1:write_target", "Prusa SL1 archive (PNG layers, config.ini, thumbnails)",
-                    "SL1 archive", png=True, settings_check="sl1:refuse_settings"),
+                    "SL1 archive", png=True, settings_check="sl1:refuse_settings", print_time="sl1:tilt_print_time"),
         ResinFormat("sl1s", (".sl1s",), "sl1s:write_target", "Prusa SL1S Speed archive (the SL1 archive for the "
                     "SL1S: 1620x2560 PNGs of 0.05 mm, printerModel SL1S)", "SL1S archive", png=True,
-                    settings_check="sl1:refuse_settings"),
+                    settings_check="sl1:refuse_settings", print_time="sl1s:tilt_print_time"),
         ResinFormat("sl1svg", (".sl1_svg",), "sl1svg:write_target", "PrusaSlicer's vector SL1 archive (one SVG of "
                     "the contours per layer, config.ini, thumbnails)", "SL1 SVG archive",
-                    settings_check="sl1svg:refuse_settings"),
+                    settings_check="sl1svg:refuse_settings", print_time="sl1:tilt_print_time"),
         ResinFormat("nanodlp", (".nanodlp",), "nanodlp:write_target", "NanoDLP plate (1.png upward, "
                     "meta/plate/profile/options/info json, 3d.png)", "NanoDLP plate", png=True),
         ResinFormat("goo", (".goo",), "goo:write_target", "Elegoo GOO file (8-bit RLE layers, print settings, "

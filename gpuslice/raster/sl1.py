@@ -66,6 +66,16 @@ def sl1_print_time(info: SL1Info, n_layers: int) -> float:
     return info.initial_exposure_time + max(n_layers - 1, 0) * info.exposure_time + n_layers * info.tilt_time
 
 
+def tilt_print_time(settings, n_layers: int, tilt_s: float | None = None) -> float:
+    """The SL1's own print time (s) of ``n_layers`` at ``settings`` (:func:`sl1_print_time`: exposures and one tilt a
+    layer, ``tilt_s``, default :attr:`SL1Info.tilt_time`): what its ``config.ini`` states
+    (``ResinFormat.print_time``)."""
+    tilt = SL1Info.tilt_time if tilt_s is None else tilt_s
+    info = SL1Info(job_dir="", exposure_time=settings.exposure, initial_exposure_time=settings.bottom_exposure,
+                   tilt_time=tilt)
+    return sl1_print_time(info, n_layers)
+
+
 def refuse_settings(path, name: str, options, settings, spec=None) -> None:
     """The SL1 family's settings check (:meth:`gpuslice.raster.outputs.ResinFormat.check_settings`): config.ini has
     no count of bottom layers, so ``bottom_layers`` other than 1 is refused rather than dropped."""

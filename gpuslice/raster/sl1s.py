@@ -27,6 +27,7 @@ from pathlib import Path
 from ..errors import ParameterError
 from .coverage import Tile
 from .sl1 import check_one_layer_height, info_from, sl1_print_time, sl1_values, write_sl1
+from .sl1 import tilt_print_time as sl1_tilt_print_time
 from .spec import RasterSpec
 
 __all__ = ["SL1S_PNG_SIZE", "SL1S_PIXEL_MM", "SL1S_FAST_TILT_S", "SL1S_SLOW_TILT_S", "check_sl1s_display",
@@ -39,6 +40,11 @@ SL1S_PIXEL_MM = 0.05
 #: PrusaSlicer's SL1S tilt times, s per layer
 SL1S_FAST_TILT_S = 2.5
 SL1S_SLOW_TILT_S = 5.0
+
+
+def tilt_print_time(settings, n_layers: int) -> float:
+    """The SL1S archive's own print time (s): the SL1's, with the SL1S's fast tilt (``ResinFormat.print_time``)."""
+    return sl1_tilt_print_time(settings, n_layers, SL1S_FAST_TILT_S)
 
 
 def check_sl1s_display(spec: RasterSpec, path: Path) -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -553,6 +554,33 @@ def test_raster_check_prints_before_writing(sphere_stl, tmp_path, capsys):
     text = capsys.readouterr().out
     assert "pre-print checks" in text and text.index("pre-print checks") < text.index("wrote")
     assert out.is_file()
+
+
+@pytest.mark.parametrize("suffix, printer", [(".sl1", None), (".sl1s", "prusa-sl1s"), (".goo", "elegoo-mars-4")])
+def test_the_checks_state_the_archives_print_time(sphere_stl, tmp_path, suffix, printer):
+    # an SL1 tilts its vat: its archive states exposures and tilts, not lifts and retracts; `raster --check` printed
+    # the lift-and-retract time in its table and the archive's in its summary (two times for one print)
+    from gpuslice.pipeline import CheckOutput, Job, ResinOutput, run_job
+    from gpuslice.raster.outputs import RESIN_FORMATS
+    from gpuslice.raster.printers import find_printer
+    from gpuslice.raster.settings import print_time_s
+    from gpuslice.raster.spec import ResinOptions
+    from gpuslice.slicing.params import SliceParams
+
+    opts = ResinOptions(printer=printer) if printer else ResinOptions()
+    spec, settings = opts.spec(), opts.settings()
+    fmt = suffix[1:]
+    job = Job(str(sphere_stl), params=SliceParams(thickness=0.5),
+              resin=ResinOutput(str(tmp_path / f"part{suffix}"), fmt, spec, opts, settings),
+              checks=CheckOutput(spec, settings))
+    done = run_job(job)
+    lifts = print_time_s(settings, done.result.n_layers)
+    stated = done.stats.get("print_time_s", lifts)  # (what `raster` prints: the archive's, else the settings')
+    assert done.stats["checks"].print_time_s == pytest.approx(stated, abs=1e-6)
+    assert (RESIN_FORMATS[fmt].print_time is None) == (abs(stated - lifts) < 1e-6)  # (the SL1s: another model)
+    if printer:  # `check --printer` states the printer's native format's time too
+        done = run_job(replace(job, resin=None, checks=CheckOutput(spec, settings, printer=find_printer(printer))))
+        assert done.stats["checks"].print_time_s == pytest.approx(stated, abs=1e-6)
 
 
 def test_view_check_marks_the_page(sphere_stl, tmp_path):
