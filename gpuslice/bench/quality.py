@@ -47,15 +47,29 @@ def cusp_heights(mesh: Mesh, schedule: Schedule | SliceResult, device=None) -> n
     return np.asarray(schedule.thickness, dtype=np.float64) * nz
 
 
-def mean_cusp(mesh: Mesh, schedule: Schedule | SliceResult, slopes=None) -> float:
-    """The surface-area-weighted mean cusp height t·|n_z| over the non-horizontal facets, mm (0 if none)."""
+#: facets whose float64 corners are made at once (:func:`mean_cusp`): 12 MB of them, not the whole model's
+AREA_CHUNK = 1 << 17
+
+
+def _facet_areas(mesh: Mesh, which: np.ndarray) -> np.ndarray:
+    """(len(which),) float64 areas (mm²) of the facets ``which``, :data:`AREA_CHUNK` at a time (each value as one
+    float64 pass over the whole gives it: the chunks only bound the temporaries, 30 bytes a facet less fresh memory)."""
+    area = np.empty(which.size)
+    for a in range(0, which.size, AREA_CHUNK):
+        tri = mesh.vertices[mesh.faces[which[a : a + AREA_CHUNK]]].astype(np.float64)
+        area[a : a + AREA_CHUNK] = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    return area
+
+
+def mean_cusp(mesh: Mesh, schedule: Schedule | SliceResult, slopes=None, device=None) -> float:
+    """The surface-area-weighted mean cusp height t·|n_z| over the non-horizontal facets, mm (0 if none); the
+    facets' slopes on ``device`` when given (bit-identical to numpy's)."""
     t = np.asarray(schedule.thickness, dtype=np.float64)
-    zmin, zmax, nz = slopes if slopes is not None else facet_slopes(mesh)
+    zmin, zmax, nz = slopes if slopes is not None else facet_slopes(mesh, device)
     slanted = zmax > zmin
     if not slanted.any() or t.size == 0:
         return 0.0
-    tri = mesh.vertices[mesh.faces[slanted]].astype(np.float64)
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    area = _facet_areas(mesh, np.flatnonzero(slanted))
     # F(z) = integral of the thickness t(z) from 0: piecewise linear, slope t_l inside layer l
     edges = schedule_edges(schedule)
     big = max(float(mesh.height), float(edges[-1])) + 1.0
@@ -72,7 +86,7 @@ def mean_cusp(mesh: Mesh, schedule: Schedule | SliceResult, slopes=None) -> floa
 def cusp_summary(mesh: Mesh, schedule: Schedule | SliceResult, device=None) -> dict:
     """``{"max_cusp_mm", "mean_cusp_mm", "cusp_mm" (per layer)}`` for the report."""
     c = cusp_heights(mesh, schedule, device)
-    return {"max_cusp_mm": float(c.max()) if c.size else 0.0, "mean_cusp_mm": mean_cusp(mesh, schedule),
+    return {"max_cusp_mm": float(c.max()) if c.size else 0.0, "mean_cusp_mm": mean_cusp(mesh, schedule, device=device),
             "cusp_mm": c.tolist()}
 
 

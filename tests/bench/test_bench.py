@@ -51,6 +51,25 @@ def test_cusp_of_uniform_layers_on_a_sphere(sphere, t):
     assert mean_cusp(sphere, res) == pytest.approx(t / 2, rel=0.02)
 
 
+def test_mean_cusp_in_chunks_and_on_the_device_is_the_whole_pass(sphere, monkeypatch):
+    # the facets' float64 areas are made a chunk at a time (memory: a chunk's, not the model's), and the slopes on
+    # the device when there is one: the report's mean must be the very float of one numpy pass over every facet
+    import gpuslice.bench.quality as q
+
+    res = slice_mesh(sphere, thickness=0.1, backend="numpy")
+    monkeypatch.setattr(q, "AREA_CHUNK", 10**9)
+    whole = mean_cusp(sphere, res)
+    monkeypatch.setattr(q, "AREA_CHUNK", 7)  # (the icosphere has 5,120 facets: hundreds of chunks, a short last one)
+    assert mean_cusp(sphere, res) == whole
+    try:
+        from gpuslice.device import get_device
+
+        dev = get_device()
+    except Exception as exc:  # noqa: BLE001 (no OpenCL here: the numpy pass above is all there is)
+        pytest.skip(f"no OpenCL device: {exc}")
+    assert mean_cusp(sphere, res, device=dev) == whole
+
+
 def test_volume_deviation_of_a_sphere_matches_the_staircase_formula(sphere, sphere_ref):
     # mid-plane sections of a sphere: per slab the XOR is |A'(z)|·|z - z_mid| integrated, t²/4·|A'|, in all
     # t/4 · 2πR² (A(z) rises from 0 to πR² and falls back)
