@@ -373,7 +373,10 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
         from .raster.layers import iter_run_layers
 
         if k > 1:  # anti-aliasing in Z: k sub-planes per layer, sliced a chunk of layers at a time
-            layers = _z_sampled_layers(job, out, r.spec, dev, bounds, k)
+            from .raster.z_sampled import z_sampled_layers
+
+            layers = z_sampled_layers(out.mesh, out.result, job.params, r.spec, dev, bounds, k, sliced_on=out.device,
+                                      timings=out.timings, stats=out.stats)
         else:
             layers = iter_run_layers(out.result, r.spec, device=dev, bounds=bounds, clip=True)  # (checked above)
     else:
@@ -410,62 +413,6 @@ def _png_processes() -> bool:
     import os
 
     return os.environ.get("GPUSLICE_PNG_PROCESSES", "").strip().lower() in ("1", "yes", "true", "on")
-
-
-#: layers whose z sub-planes are sliced at once (memory: their K-fold sub-slice, not the whole model's)
-Z_SAMPLE_CHUNK = 128
-
-
-def _z_sampled_layers(job: Job, out: JobResult, spec, dev, bounds, k: int):
-    """Runs of every layer averaged over ``k`` sub-planes of its slab (``--z-samples``), in order: the sub-planes of
-    :data:`Z_SAMPLE_CHUNK` layers at a time are cut (timed as ``z_samples``: their segments straight to edges where
-    the segment-buffer shortcut holds, else sliced) and rasterised, then let go."""
-    from .raster.edges import z_sample_planes
-    from .raster.layers import RunLayer, iter_run_layers
-    from .slicing.slicer import slice_mesh
-
-    z, th = z_sample_planes(out.result, k)
-    refusal, kern = _segment_shortcut(job, out, spec, dev, bounds)
-    out.stats["z_samples_from"] = "segments" if refusal is None else f"polygons ({refusal})"
-
-    def chunks():  # (first layer, its chunk's runs)
-        if kern is not None:  # the sub-planes' segments straight to the runs (raster/segment_edges.py)
-            from .raster.segment_edges import iter_sub_plane_edges
-
-            out.stats["z_samples_polygon_layers"] = 0
-            cut = lambda sel: slice_mesh(out.mesh, job.params, z=z[sel], layer_thickness=th[sel])  # noqa: E731
-            for a, merged, cut_layers in iter_sub_plane_edges(out.mesh, z, k, spec, bounds, dev, cut,
-                                                              Z_SAMPLE_CHUNK, out.timings):
-                out.stats["z_samples_polygon_layers"] += int(cut_layers.size)
-                yield a, iter_run_layers(None, spec, device=dev, bounds=bounds, z_samples=k, merged=merged)
-            return
-        for a in range(0, out.result.n_layers, Z_SAMPLE_CHUNK):
-            b = min(a + Z_SAMPLE_CHUNK, out.result.n_layers)
-            t = time.perf_counter()
-            sub = slice_mesh(out.mesh, job.params, z=z[a * k : b * k], layer_thickness=th[a * k : b * k])
-            out.timings["z_samples"] = out.timings.get("z_samples", 0.0) + time.perf_counter() - t
-            yield a, iter_run_layers(sub, spec, device=dev, bounds=bounds, z_samples=k, clip=True)  # (in the mesh's)
-
-    for a, chunk in chunks():
-        try:
-            for item in chunk:
-                yield RunLayer(a + item.index, item.runs, item.j)
-        finally:
-            chunk.close()
-
-
-def _segment_shortcut(job: Job, out: JobResult, spec, dev, bounds):
-    """(why the z sub-planes go through chaining and nesting, or None; the driver that makes their edges from their
-    segments instead, or None): :mod:`gpuslice.raster.segment_edges`."""
-    from .raster.segment_edges import SegmentEdgesKernel, shortcut_refusal
-
-    if job.params.backend != "opencl" or out.device is None:
-        return "the slices are made by numpy", None
-    refusal = shortcut_refusal(out.mesh, out.result, job.params.fill_rule, spec, bounds)
-    if refusal is not None:
-        return refusal, None
-    kern = SegmentEdgesKernel.of(dev)
-    return (None, kern) if kern.available else ("the device has no doubles", None)
 
 
 def _run_checks(job: Job, out: JobResult) -> None:

@@ -113,7 +113,7 @@ def test_auto_backend_is_the_runs_without_probing_gl(tmp_path, device, monkeypat
 def test_z_samples_stream_in_chunks_of_layers(tmp_path, device, monkeypatch):
     """The sub-planes are sliced a chunk of layers at a time (memory set by the chunk): any chunk size gives the
     same archive."""
-    import gpuslice.pipeline as pipeline
+    import gpuslice.raster.z_sampled as z_sampled
 
     stl = tmp_path / "cone.stl"
     shapes.write_stl(shapes.cone(radius=20.0, height=10.0, n=64), stl)
@@ -122,7 +122,7 @@ def test_z_samples_stream_in_chunks_of_layers(tmp_path, device, monkeypatch):
             "--z-samples", "3"]
     outs = []
     for chunk in (1000, 3):
-        monkeypatch.setattr(pipeline, "Z_SAMPLE_CHUNK", chunk)
+        monkeypatch.setattr(z_sampled, "Z_SAMPLE_CHUNK", chunk)
         out = tmp_path / f"c{chunk}.sl1"
         assert main([*args, "-o", str(out)]) == 0
         outs.append(out.read_bytes())
