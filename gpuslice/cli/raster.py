@@ -11,7 +11,7 @@ from pathlib import Path
 import click
 
 from ..raster.outputs import resin_format_names
-from ..raster.settings import PrintSettings, format_duration, print_time_s, resin_ml
+from ..raster.settings import PrintSettings, format_duration, resin_ml
 from ..raster.spec import RasterSpec, ResinOptions
 from .options import (
     RESIN_DEFAULTS,
@@ -134,9 +134,10 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
         timings = {**done.timings, "total": time.perf_counter() - t_start}
         stats, n = done.stats, done.result.n_layers
         ml = resin_ml(done.result.area, done.result.thickness)
-        # the format's own estimate where it keeps one (SL1: exposures and tilts), else the settings' (lifts, waits)
-        t_print = stats.pop("print_time_s", None)
-        t_print = print_time_s(settings, n) if t_print is None else t_print
+        # the format's own estimate where it keeps one (SL1: exposures and tilts), else the settings' (lifts, waits):
+        # the one the checks state too (ResinFormat.print_time_s)
+        stats.pop("print_time_s", None)
+        t_print = fmt.print_time_s(settings, n)
         estimate = {"print_time_s": round(t_print, 3), "resin_ml": round(ml, 4),
                     "resin_g": round(ml * settings.resin_density, 4)}
         if report is not None:

@@ -101,13 +101,19 @@ def format_for(path: str | os.PathLike, name: str | None = None) -> ContourForma
     raise ParameterError(f"{p}: unknown output format '{p.suffix}' (use {_choices()})")
 
 
+def _format_of_file(p: Path, name: str | None) -> ContourFormat:
+    """:func:`format_for` of an output file: a folder's suffix (usually none) says nothing, so it is named as the
+    real problem."""
+    if name is None and p.is_dir():
+        raise ParameterError(f"{p}: is a directory")
+    return format_for(p, name)
+
+
 def open_stream(path: str | os.PathLike, fmt: str | None = None) -> Any:
     """The format's stream (:attr:`ContourFormat.stream`) opened on ``path``, or None when the format has none
     (it is then written at the end by :func:`export`); :class:`ParameterError` as :func:`export` gives."""
     p = Path(os.fspath(path))
-    if fmt is None and p.is_dir():
-        raise ParameterError(f"{p}: is a directory")
-    f = format_for(p, fmt)
+    f = _format_of_file(p, fmt)
     if f.stream is None:
         return None
     module, cls = f.stream.split(":")
@@ -133,9 +139,7 @@ def export(result: SliceResult, path: str | os.PathLike, fmt: str | None = None,
     p = Path(os.fspath(path))
     if not isinstance(result, SliceResult):
         raise ParameterError(f"{p}: result must be a SliceResult (gpuslice.slice_mesh's), got {type(result).__name__}")
-    if fmt is None and p.is_dir():  # its suffix (usually none) says nothing: name the real problem
-        raise ParameterError(f"{p}: is a directory")
-    fmt = format_for(p, fmt)
+    fmt = _format_of_file(p, fmt)
     unknown = sorted(set(options) - set(fmt.options()))
     if unknown:
         if not fmt.options():
