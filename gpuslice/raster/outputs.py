@@ -123,6 +123,9 @@ _PHOTON = (("pwmo", "Photon Mono"), ("pwms", "Photon Mono SE"), ("pwma", "Photon
            ("pm3r", "Photon M3 Premium"), ("px6s", "Photon Mono X 6Ks"), ("pm5", "Photon Mono M5"),
            ("pm5s", "Photon Mono M5s"), ("m5sp", "Photon Mono M5s Pro"))
 
+#: Anycubic's zip archives (gpuslice/raster/anycubic_zip.py's ZIP_MACHINES)
+_ANYCUBIC_ZIP = (("pm7", "Photon Mono M7"), ("pm7m", "Photon Mono M7 Max"), ("pwsz", "Photon Mono M7 Pro"))
+
 #: the registry, in the order the help lists them
 RESIN_FORMATS: dict[str, ResinFormat] = {
     f.name: f
@@ -147,6 +150,9 @@ RESIN_FORMATS: dict[str, ResinFormat] = {
         *(ResinFormat(s, (f".{s}",), "photon:write_target", f"Anycubic {t} file (Photon Workshop: 4-bit PW0 "
                       "layers, settings, preview)", f"Photon Workshop file ({t})",
                       settings_check="photon_machines:refuse_settings") for s, t in _PHOTON),
+        *(ResinFormat(s, (f".{s}",), "anycubic_zip:write_target", f"Anycubic {t} archive (the M7 generation's "
+                      "zip: 4-bit PW0 layers, JSON settings, PNG previews)", f"Anycubic zip archive ({t})",
+                      settings_check="anycubic_zip:refuse_settings") for s, t in _ANYCUBIC_ZIP),
         ResinFormat("png", (), "pngstack:write_target", "a folder of 8-bit PNGs, one per layer", "PNG stack",
                     folder=True, png=True),
     )

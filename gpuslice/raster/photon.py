@@ -49,7 +49,7 @@ before any work (:func:`refuse_settings`; with a preset, the preset's display:
 :meth:`gpuslice.raster.spec.ResinOptions.check_display`).
 Mirroring is the display's (``--mirror-x``): UVtools' Anycubic printer profiles mirror X. Photon Workshop files
 carry no date, so the bytes depend only on the layers and the options. The M7 generation (``.pm7``, ``.pm7m``,
-``.pwsz``, ``.pm4u``) uses another, zip-based container: not this writer.
+``.pwsz``) uses another, zip-based container of the same PW0 layers: :mod:`gpuslice.raster.anycubic_zip`.
 """
 
 from __future__ import annotations

@@ -184,7 +184,10 @@ def test_printers_command_table_json_and_details(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "pwmb (native pwmb version 516)" in out and "Photon Mono X 6K" in out and "UVtools" in out
     assert main(["printers", "anycubic-photon-mono-m7-pro"]) == 0
-    assert "pwsz (not written by gpuslice)" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "formats   pwsz\n" in out and "not written" not in out
+    assert main(["printers", "uniformation-gkone"]) == 0
+    assert "jxs (not written by gpuslice)" in capsys.readouterr().out
     own = tmp_path / "mine.json"
     own.write_text(json.dumps({"resolution": [100, 200], "pixel": 0.1, "settings": {"exposure": 2}}))
     assert main(["printers", str(own), "--json"]) == 0
