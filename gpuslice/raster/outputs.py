@@ -153,6 +153,9 @@ RESIN_FORMATS: dict[str, ResinFormat] = {
         *(ResinFormat(s, (f".{s}",), "anycubic_zip:write_target", f"Anycubic {t} archive (the M7 generation's "
                       "zip: 4-bit PW0 layers, JSON settings, PNG previews)", f"Anycubic zip archive ({t})",
                       settings_check="anycubic_zip:refuse_settings") for s, t in _ANYCUBIC_ZIP),
+        ResinFormat("cxdlp", (".cxdlp",), "cxdlp:write_target", "Creality Halot CXDLP file, v3 (v2 where the "
+                    "preset asks): vertical line runs of 8-bit greys, print settings, RGB565 previews", "CXDLP file",
+                    settings_check="cxdlp:refuse_settings"),
         ResinFormat("png", (), "pngstack:write_target", "a folder of 8-bit PNGs, one per layer", "PNG stack",
                     folder=True, png=True),
     )

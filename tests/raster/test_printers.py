@@ -173,7 +173,8 @@ def test_printers_command_table_json_and_details(tmp_path, capsys):
     row = lines[1 + names.index("elegoo-saturn-3-ultra")].split()
     assert row[1:3] == ["11520x5120", "19x24"] and "goo" in row and "218.88" in row and row[-1] != "*"
     # a native format gpuslice does not write is marked, and the footnote says what that printer gets
-    assert lines[1 + names.index("creality-halot-one")].split()[-1] == "*"
+    assert lines[1 + names.index("creality-halot-mage")].split()[-1] == "*"
+    assert lines[1 + names.index("creality-halot-one")].split()[-1] == "cxdlp"
     assert lines[-1].startswith("* a format gpuslice does not write: a PNG stack")
     assert main(["printers", "--json"]) == 0
     data = json.loads(capsys.readouterr().out)
@@ -211,7 +212,8 @@ def _cube_stl(tmp_path):
 
 @pytest.mark.parametrize(("printer", "output", "message"), [
     ("elegoo-saturn-3-ultra", "x.sl1", "printer elegoo-saturn-3-ultra reads goo, ctb, not sl1"),
-    ("creality-halot-mage", "x.sl1", "reads cxdlp, not sl1"),
+    ("creality-halot-mage", "x.sl1", "reads cxdlpv4, not sl1"),
+    ("creality-halot-mage", "x.cxdlp", "reads cxdlpv4, not cxdlp"),
     ("broken.toml", "x.sl1", "broken.toml: not a valid TOML printer preset"),
     ("exposure.toml", "x.sl1", "exposure.toml: exposure must be > 0"),
 ])
