@@ -64,21 +64,27 @@ MAX_ROWS, MAX_COLS, MAX_LAYERS = 1 << 13, 1 << 14, 0xFFFF
 
 
 # ---- layers --------------------------------------------------------------------------------------------------------
-def _uncovered(key_a: np.ndarray, key_b: np.ndarray, q_base: np.ndarray, a: np.ndarray, b: np.ndarray):
-    """The pieces of the intervals ``[a, b)`` not covered by the sorted disjoint intervals ``[key_a, key_b)`` (keys:
-    a line's base plus a column) of the line ``q_base``: (owner, left, right) of each piece."""
-    if key_a.size == 0:
-        return np.arange(a.size, dtype=np.int64), a, b
-    lo = np.searchsorted(key_b, q_base + a, side="right")
-    hi = np.searchsorted(key_a, q_base + b, side="left")
-    cnt = np.maximum(hi - lo, 0)
+def _uncovered(key_a: np.ndarray, key_b: np.ndarray, g: np.ndarray, step: int, line: np.ndarray, a: np.ndarray,
+               b: np.ndarray, cols: int):
+    """The pieces of each run ``[a, b)`` (of row line ``line``, grey ``g``) that no run of the row ``line + step``
+    with the same grey covers; ``key_a``, ``key_b``: every run's ``line * cols + a`` (``+ b``), sorted (the runs'
+    own order). Returns (owner, left, right) of each piece."""
+    base = (line + step) * cols
+    lo = np.searchsorted(key_b, base + a, side="right")  # (queries in order: cache-friendly searches)
+    hi = np.searchsorted(key_a, base + b, side="left")
+    q, j = expand_ranges(lo, np.maximum(hi - lo, 0))  # runs of that row sharing a column with the query
+    same = g[j] == g[q]
+    q, j = q[same], j[same]  # the covers: sorted by query, then column
+    cnt = np.bincount(q, minlength=a.size)
+    at = np.zeros(a.size + 1, np.int64)
+    np.cumsum(cnt, out=at[1:])
     owner, k = expand_ranges(np.zeros(a.size, np.int64), cnt + 1)  # gap k of query owner: before cover k
-    j = lo[owner] + k
+    pos = at[owner] + k
     first, last = k == 0, k == cnt[owner]
-    jl = np.minimum(j - 1, key_b.size - 1)
-    jr = np.minimum(j, key_a.size - 1)
-    left = np.where(first, a[owner], key_b[jl] - q_base[owner])
-    right = np.where(last, b[owner], key_a[jr] - q_base[owner])
+    jl = j[np.maximum(np.minimum(pos - 1, j.size - 1), 0)] if j.size else np.zeros(pos.size, np.int64)
+    jr = j[np.minimum(pos, j.size - 1)] if j.size else np.zeros(pos.size, np.int64)
+    left = np.where(first, a[owner], (key_b[jl] - base[owner]) if j.size else 0)
+    right = np.where(last, b[owner], (key_a[jr] - base[owner]) if j.size else 0)
     left, right = np.maximum(left, a[owner]), np.minimum(right, b[owner])
     keep = right > left
     return owner[keep], left[keep], right[keep]
@@ -91,30 +97,26 @@ def column_lines(start: np.ndarray, length: np.ndarray, grey: np.ndarray, offset
     maximal vertical run of one grey (rows ``y0`` to ``y1`` inclusive of column ``x``), sorted by (x, y0)."""
     start = np.asarray(start, np.int64)
     length = np.asarray(length, np.int64)
-    g = np.asarray(grey, np.int64)
+    g = np.asarray(grey)
     n_img = offsets.size - 1
     img = np.repeat(np.arange(n_img, dtype=np.int64), np.diff(offsets))
     row, a = np.divmod(start, cols)
     b = a + length
     rows = int(row.max()) + 3 if row.size else 3
-    line = (img * 256 + g) * rows + row + 1  # a line per (layer, grey, row): runs that may continue each other
-    order = np.lexsort((a, line))
-    base = line[order] * cols
-    key_a, key_b = base + a[order], base + b[order]
+    line = img * rows + row + 1  # a line per (layer, row); the runs' own order is (line, a)
+    key_a, key_b = line * cols + a, line * cols + b
     ends = []
     for step in (-1, 1):  # pieces with no pixel of their grey above (starts) and below (ends)
-        owner, left, right = _uncovered(key_a, key_b, (line + step) * cols, a, b)
+        owner, left, right = _uncovered(key_a, key_b, g, step, line, a, b, cols)
         pix_owner, dx = expand_ranges(np.zeros(owner.size, np.int64), right - left)
         x = left[pix_owner] + dx
         o = owner[pix_owner]
-        ends.append((img[o], x, row[o], g[o]))
-    (si, sx, sy, sg), (ei, ex, ey, _) = ends
-    s_ord = np.lexsort((sy, sx, si))
-    e_ord = np.lexsort((ey, ex, ei))
-    counts = np.bincount(si, minlength=n_img)
+        ends.append((np.argsort((img[o] * cols + x) * rows + row[o]), x, row[o], o))  # (layer, column, row) order
+    (s_ord, sx, sy, so), (e_ord, _, ey, _) = ends
+    counts = np.bincount(img[so], minlength=n_img)
     line_offsets = np.zeros(n_img + 1, np.int64)
     np.cumsum(counts, out=line_offsets[1:])
-    return line_offsets, sx[s_ord], sy[s_ord], ey[e_ord], sg[s_ord].astype(np.uint8)
+    return line_offsets, sx[s_ord], sy[s_ord], ey[e_ord], g[so[s_ord]].astype(np.uint8)
 
 
 def largest_regions(start: np.ndarray, length: np.ndarray, offsets: np.ndarray, cols: int) -> np.ndarray:
