@@ -124,23 +124,11 @@ def refuse_settings(path, name: str, options, settings, spec=None) -> None:
     where the archive carries the suffix's machine name (no preset, or one without a ``machine``), the display
     ``spec`` must be that machine's; the slow retract is the first lift stage (the module docstring), so a
     ``retract_height2`` other than ``lift_height`` (or 0) is refused rather than changed."""
-    from .spec import RasterSpec, display_text, same_display
+    from .photon_machines import refuse_display, refuse_slow_retract
 
     machine = ZIP_MACHINES[name]
-    if spec is not None and not (options.preset is not None and options.preset.machine):
-        want = RasterSpec(resolution=tuple(machine.resolution), pixel=machine.display[0] / machine.resolution[0],
-                          pixel_y=machine.display[1] / machine.resolution[1])
-        if not same_display(spec, want):
-            raise ParameterError(f"{path}: a .{name} file is for the {machine.name}, whose display is "
-                                 f"{display_text(want)}, not the {display_text(spec)} asked (give its --printer "
-                                 "preset, or --resolution and --pixel/--pixel-y of that display)")
-    for bottom in (False, True):
-        g = settings.group(bottom)
-        if g["retract_height2"] > 0 and abs(g["retract_height2"] - g["lift_height"]) > 1e-9:
-            twin = "--bottom-" if bottom else "--"
-            raise ParameterError(f"{path}: an Anycubic zip archive's slow retract is its first lift stage "
-                                 f"({twin}lift-height {g['lift_height']:g} mm); {twin}retract-height2 "
-                                 f"{g['retract_height2']:g} cannot be written (give it equal, or 0)")
+    refuse_display(path, name, machine.name, machine.resolution, machine.display, options, spec)
+    refuse_slow_retract(path, settings, "an Anycubic zip archive")
 
 
 def _json(obj: Any) -> bytes:

@@ -11,7 +11,8 @@ from pathlib import Path
 
 from ..errors import ParameterError
 
-__all__ = ["MACHINES", "VERSIONS", "Machine", "machine_version", "refuse_settings", "wait_s"]
+__all__ = ["MACHINES", "VERSIONS", "Machine", "machine_version", "refuse_display", "refuse_settings",
+           "refuse_slow_retract", "wait_s"]
 
 VERSIONS = (1, 515, 516, 517, 518)
 
@@ -88,16 +89,8 @@ def refuse_settings(path, name: str, options, settings, spec=None) -> None:
     mm); one rest for every layer (:func:`_wait`); before version 516 one lift and one retract stage (as CTB v2/v3);
     from 516 two stages, whose slow retract is the first lift stage's height, so a ``retract_height2`` other than
     ``lift_height`` (or 0) is refused rather than changed (the module docstring's stage mapping)."""
-    from .spec import RasterSpec, display_text, same_display
-
     machine, version = machine_version(name, options)
-    if spec is not None and not (options.preset is not None and options.preset.machine):  # the suffix's name goes in
-        want = RasterSpec(resolution=tuple(machine.resolution), pixel=machine.display[0] / machine.resolution[0],
-                          pixel_y=machine.display[1] / machine.resolution[1])
-        if not same_display(spec, want):
-            raise ParameterError(f"{path}: a .{name} file is for the {machine.name}, whose display is "
-                                 f"{display_text(want)}, not the {display_text(spec)} asked (give its --printer "
-                                 "preset, or --resolution and --pixel/--pixel-y of that display)")
+    refuse_display(path, name, machine.name, machine.resolution, machine.display, options, spec)
     version = machine.version if version is None else version
     wait_s(settings, Path(os.fspath(path)))
     if version < 516:
@@ -106,10 +99,32 @@ def refuse_settings(path, name: str, options, settings, spec=None) -> None:
             raise ParameterError(f"{path}: a Photon Workshop file of version {version} has one lift and one retract "
                                  f"stage; {lost} cannot be written")
         return
+    refuse_slow_retract(path, settings, "a Photon Workshop file")
+
+
+def refuse_display(path, suffix: str, machine: str, resolution: tuple[int, int], display: tuple[float, float],
+                   options, spec) -> None:
+    """Where the file carries the suffix's ``machine`` name (no preset, or one without a ``machine``), the display
+    ``spec`` must be that machine's (``resolution`` px, ``display`` mm): its firmware checks it."""
+    from .spec import RasterSpec, display_text, same_display
+
+    if spec is None or (options.preset is not None and options.preset.machine):
+        return
+    want = RasterSpec(resolution=tuple(resolution), pixel=display[0] / resolution[0],
+                      pixel_y=display[1] / resolution[1])
+    if not same_display(spec, want):
+        raise ParameterError(f"{path}: a .{suffix} file is for the {machine}, whose display is {display_text(want)}, "
+                             f"not the {display_text(spec)} asked (give its --printer preset, or --resolution and "
+                             "--pixel/--pixel-y of that display)")
+
+
+def refuse_slow_retract(path, settings, what: str) -> None:
+    """Anycubic's two motion stages put the slow retract on the first lift stage's height (``photon``'s EXTRA, the
+    zip's ``multi_state_paras``): a ``retract_height2`` other than ``lift_height`` (or 0) is refused, not changed."""
     for bottom in (False, True):
         g = settings.group(bottom)
         if g["retract_height2"] > 0 and abs(g["retract_height2"] - g["lift_height"]) > 1e-9:
             twin = "--bottom-" if bottom else "--"
-            raise ParameterError(f"{path}: a Photon Workshop file's slow retract is its first lift stage "
-                                 f"({twin}lift-height {g['lift_height']:g} mm); {twin}retract-height2 "
-                                 f"{g['retract_height2']:g} cannot be written (give it equal, or 0)")
+            raise ParameterError(f"{path}: {what}'s slow retract is its first lift stage ({twin}lift-height "
+                                 f"{g['lift_height']:g} mm); {twin}retract-height2 {g['retract_height2']:g} cannot "
+                                 "be written (give it equal, or 0)")

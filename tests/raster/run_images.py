@@ -31,3 +31,17 @@ def runs_of(images: list[np.ndarray]) -> Runs:
     grey = np.concatenate([p[2] for p in parts]).astype(np.uint8)
     return Runs(np.arange(len(images)), offsets, (start // cols).astype(np.int32), (start % cols).astype(np.int32),
                 length, grey, images[0].shape)
+
+
+def quantised_runs(start, length, grey, quantise) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Runs after a format's quantisation ``quantise(grey)`` (int64 greys), as a decoder returns them: blank ones
+    dropped, touching ones of one grey merged."""
+    g = quantise(grey)
+    k = g > 0
+    start, length, g = np.asarray(start, np.int64)[k], np.asarray(length, np.int64)[k], g[k]
+    if not start.size:
+        return start, length, g
+    end = start + length
+    head = np.flatnonzero(np.concatenate(([True], (start[1:] != end[:-1]) | (g[1:] != g[:-1]))))
+    last = np.append(head[1:] - 1, start.size - 1)
+    return start[head], end[last] - start[head], g[head]

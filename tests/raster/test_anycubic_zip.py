@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from anycubic_zip_reader import read_anycubic_zip
+from run_images import quantised_runs
 
 from gpuslice import mesh_from_triangles, slice_mesh
 from gpuslice.cli import main
@@ -185,7 +186,7 @@ def test_shared_meshes_on_the_m7_display_every_layer(tmp_path, shared_results, d
         def layers(res=res, bounds=bounds, want=want):
             for item in iter_run_layers(res, spec, device=device, bounds=bounds):
                 start, length, grey = pixel_runs(item, cols)
-                img_runs = _normalised(start, length, grey)
+                img_runs = quantised_runs(start, length, grey, q)
                 want[item.index] = hashlib.sha1(b"".join(a.tobytes() for a in img_runs)).hexdigest()
                 yield item
 
@@ -205,19 +206,6 @@ def test_shared_meshes_on_the_m7_display_every_layer(tmp_path, shared_results, d
         some = [0, res.n_layers // 2, res.n_layers - 1]
         for k, m in enumerate(masks(res, spec, backend="opencl", device=device, layers=some, bounds=bounds)):
             assert np.array_equal(f.layer_image(some[k]), q(m)), (name, some[k])
-
-
-def _normalised(start, length, grey):
-    """Runs after the quantisation, as the reader returns them: blank ones dropped, touching ones of a grey merged."""
-    g = q(grey)
-    k = g > 0
-    start, length, g = np.asarray(start, np.int64)[k], np.asarray(length, np.int64)[k], g[k]
-    if not start.size:
-        return start, length, g
-    end = start + length
-    head = np.flatnonzero(np.concatenate(([True], (start[1:] != end[:-1]) | (g[1:] != g[:-1]))))
-    last = np.append(head[1:] - 1, start.size - 1)
-    return start[head], end[last] - start[head], g[head]
 
 
 # ---- command line, reproducibility, errors -------------------------------------------------------------------------

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from photon_reader import decode_pw0, read_photon
+from run_images import quantised_runs
 
 from gpuslice import mesh_from_triangles, slice_mesh
 from gpuslice.cli import main
@@ -305,15 +306,7 @@ def shared_case(request, shared_meshes, device):
 
 def normalised(start, length, grey):
     """Runs after the quantisation: blank ones dropped, touching ones of one grey merged."""
-    g = q(grey)
-    k = g > 0
-    start, length, g = start[k], length[k], g[k]
-    if not start.size:
-        return start, length, g
-    end = start + length
-    head = np.flatnonzero(np.concatenate(([True], (start[1:] != end[:-1]) | (g[1:] != g[:-1]))))
-    last = np.append(head[1:] - 1, start.size - 1)
-    return start[head], end[last] - start[head], g[head]
+    return quantised_runs(start, length, grey, q)
 
 
 def digest(runs) -> str:
