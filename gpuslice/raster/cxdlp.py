@@ -212,9 +212,9 @@ def refuse_settings(path, name: str, options, settings, spec=None) -> None:
     s = settings
     b, n = s.group(True), s.group(False)
     problems = []
-    lost = s.two_stages_lost()
-    if lost or s.lift_height2 > 0 or b["lift_height2"] > 0:
-        problems.append(f"{lost or 'a second lift stage'} (one lift stage)")
+    lost = s.two_stages_lost()  # (a second stage at the first one's speed is one longer lift: written so)
+    if lost:
+        problems.append(f"{lost} (one lift stage)")
     if abs(b["retract_speed"] - n["retract_speed"]) > 1e-9:
         problems.append("--bottom-retract-speed other than --retract-speed (one retract speed)")
     if s.transition_layers > 0 and transition_step(s) > 0:
@@ -234,8 +234,9 @@ def refuse_settings(path, name: str, options, settings, spec=None) -> None:
     if not _whole(s.bottom_exposure, 1):
         problems.append(f"--bottom-exposure {s.bottom_exposure:g} s (whole seconds)")
     for twin, g in (("--bottom-", b), ("--", n)):
-        if g["lift_height"] < 1 or not _whole(g["lift_height"], 1):
-            problems.append(f"{twin}lift-height {g['lift_height']:g} mm (whole mm, at least 1)")
+        lift = g["lift_height"] + g["lift_height2"]
+        if lift < 1 or not _whole(lift, 1):
+            problems.append(f"{twin}lift-height {lift:g} mm, both stages (whole mm, at least 1)")
         for key in ("lift_speed", "retract_speed"):
             if g[key] < 60 or not _whole(g[key], 60):
                 problems.append(f"{twin}{key.replace('_', '-')} {g[key]:g} mm/min (whole mm/s: a multiple of 60)")
@@ -293,7 +294,8 @@ def write_cxdlp(layers: Iterable[Tile | RunLayer], target, *, code: str, version
     head += struct.pack(">HHH", n, cols, rows) + struct.pack(">I", max(0, int(z_travel))) + bytes(60)
     settings = (_text(cols * pw) + _text(rows * ph) + _text(layer_height) + struct.pack(
         ">11H", round(s.exposure * 10), round(s.wait_before_cure), round(s.bottom_exposure), min(s.bottom_layers, n),
-        round(b["lift_height"]), round(b["lift_speed"] / 60), round(s.lift_height), round(s.lift_speed / 60),
+        round(b["lift_height"] + b["lift_height2"]), round(b["lift_speed"] / 60), round(s.lift_height + s.lift_height2),
+        round(s.lift_speed / 60),
         round(s.retract_speed / 60), s.bottom_light_pwm, s.light_pwm))
     info = b""
     if version >= 3:  # the slicer, the resin, then no compensation, anti-aliasing as drawn, no blur

@@ -147,6 +147,8 @@ def test_what_the_format_cannot_hold_is_refused(tmp_path, torus):
         (opts, {"wait_before_cure": 0.0}, "--wait-before-cure 0 s (whole seconds, at least 1"),
         (opts, {"exposure": 2.55}, "--exposure 2.55 s (tenths"),
         (opts, {"lift_height2": 3.0, "lift_speed2": 240.0}, "one lift stage"),
+        (opts, {"lift_height2": 0.5, "lift_speed2": 120.0, "bottom_lift_height2": 0.0},
+         "--lift-height 5.5 mm, both stages"),
         (opts, {"wait_after_cure": 1.0}, "--wait-after-cure"),
         (opts, {"bottom_retract_speed": 120.0}, "one retract speed"),
     ]
@@ -248,3 +250,15 @@ def test_a_file_chitubox_wrote_reads_back():
             lines = f.layers[i]["lines"]
             assert np.array_equal(lines, brute_lines(img)) or np.array_equal(
                 lines[np.lexsort((lines[:, 1], lines[:, 0]))], lines), (path.name, i)
+
+
+def test_a_second_lift_stage_at_the_first_ones_speed_is_one_longer_lift(tmp_path, torus):
+    spec = RasterSpec(resolution=(1200, 900), pixel=0.05)
+    s = PrintSettings(transition_layers=0, wait_before_cure=1.0, lift_height=4.0, lift_speed=120.0, lift_height2=3.0,
+                      lift_speed2=120.0, bottom_lift_height=6.0, bottom_lift_speed=60.0, bottom_lift_height2=0.0,
+                      retract_speed=120.0)
+    out = tmp_path / "two.cxdlp"
+    write_target(iter_tiles(torus, spec, backend="numpy"), target(out, torus, spec,
+                                                                  ResinOptions(printer=preset_file(tmp_path)), s))
+    f = read_cxdlp(out)
+    assert (f.settings["lift_height"], f.settings["lift_speed"], f.settings["bottom_lift_height"]) == (7, 2, 6)
