@@ -59,7 +59,7 @@ from ..errors import ParameterError
 from ..io.atomic import WRITE_BUFFER, atomic_path
 from .coverage import Tile
 from .layers import RunLayer, pixel_runs, run_groups
-from .photon import _stages, encode_pw0, encode_pw0_runs
+from .photon import _stages, encode_pw0_batch, encode_pw0_runs
 from .png import encode_all
 from .settings import layer_table, print_time_s, resin_ml
 
@@ -264,13 +264,8 @@ def write_anycubic_zip(layers: Iterable[Tile | RunLayer], target, *, machine: Zi
 
     def encode(item: Tile | RunLayer) -> tuple:
         start, length, grey = pixel_runs(item, cols)
-        data, _, mid = encode_pw0(start, length, grey, n_pixels)
-        on = (grey >> 4) > 0
-        if not on.any():
-            return finish(data, mid, (-1, -1, -1, -1))
-        a, e = start[on], start[on] + length[on] - 1  # (runs never cross a row end)
-        return finish(data, mid, (int(a[0] // cols), int((a % cols).min()), int(e[-1] // cols),
-                                       int((e % cols).max())))
+        data, _, mid, box = encode_pw0_batch(start, length, grey, np.array([0, start.size]), n_pixels, cols)
+        return finish(data[0], bool(mid[0]), tuple(int(v) for v in box[0]))
 
     def encode_group(group: list[Tile | RunLayer]) -> list:
         if not isinstance(group[0], RunLayer):
