@@ -7,13 +7,13 @@ Jobs (``--jobs``):
 * ``nefertiti``: the shared ``nefertiti.stl`` at ``--fit 80``, 0.05 mm (1,600 layers).
 
 Displays (``--displays``): ``12k`` = 11520x5120 at 0.019 mm (the issue's job; a Saturn 3 Ultra's panel) and ``16k``
-= 15120x6230 at 0.014 x 0.019 mm. Outputs (``--formats``): goo, ctb, pwmx, pwsz, cxdlp, sl1, png (a PNG stack), at
-gamma 0 and 1 (``--gammas``), plus ``--z-samples 4`` at gamma 1 for the first format (``--z4``).
+= 15120x6230 at 0.014 x 0.019 mm. Outputs (``--formats``): goo, ctb, pwmx, pwsz, cxdlp, cxdlpv4, sl1, png (a PNG
+stack), at gamma 0 and 1 (``--gammas``), plus ``--z-samples 4`` at gamma 1 for the first format (``--z4``).
 
 Every command is ``gpuslice raster STL --fit F -t 0.05 --resolution R --pixel P [--pixel-y Q] --gamma G -o OUT
---report R.json -q --no-progress`` (for ``pwmx``, ``pwsz`` and ``cxdlp``: ``--printer P.json``, a preset file of
-that display reading that format, as gpuslice refuses a Photon Mono X file of another display and a .cxdlp without
-a Halot model code) under ``/usr/bin/time -v`` (wall time and peak RSS of the whole process), run ``--repeat``
+--report R.json -q --no-progress`` (for ``pwmx``, ``pwsz``, ``cxdlp`` and ``cxdlpv4``: ``--printer P.json``, a preset
+file of that display reading that format, as gpuslice refuses a Photon Mono X file of another display and a .cxdlp
+without a Halot model code) under ``/usr/bin/time -v`` (wall time and peak RSS of the whole process), run ``--repeat``
 times, the commands interleaved; the medians are printed with the stages of the median run's report (load, topology,
 crossings, chaining, nesting, raster) and layers/s of the whole job. ``--prusa`` adds PrusaSlicer's SL1 export of
 the same STL at the same display (once: it takes minutes) as the reference of the same run.
@@ -41,7 +41,7 @@ REPO = Path(__file__).resolve().parents[1]
 MESHES = REPO.parent / "shared" / "meshes"
 DISPLAYS = {"12k": ((11520, 5120), 0.019, None), "16k": ((15120, 6230), 0.014, 0.019)}
 SUFFIX = {"goo": ".goo", "ctb": ".ctb", "pwmx": ".pwmx", "sl1": ".sl1", "png": "/", "nanodlp": ".nanodlp",
-          "pwsz": ".pwsz", "cxdlp": ".cxdlp"}
+          "pwsz": ".pwsz", "cxdlp": ".cxdlp", "cxdlpv4": ".cxdlpv4"}
 #: a preset's settings for the formats whose units the defaults do not fit (.cxdlp: whole mm/s, no transition ramp)
 PRESET_SETTINGS = {"cxdlp": {"transition_layers": 0, "wait_before_cure": 1.0, "lift_height": 6.0, "lift_speed": 60.0,
                              "bottom_lift_height": 6.0, "bottom_lift_speed": 60.0, "retract_speed": 60.0}}
@@ -80,8 +80,8 @@ def command(stl: Path, fit: float, display: str, gamma: float, out: str, report:
         preset.write_text(json.dumps({"name": f"bench-{display}", "resolution": [nx, ny], "pixel": px,
                                       **({"pixel_y": py} if py is not None else {}), "build_height": 200,
                                       "formats": [suffix], "settings": PRESET_SETTINGS.get(suffix, {}),
-                                      # (a .cxdlp carries a Halot model code, CL-…)
-                                      "machine": f"CL-{display}" if suffix == "cxdlp" else f"bench {display}"}))
+                                      # (a .cxdlp or .cxdlpv4 carries a Halot model code, CL-…)
+                                      "machine": f"CL-{display}" if "cxdlp" in suffix else f"bench {display}"}))
         return [*cmd, "--printer", str(preset), *(["--z-samples", str(z)] if z > 1 else [])]
     cmd += ["--resolution", f"{nx}x{ny}", "--pixel", f"{px:g}"]
     if py is not None:

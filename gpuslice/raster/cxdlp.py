@@ -1,5 +1,5 @@
 """Creality Halot ``.cxdlp`` files, versions 2 and 3 (the Halot One, One Pro, One Plus, Sky, Lite, Sky Plus, Ray and
-Max; the Mage family reads another layout, v4, not written here).
+Max; the Mage family reads another layout, v4: :mod:`gpuslice.raster.cxdlpv4`).
 
 Facts (field layouts, units, checksums, what the firmware checks) from public readers and writers, gathered in
 ``docs/research/CXDLP.md``: UVtools' ``CrealityCXDLPFile.cs`` and its 010 Editor template, checked against a file
@@ -203,7 +203,7 @@ def refuse_settings(path, name: str, options, settings, spec=None) -> None:
     version = _version(options)
     if version not in VERSIONS:
         raise ParameterError(f"{path}: this writer has CXDLP versions {' and '.join(map(str, VERSIONS))}, not "
-                             f"{version} (the Halot Mage's .cxdlpv4 is another layout)")
+                             f"{version} (the Halot Mage's v4 is another layout: -o part.cxdlpv4)")
     if spec is not None:
         cols, rows = spec.png_size
         if cols > MAX_COLS or rows > MAX_ROWS:

@@ -156,6 +156,9 @@ RESIN_FORMATS: dict[str, ResinFormat] = {
         ResinFormat("cxdlp", (".cxdlp",), "cxdlp:write_target", "Creality Halot CXDLP file, v3 (v2 where the "
                     "preset asks): vertical line runs of 8-bit greys, print settings, RGB565 previews", "CXDLP file",
                     settings_check="cxdlp:refuse_settings"),
+        ResinFormat("cxdlpv4", (".cxdlpv4",), "cxdlpv4:write_target", "Creality Halot Mage CXDLP v4 file (another "
+                    "layout than .cxdlp: 7-bit RLE layers with their own settings, RGB15 previews)", "CXDLP v4 file",
+                    settings_check="cxdlpv4:refuse_settings"),
         ResinFormat("png", (), "pngstack:write_target", "a folder of 8-bit PNGs, one per layer", "PNG stack",
                     folder=True, png=True),
     )

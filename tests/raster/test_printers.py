@@ -173,7 +173,8 @@ def test_printers_command_table_json_and_details(tmp_path, capsys):
     row = lines[1 + names.index("elegoo-saturn-3-ultra")].split()
     assert row[1:3] == ["11520x5120", "19x24"] and "goo" in row and "218.88" in row and row[-1] != "*"
     # a native format gpuslice does not write is marked, and the footnote says what that printer gets
-    assert lines[1 + names.index("creality-halot-mage")].split()[-1] == "*"
+    assert lines[1 + names.index("uniformation-gkone")].split()[-1] == "*"
+    assert lines[1 + names.index("creality-halot-mage")].split()[-1] == "cxdlpv4"
     assert lines[1 + names.index("creality-halot-one")].split()[-1] == "cxdlp"
     assert lines[-1].startswith("* a format gpuslice does not write: a PNG stack")
     assert main(["printers", "--json"]) == 0
