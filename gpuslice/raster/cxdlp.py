@@ -134,16 +134,18 @@ def largest_regions(start: np.ndarray, length: np.ndarray, offsets: np.ndarray, 
     b = a + length
     rows = int(row.max()) + 3
     line = img * rows + row + 1
+    # runs of a row that touch (two greys) are one region: merged into intervals first (far fewer at anti-aliased
+    # edges, where every boundary pixel is a run of its own)
+    head = np.flatnonzero(np.concatenate(([True], (line[1:] != line[:-1]) | (a[1:] != b[:-1]))))
+    tail = np.append(head[1:], start.size) - 1
+    line, a, b, img = line[head], a[head], b[tail], img[head]
     base = line * cols  # (sorted already: layer, then row, then column)
-    # runs of a row that touch (two greys) are one region; a run overlaps those of the next row sharing a column
+    # an interval overlaps those of the next row sharing a column
     lo = np.searchsorted(base + b, (line + 1) * cols + a, side="right")
     hi = np.searchsorted(base + a, (line + 1) * cols + b, side="left")
     q, j = expand_ranges(lo, np.maximum(hi - lo, 0))
-    touch = np.flatnonzero((line[1:] == line[:-1]) & (a[1:] == b[:-1]))
-    src = np.concatenate([q, touch])
-    dst = np.concatenate([j, touch + 1])
-    label = components(start.size, src, dst)
-    size = np.bincount(label, weights=length)
+    label = components(head.size, q, j)
+    size = np.bincount(label, weights=b - a)
     comp_img = np.zeros(size.size, np.int64)
     comp_img[label] = img
     np.maximum.at(out, comp_img, size.astype(np.int64))
