@@ -11,18 +11,22 @@ little endian after its first fields:
   ``machine``: the printer compares it with its own), big endian; then, little endian: the resolution (u16), the
   display's width and height, the machine's Z travel, the print's height and the layer height (f32, mm), the bottom
   layer count, the offsets of the small preview, the layer table and the large preview, the layer count, the print
-  time (s), the projector type (1: the display is mirrored along x; the pixels are stored as the display shows them,
-  the preset's mirror applied), the print parameters' offset and size, the anti-aliasing level (1 for ``--gamma 0``,
-  8 otherwise, as our CTB), the light PWMs (u16), encryption key 0 (plain layers), the slicer info's offset and size;
+  time (s), the projector type (1: the display is mirrored, as UVtools writes it for any mirror; the pixels are
+  stored as the display shows them, the preset's mirror applied), the print parameters' offset and size, the level
+  count 1 (UVtools' writer leaves it so: in Chitu's older formats a count above 1 means that many layer tables), the
+  light PWMs (u16), encryption key 0 (plain layers), the slicer info's offset and size;
 * two previews, 120x120 and 300x300 (a 32-byte record, then Chitubox's RGB15 run-length words:
   :func:`gpuslice.raster.ctb.rgb15_rle`), drawn from the layers, so their region is reserved at its worst-case size
   and zero-padded (offsets say where each starts);
 * the print parameters (68 bytes: the bottom and normal lift, both stages' total, and its speed, the retract speed,
   resin ml and g, light-off delays 0, the bottom layer count, exposure, bottom exposure) and the slicer info (76
   bytes: the second lift and retract stages, the rest after the lift, the per-layer-settings flag, the date in
-  minutes since 1970, the anti-aliasing level, the rests after the retract (``--wait-before-cure``) and before the
-  lift (``--wait-after-cure``), exposure, bottom exposure, the transition layer count). Speeds in mm/min;
-* the layer table, 40 bytes a layer: the platform's z while the layer is exposed (its top, mm), its exposure (the
+  minutes since 1970, the anti-aliasing level (1 for ``--gamma 0``, 8 otherwise, as our CTB's), the rests after
+  the retract (``--wait-before-cure``) and before the lift (``--wait-after-cure``), exposure, bottom exposure, the
+  transition layer count). Speeds in mm/min;
+* the layer table, 40 bytes a layer: the platform's z while the layer is exposed (its top, mm; with layers of more
+  than one thickness the per-layer-settings flag is set, as UVtools sets it when a layer's z is not what the
+  header's layer height gives: whether the printer follows the table's z without it is not known), its exposure (the
   transition ramp included), light-off 0, the offset and size of its data, data type 0 (pixels), 0, the area of its
   largest 4-connected region of lit pixels (mm² x 1000; UVtools writes its largest outer contour's area, holes
   included; what the firmware does with it is not known), two zeros;
@@ -129,6 +133,8 @@ def write_cxdlpv4(layers: Iterable[Tile | RunLayer], target, *, code: str, z_tra
     thumb = _Thumb(spec, n)
     ml = resin_ml(res.area, th)
     anti_alias = 1 if spec.gamma == 0 else 8
+    # (more than one layer thickness: each layer's z is its own, which the printer follows with the flag set)
+    per_layer = bool(s.per_layer_settings) or float(np.ptp(th)) > 1e-9
 
     def encode(item: Tile | RunLayer) -> tuple[bytes, int]:  # on a worker thread
         start, length, grey = pixel_runs(item, cols)
@@ -169,14 +175,14 @@ def write_cxdlpv4(layers: Iterable[Tile | RunLayer], target, *, code: str, z_tra
             f.seek(at)
             f.write(PREVIEW.pack(*size, at + PREVIEW.size, len(data), 0, 0, 0, 0) + data)
         f.seek(at_params)
-        f.write(_settings_blocks(s, ml, anti_alias, target.now))
+        f.write(_settings_blocks(s, ml, anti_alias, target.now, min(s.bottom_layers, n), per_layer))
         f.seek(0)
         layer_height = float(np.median(th[1:])) if n > 1 else float(th[0])
         f.write(struct.pack(">I", len(MAGIC)) + MAGIC + struct.pack(">HI", VERSION, len(model)) + model)
         f.write(HEAD.pack(cols, rows, cols * pw, rows * ph, float(z_travel), float(z[-1]), layer_height,
                           min(s.bottom_layers, n), at_small, at_table, n, at_large, int(round(print_time_s(s, n))),
-                          int(spec.mirror_x), at_params, PARAMS.size, anti_alias, s.light_pwm, s.bottom_light_pwm, 0,
-                          at_slicer, SLICER.size))
+                          int(spec.mirror_x or spec.mirror_y), at_params, PARAMS.size, 1, s.light_pwm,
+                          s.bottom_light_pwm, 0, at_slicer, SLICER.size))
         f.flush()
         f.seek(0)
         crc = 0xFFFFFFFF
@@ -196,15 +202,15 @@ def _largest_lit(start, length, grey, offsets: np.ndarray, cols: int) -> np.ndar
     return largest_regions(np.asarray(start)[lit], np.asarray(length)[lit], kept, cols)
 
 
-def _settings_blocks(s, ml: float, anti_alias: int, now) -> bytes:
+def _settings_blocks(s, ml: float, anti_alias: int, now, bottom_layers: int, per_layer: bool) -> bytes:
     """The print parameters and the slicer info (module docstring): lift heights are both stages' total in the first,
     the second stage on its own in the other; the rests and retract stages are the normal layers'."""
     b, m = s.group(True), s.group(False)
     params = PARAMS.pack(b["lift_height"] + b["lift_height2"], b["lift_speed"], m["lift_height"] + m["lift_height2"],
                          m["lift_speed"], m["retract_speed"], ml, ml * s.resin_density, 0.0, 0.0, 0.0,
-                         s.bottom_layers, s.exposure, s.bottom_exposure, 0, 0, 0, 0)
+                         bottom_layers, s.exposure, s.bottom_exposure, 0, 0, 0, 0)
     slicer = SLICER.pack(b["lift_height2"], b["lift_speed2"], m["lift_height2"], m["lift_speed2"], m["retract_height2"],
-                         m["retract_speed2"], m["wait_after_lift"], int(bool(s.per_layer_settings)),
+                         m["retract_speed2"], m["wait_after_lift"], int(per_layer),
                          _timestamp_minutes(now), anti_alias, 0, m["wait_before_cure"], m["wait_after_cure"],
                          s.exposure, s.bottom_exposure, m["wait_after_lift"], s.transition_layers, 0, 0)
     return params + slicer

@@ -68,7 +68,8 @@ def test_torus_every_layer_header_settings_and_checksum(tmp_path, torus, gamma):
     assert (f.model, h["res_x"], h["res_y"], h["projector"], h["key"]) == ("CL-103", 1200, 900, 1, 0)
     assert (h["bed_x"], h["bed_y"], h["bed_z"], h["layer_height"]) == pytest.approx((60.0, 45.0, 230.0, 0.5))
     assert h["print_height"] == pytest.approx(10.0) and h["bottom_layers"] == p["bottom_layers"] == 2
-    assert h["aa_level"] == s["aa_level"] == (8 if gamma else 1) and (h["pwm"], h["bottom_pwm"]) == (200, 250)
+    # the anti-aliasing level in the slicer info; the header's level count stays 1 (UVtools' writer leaves it so)
+    assert (h["aa_level"], s["aa_level"], h["pwm"], h["bottom_pwm"]) == (1, 8 if gamma else 1, 200, 250)
     assert h["print_time"] == round(print_time_s(SETTINGS, n))
     # the print parameters: lift totals (both stages), speeds in mm/min, no light-off delay (the rests have fields)
     assert (p["bottom_lift_height"], p["bottom_lift_speed"], p["lift_height"], p["lift_speed"], p["retract_speed"]) \
@@ -142,6 +143,26 @@ def test_per_layer_settings_flag_and_each_bottom_layers_own_values(tmp_path, tor
     ex = [layer["ex"] for layer in f.layers]
     assert [e["retract_speed"] for e in ex[:3]] == [120.0, 120.0, 180.0]
     assert [e["rest_after_retract"] for e in ex[:3]] == [3.0, 3.0, 1.5]
+
+
+def test_layers_of_several_thicknesses_set_the_per_layer_flag_and_a_y_mirror_the_projector(tmp_path):
+    """Adaptive layers: each layer's z is its own, which the printer follows with the per-layer flag set (as UVtools
+    sets it); a display mirrored in y is marked mirrored too."""
+    th = np.tile([0.2, 0.4], 26)
+    top = np.cumsum(th)
+    res = slice_mesh(mesh_from_triangles(shapes.icosphere(8.0, 3)), z=top - th / 2, layer_thickness=th,
+                     backend="numpy")
+    th = np.asarray(res.thickness)
+    assert np.ptp(th) > 0.1
+    p = tmp_path / "m.toml"
+    p.write_text('name = "m"\nresolution = [400, 400]\npixel = 0.05\nbuild_height = 100\nmirror_y = true\n'
+                 'machine = "CL-103"\n')
+    opts = ResinOptions(printer=str(p))
+    t = target(tmp_path / "a.cxdlpv4", res, opts)
+    write_target(iter_tiles(res, t.spec, backend="numpy"), t)
+    f = read_cxdlpv4(tmp_path / "a.cxdlpv4")
+    assert f.slicer["per_layer"] == 1 and f.header["projector"] == 1
+    assert [layer["z"] for layer in f.layers] == pytest.approx(np.cumsum(th), abs=1e-5)
 
 
 def test_registry_and_presets():
