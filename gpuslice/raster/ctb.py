@@ -49,8 +49,9 @@ total, the second stage on its own), the slow last retract stage, ``wait_before_
 ``wait_after_cure`` (rest before lift) and ``wait_after_lift``, with the light-off delay 0; its global waits are the
 normal layers' (the bottom layers' own are in their per-layer records). CTB has no retract distance: the platform
 comes back down the lift's total.
-The per-layer-settings byte (slicer info) is 0 unless ``per_layer_settings`` is on (then ``0x10 · version``, as
-UVtools): some firmware misbehaves when it is set, so it is off by default.
+The per-layer-settings byte (slicer info) is 0 unless ``per_layer_settings`` is on or the layers are not all one
+thickness (then ``0x10 · version``, as UVtools sets it whenever a layer differs from the global settings, its z
+included: the header has one layer height): some firmware misbehaves when it is set, so it is off otherwise.
 """
 
 from __future__ import annotations
@@ -343,7 +344,8 @@ def write_ctb(
         previews, at["small"] = _previews(_preview_images(thumb), at["previews"])
         f.seek(at["previews"])
         f.write(previews)
-        f.write(_params_block(settings, info, version, machine, n, at, now))
+        varied = float(np.ptp(thickness)) > 1e-9  # layers of several thicknesses: each layer's z is its own
+        f.write(_params_block(settings, info, version, machine, n, at, now, varied))
         f.seek(0)
         f.write(_header(spec, settings, info, version, z, thickness, n, at))
     return {"layers": stats["layers"], "png_bytes": stats["png_bytes"], "ctb_bytes": file_size,
@@ -400,7 +402,7 @@ def _rows(settings: PrintSettings, version: int) -> tuple[dict[str, float], dict
 
 
 def _params_block(settings: PrintSettings, info: CtbInfo, version: int, machine: bytes, n: int,
-                  at: dict[str, int], now: _dt.datetime | None) -> bytes:
+                  at: dict[str, int], now: _dt.datetime | None, varied: bool = False) -> bytes:
     """Print parameters, slicer info, machine name and (v4) the v4 parameters, as laid out from ``at["params"]``.
     Lift heights are the lift's total (v4 stores the second stage apart too)."""
     s = settings
@@ -411,7 +413,7 @@ def _params_block(settings: PrintSettings, info: CtbInfo, version: int, machine:
                                info.resin_ml, info.resin_ml * s.resin_density, 0.0, b["light_off"], m["light_off"],
                                s.bottom_layers, 0, 0, 0, 0x1234 if version <= 2 else 0)
     aa_flag = 0x0F if info.anti_alias > 1 else 0x07
-    per_layer = 0x10 * version if s.per_layer_settings else 0
+    per_layer = 0x10 * version if s.per_layer_settings or varied else 0
     slicer = SLICER_INFO.pack(
         two * b["lift_height2"], two * b["lift_speed2"], two * m["lift_height2"], two * m["lift_speed2"],
         two * m["retract_height2"], two * m["retract_speed2"], two * m["wait_after_lift"], at["machine"],

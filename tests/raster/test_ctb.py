@@ -272,6 +272,14 @@ def test_version_default_switch_and_errors(tmp_path, torus):
     write_target(iter_tiles(torus, spec, backend="numpy", clip=True),
                  _target(out, spec, torus, settings=on, options=options))
     assert (read_ctb(out).header["version"], read_ctb(out).slicer["per_layer"]) == (3, 0x30)
+    # layers of two thicknesses: each layer's z is its own (the header has one layer height), so the byte is set too
+    th = np.tile([0.25, 0.5], 14)
+    varied = slice_mesh(mesh_from_triangles(shapes.torus(15.0, 5.0, 48, 24)), z=np.cumsum(th) - th / 2,
+                        layer_thickness=th, backend="numpy")
+    write_target(iter_tiles(varied, spec, backend="numpy", clip=True),
+                 _target(out, spec, varied, settings=PrintSettings(), options=options))
+    f = read_ctb(out)
+    assert f.slicer["per_layer"] == 0x30 and [e["z"] for e in f.layers] == pytest.approx(np.cumsum(th), abs=1e-5)
     options = ResinOptions(printer=_preset(tmp_path, 5))
     with pytest.raises(ParameterError, match=r"x\.ctb: CTB version 5 is not written"):
         write_target(iter_tiles(torus, spec, backend="numpy", clip=True),
