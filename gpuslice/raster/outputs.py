@@ -159,6 +159,9 @@ RESIN_FORMATS: dict[str, ResinFormat] = {
         ResinFormat("cxdlpv4", (".cxdlpv4",), "cxdlpv4:write_target", "Creality Halot Mage CXDLP v4 file (another "
                     "layout than .cxdlp: 7-bit RLE layers with their own settings, RGB15 previews)", "CXDLP v4 file",
                     settings_check="cxdlpv4:refuse_settings"),
+        ResinFormat("jxs", (".jxs",), "jxs:write_target", "UniFormation GKone JXS archive (RGB-packed PNG layers, "
+                    "config.ini, control.json with the print program)", "JXS archive",
+                    settings_check="jxs:refuse_settings"),
         ResinFormat("png", (), "pngstack:write_target", "a folder of 8-bit PNGs, one per layer", "PNG stack",
                     folder=True, png=True),
     )

@@ -173,7 +173,7 @@ def test_printers_command_table_json_and_details(tmp_path, capsys):
     row = lines[1 + names.index("elegoo-saturn-3-ultra")].split()
     assert row[1:3] == ["11520x5120", "19x24"] and "goo" in row and "218.88" in row and row[-1] != "*"
     # a native format gpuslice does not write is marked, and the footnote says what that printer gets
-    assert lines[1 + names.index("uniformation-gkone")].split()[-1] == "*"
+    assert lines[1 + names.index("uniformation-gktwo")].split()[-1] == "*"
     assert lines[1 + names.index("creality-halot-mage")].split()[-1] == "cxdlpv4"
     assert lines[1 + names.index("creality-halot-one")].split()[-1] == "cxdlp"
     assert lines[-1].startswith("* a format gpuslice does not write: a PNG stack")
@@ -188,8 +188,8 @@ def test_printers_command_table_json_and_details(tmp_path, capsys):
     assert main(["printers", "anycubic-photon-mono-m7-pro"]) == 0
     out = capsys.readouterr().out
     assert "formats   pwsz\n" in out and "not written" not in out
-    assert main(["printers", "uniformation-gkone"]) == 0
-    assert "jxs (not written by gpuslice)" in capsys.readouterr().out
+    assert main(["printers", "uniformation-gktwo"]) == 0
+    assert "gktwo.ctb (not written by gpuslice)" in capsys.readouterr().out
     own = tmp_path / "mine.json"
     own.write_text(json.dumps({"resolution": [100, 200], "pixel": 0.1, "settings": {"exposure": 2}}))
     assert main(["printers", str(own), "--json"]) == 0
