@@ -26,8 +26,10 @@ not known: whether the firmware reads ``config.ini`` at all, its G-code dialect,
   down), a delay for it, the wait before the exposure, ``M106 S<pwm>``, the exposure as a delay, ``M106 S0``, blank,
   the wait after the exposure; at the end the light off, a lift of at least 4 mm and a rise to the top, ``M18``.
   The firmware does not wait for a move before the next step, so each move is followed by a delay: its duration at
-  the programmed speed plus 0.75 s a stage (UVtools' converter's margin). Every layer's own values (the exposure
-  ramp, the bottom layers' motion and waits, the PWM) are in the program; zero delays are left out.
+  the programmed speed plus 0.75 s a stage and 0.75 s more (UVtools' converter's margin). Moves are whole
+  micrometres between the layers' tops rounded to 1 µm, so they add up to each layer's top exactly. Every layer's
+  own values (the exposure ramp, the bottom layers' motion and waits, the PWM) are in the program; zero delays are
+  left out. ``total_time`` is the program's: the sum of its delays.
 """
 
 from __future__ import annotations
@@ -48,9 +50,9 @@ from .coverage import Tile
 from .layers import RUNS_LEVEL, RunLayer, encode_png, run_groups
 from .png import PngEncoder, encode_all, png_chunk
 from .png_runs import png_group
-from .settings import layer_table, print_time_s, resin_ml
+from .settings import layer_table, resin_ml
 
-__all__ = ["RESOLUTION", "program", "refuse_settings", "rgb_packed", "write_jxs", "write_target"]
+__all__ = ["RESOLUTION", "program", "program_seconds", "refuse_settings", "rgb_packed", "write_jxs", "write_target"]
 
 RESOLUTION = (4920, 2880)  #: the GKone's display, the only one the format is for (columns, rows)
 MOVE_MARGIN_S = 0.75  #: added to each motion stage's duration in the delay that follows it
@@ -85,16 +87,29 @@ def _ms(seconds: float) -> int:
     return int(round(float(seconds) * 1000.0))
 
 
-def _move_ms(stages: list[tuple[float, float]]) -> int:
-    """The delay after a move of ``stages`` (distance mm, speed mm/min): each stage's time plus the margin."""
-    return _ms(sum(abs(d) / (v / 60.0) + MOVE_MARGIN_S for d, v in stages if d != 0 and v > 0))
+def _move_ms(stages: list[tuple[int, float]]) -> int:
+    """The delay after a move of ``stages`` (distance µm, speed mm/min): each stage's time plus the margin, and
+    the margin once more (UVtools' converter's rule)."""
+    return _ms(MOVE_MARGIN_S + sum(abs(d) / 1000.0 / (v / 60.0) + MOVE_MARGIN_S for d, v in stages))
 
 
-def program(settings, top: np.ndarray, machine_z: float, max_speed: float = 300.0) -> list[list]:
+def _max_speed(settings) -> float:
+    """The fastest motion speed the settings use (mm/min): the final rise's."""
+    return max(float(g[k]) for g in (settings.group(True), settings.group(False))
+               for k in ("lift_speed", "lift_speed2", "retract_speed", "retract_speed2"))
+
+
+def program(settings, top: np.ndarray, machine_z: float) -> list[list]:
     """The ``action_list`` (module docstring) of layers whose tops are ``top`` (mm, from the plate), for a machine
-    of ``machine_z`` mm of travel; ``max_speed`` (mm/min): the final rise's speed."""
+    of ``machine_z`` mm of travel. Moves are whole micrometres between the layers' tops rounded to 1 µm, each
+    layer's lift and retract equal, so the relative moves add up to every layer's top exactly."""
     n = top.size
     t = layer_table(settings, n)
+    um = np.round(np.asarray(top, np.float64) * 1000.0).astype(np.int64)
+    rise = np.diff(um, prepend=0)
+    lift, lift2, back2 = (np.round(t[k] * 1000.0).astype(np.int64) for k in ("lift_height", "lift_height2",
+                                                                            "retract_height2"))
+    back2 = np.minimum(back2, lift + lift2)
     acts: list[list] = [["gcode", "G21"], ["gcode", "G91"], ["gcode", "M106 S0"], ["slice", "<BLANK>"],
                         ["gcode", "M17"], ["gcode", "G28 Z0"]]
 
@@ -102,40 +117,43 @@ def program(settings, top: np.ndarray, machine_z: float, max_speed: float = 300.
         if ms > 0:
             acts.append(["delay", int(ms)])
 
-    def moves(stages: list[tuple[float, float]]) -> None:
-        stages = [(d, v) for d, v in stages if d != 0 and v > 0]
+    def moves(stages: list[tuple[int, float]]) -> None:
+        stages = [(int(d), float(v)) for d, v in stages if d != 0 and v > 0]
         for d, v in stages:
-            acts.append(["gcode", f"G0 Z{_num(d)} F{_num(v)}"])
-        delay(_move_ms(stages))
+            acts.append(["gcode", f"G0 Z{_num(d / 1000.0)} F{_num(v)}"])
+        if stages:
+            delay(_move_ms(stages))
 
-    last = 0.0
     for i in range(n):
         acts.append(["layerno", i + 1])
         acts.append(["slice", f"{{PWD}}/{i:05d}.png"])
-        rise = float(top[i]) - last
-        lift, lift2 = float(t["lift_height"][i]), float(t["lift_height2"][i])
-        if lift + lift2 > 0:
-            moves([(rise + lift, float(t["lift_speed"][i])), (lift2, float(t["lift_speed2"][i]))])
+        if lift[i] > 0:  # (as UVtools' builder: the rise in the first stage, or in the second when there is no first)
+            moves([(rise[i] + lift[i], t["lift_speed"][i]), (lift2[i], t["lift_speed2"][i])])
+        elif lift2[i] > 0:
+            moves([(rise[i] + lift2[i], t["lift_speed2"][i])])
+        if lift[i] + lift2[i] > 0:
             delay(_ms(t["wait_after_lift"][i]))
-            moves([(-float(t["retract_height"][i]), float(t["retract_speed"][i])),
-                   (-float(t["retract_height2"][i]), float(t["retract_speed2"][i]))])
+            moves([(-(lift[i] + lift2[i] - back2[i]), t["retract_speed"][i]), (-back2[i], t["retract_speed2"][i])])
         else:
-            moves([(rise, float(t["lift_speed"][i]))])
+            moves([(rise[i], t["lift_speed"][i])])
         delay(_ms(t["wait_before_cure"][i]))
         acts += [["gcode", f"M106 S{int(t['light_pwm'][i])}"]]
         delay(_ms(t["exposure"][i]))
         acts += [["gcode", "M106 S0"], ["slice", "<BLANK>"]]
         delay(_ms(t["wait_after_cure"][i]))
-        last = float(top[i])
     acts += [["gcode", "M106 S0"], ["slice", "<BLANK>"]]
-    if n and last < machine_z:
-        up = max(4.0, settings.lift_height)
-        end = min(last + up, machine_z)
-        moves([(end - last, settings.lift_speed)])
-        if end < machine_z:
-            moves([(machine_z - end, max_speed)])
+    last, top_um = (int(um[-1]) if n else 0), int(round(machine_z * 1000.0))
+    if n and last < top_um:
+        end = min(last + max(4000, int(lift[-1])), top_um)  # (a lift of at least 4 mm, then up to the top)
+        moves([(end - last, t["lift_speed"][-1])])
+        moves([(top_um - end, _max_speed(settings))])
     acts.append(["gcode", "M18"])
     return acts
+
+
+def program_seconds(actions: list[list]) -> float:
+    """The print time a program states: the sum of its delays (moves and waits each have one), s."""
+    return sum(a[1] for a in actions if a[0] == "delay") / 1000.0
 
 
 def _config(settings, n: int, ml: float, layer_height: float, name: str, footer: str) -> bytes:
@@ -147,7 +165,8 @@ def _config(settings, n: int, ml: float, layer_height: float, name: str, footer:
             ("NumFade", 0), ("NumLayers", n), ("UsedMaterial", _num(ml)), ("layerHeight", _num(layer_height)),
             ("nJobName", name), ("NumBottomLayers", min(s.bottom_layers, n)), ("LiftDistance1", _num(s.lift_height)),
             ("LiftFeedrate1", _num(s.lift_speed)), ("LiftDistance2", _num(s.lift_height2)),
-            ("LiftFeedrate2", _num(s.lift_speed2)), ("BottomLiftFeedrate", _num(b["lift_speed"])),
+            ("LiftFeedrate2", _num(s.lift_speed2 if s.lift_speed2 > 0 else s.lift_speed)),
+            ("BottomLiftFeedrate", _num(b["lift_speed"])),
             ("RetractFeedrate", _num(s.retract_speed)), ("ZMoveTimeCompensation", _ms(s.wait_before_cure)),
             ("ZMoveTimeCompensationBottom", _ms(b["wait_before_cure"])), ("OnLightCode", f"M106 S{s.light_pwm}"),
             ("OffLightCode", "M106 S0"), ("GcodeHeader", HEADER), ("GcodeFooter", footer),
@@ -172,11 +191,11 @@ def write_jxs(layers: Iterable[Tile | RunLayer], target, *, machine_z: float) ->
     layer_height = float(np.median(th[1:])) if n > 1 else float(th[0])  # (the program moves by each layer's own)
     top = np.cumsum(th)
     ml = resin_ml(res.area, th)
-    seconds = print_time_s(s, n)
     level = target.options.png_level
     enc = PngEncoder(cols, rows, level, target.deflater)
     device = target.device if level == RUNS_LEVEL else None
     actions = program(s, top, float(machine_z))
+    seconds = program_seconds(actions)
     footer = next((a[1] for a in reversed(actions) if a[0] == "gcode" and a[1].startswith("G0")), "")
 
     def encode(item: Tile | RunLayer) -> bytes:  # on a worker thread

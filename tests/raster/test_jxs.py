@@ -17,7 +17,7 @@ from gpuslice.cli import main
 from gpuslice.errors import ParameterError
 from gpuslice.mesh import shapes
 from gpuslice.raster import PrintSettings, ResinOptions, iter_tiles, masks
-from gpuslice.raster.jxs import rgb_packed, write_target
+from gpuslice.raster.jxs import program, program_seconds, rgb_packed, write_target
 from gpuslice.raster.layers import iter_run_layers, pixel_runs
 from gpuslice.raster.outputs import ResinTarget, resin_format_for
 from gpuslice.raster.settings import layer_table
@@ -89,6 +89,27 @@ def test_torus_every_layer_config_and_program(tmp_path, torus, gamma):
         img = f.layer_image(i)
         assert img.shape == (2880, 4920)
         assert np.array_equal(img, masks(torus, t.spec, backend="numpy", layers=[i])[0]), i
+
+
+def test_program_moves_add_up_to_every_layers_top():
+    """Thin layers (0.0125 mm: tops that 3-decimal moves cannot each hold) and a lift with only its second stage:
+    the relative moves, replayed, put every layer at its top to the micrometre (before, each move rounded on its own
+    left the last layer 0.32 mm low); a move's delay is its time plus UVtools' margins."""
+    th = np.full(1920, 0.0125)
+    top = np.cumsum(th)
+    for s in (SETTINGS, PrintSettings(lift_height=0.0, lift_height2=3.0, lift_speed2=120.0, bottom_lift_height=0.0,
+                                      bottom_lift_height2=3.0, retract_speed=120.0)):
+        acts = program(s, top, 245.0)
+        steps = replay(acts)
+        z = np.array([st["z"] for st in steps])
+        assert np.abs(z - top).max() <= 0.0005 + 1e-9 and z[-1] == pytest.approx(24.0, abs=1e-9)  # (1 µm grid)
+        assert acts[-1] == ["gcode", "M18"] and program_seconds(acts) > 1920 * s.exposure
+    acts = program(PrintSettings(lift_height=0.0, lift_height2=3.0, lift_speed2=120.0, bottom_lift_height=0.0,
+                                 bottom_lift_height2=3.0), top[:1], 245.0)
+    moves = [a for a in acts if a[0] == "gcode" and a[1].startswith("G0")]
+    assert moves[0] == ["gcode", "G0 Z3.012 F120"]  # (one move: the rise, 0.0125 on the 1 µm grid, and the stage)
+    i = acts.index(moves[0])
+    assert acts[i + 1] == ["delay", round((0.75 + 3.012 / 2.0 + 0.75) * 1000)]
 
 
 def test_runs_and_tiles_write_the_same_file(tmp_path, torus, device):
