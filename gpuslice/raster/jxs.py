@@ -29,7 +29,8 @@ not known: whether the firmware reads ``config.ini`` at all, its G-code dialect,
   the programmed speed plus 0.75 s a stage and 0.75 s more (UVtools' converter's margin). Moves are whole
   micrometres between the layers' tops rounded to 1 µm, so they add up to each layer's top exactly. Every layer's
   own values (the exposure ramp, the bottom layers' motion and waits, the PWM) are in the program; zero delays are
-  left out. ``total_time`` is the program's: the sum of its delays.
+  left out. ``total_time`` is the program's delays without the layers' rises and the final rise
+  (:func:`stated_print_time`): the time the command line states.
 """
 
 from __future__ import annotations
@@ -52,7 +53,8 @@ from .png import PngEncoder, encode_all, png_chunk
 from .png_runs import png_group
 from .settings import layer_table, resin_ml
 
-__all__ = ["RESOLUTION", "program", "program_seconds", "refuse_settings", "rgb_packed", "write_jxs", "write_target"]
+__all__ = ["RESOLUTION", "program", "program_seconds", "refuse_settings", "stated_print_time", "rgb_packed",
+           "write_jxs", "write_target"]
 
 RESOLUTION = (4920, 2880)  #: the GKone's display, the only one the format is for (columns, rows)
 MOVE_MARGIN_S = 0.75  #: added to each motion stage's duration in the delay that follows it
@@ -152,8 +154,16 @@ def program(settings, top: np.ndarray, machine_z: float) -> list[list]:
 
 
 def program_seconds(actions: list[list]) -> float:
-    """The print time a program states: the sum of its delays (moves and waits each have one), s."""
+    """The time a program's delays take (moves and waits each have one), s."""
     return sum(a[1] for a in actions if a[0] == "delay") / 1000.0
+
+
+def stated_print_time(settings, n_layers: int) -> float:
+    """The print time a ``.jxs`` states (``total_time``; the registry's ``print_time``, so the command line, the
+    report and the checks state it too), s: the program's delays for ``n_layers`` layers less the layers' own rises
+    and the final rise (a few hundredths of a second a layer, and the trip up), which depend on the layer heights
+    and the machine."""
+    return program_seconds(program(settings, np.zeros(n_layers), 0.0))
 
 
 def _config(settings, n: int, ml: float, layer_height: float, name: str, footer: str) -> bytes:
@@ -195,7 +205,7 @@ def write_jxs(layers: Iterable[Tile | RunLayer], target, *, machine_z: float) ->
     enc = PngEncoder(cols, rows, level, target.deflater)
     device = target.device if level == RUNS_LEVEL else None
     actions = program(s, top, float(machine_z))
-    seconds = program_seconds(actions)
+    seconds = stated_print_time(s, n)
     footer = next((a[1] for a in reversed(actions) if a[0] == "gcode" and a[1].startswith("G0")), "")
 
     def encode(item: Tile | RunLayer) -> bytes:  # on a worker thread

@@ -161,7 +161,7 @@ RESIN_FORMATS: dict[str, ResinFormat] = {
                     settings_check="cxdlpv4:refuse_settings"),
         ResinFormat("jxs", (".jxs",), "jxs:write_target", "UniFormation GKone JXS archive (RGB-packed PNG layers, "
                     "config.ini, control.json with the print program)", "JXS archive",
-                    settings_check="jxs:refuse_settings"),
+                    settings_check="jxs:refuse_settings", print_time="jxs:stated_print_time"),
         ResinFormat("png", (), "pngstack:write_target", "a folder of 8-bit PNGs, one per layer", "PNG stack",
                     folder=True, png=True),
     )

@@ -75,7 +75,10 @@ def test_torus_every_layer_config_and_program(tmp_path, torus, gamma):
             c["ZMoveTimeCompensationBottom"], c["OnLightCode"]) == ("60", "180", "1500", "8000", "M106 S200")
     assert float(c["UsedMaterial"]) == pytest.approx(stats["resin_ml"], abs=1e-3) and c["nJobName"] == "part"
     assert c["GcodeFooter"].startswith("G0 Z") and c["ApplicationName"].startswith("gpuslice")
+    # the time stated: the program's delays less the layers' rises (0.5 mm each here, at 60-90 mm/min) and the end
+    acts = f.control["action_list"]
     assert f.control["total_time"] == pytest.approx(stats["print_time_s"], abs=1e-3)
+    assert 0 < program_seconds(acts) - f.control["total_time"] < n * 0.5 / 60 * 60 + 245 / 60 * 60 + 5
     # the program, replayed: each layer shown, then exposed at its top, at its PWM, for its (ramped) exposure
     table = layer_table(SETTINGS, n)
     steps = replay(f.control["action_list"])
