@@ -117,7 +117,7 @@ def write_cxdlpv4(layers: Iterable[Tile | RunLayer], target, *, code: str, z_tra
     cols, rows = spec.png_size
     n_pixels = cols * rows
     pw, ph = (spec.py, spec.px) if spec.portrait else (spec.px, spec.py)
-    pixel_area_um = pw * ph * 1000.0  # mm² x 1000 of one pixel
+    per_pixel = pw * ph * 1000.0  # one pixel's area in the table's unit, mm² x 1000
     th = np.asarray(res.thickness, np.float64)
     z = np.cumsum(th).astype(np.float32)
     table = layer_table(s, n)
@@ -161,7 +161,7 @@ def write_cxdlpv4(layers: Iterable[Tile | RunLayer], target, *, code: str, z_tra
             f.write(LAYER_EX.pack(*ex[k]))
             f.write(data)
             entries[k] = np.frombuffer(LAYER_DEF.pack(z[k], table["exposure"][k], 0.0, pos, LAYER_EX.size + len(data),
-                                                      0, 0, round(area * pixel_area_um), 0, 0), "<u4")
+                                                      0, 0, round(area * per_pixel), 0, 0), "<u4")
             pos += LAYER_EX.size + len(data)
 
         stats = encode_all(layers, encode, sink, target.workers, on_tile=thumb.add, progress=target.progress,

@@ -65,7 +65,7 @@ _SIG = b"\x89PNG\r\n\x1a\n"
 def rgb_packed(png: bytes, width: int, height: int) -> bytes:
     """A greyscale 8-bit PNG ``width`` x ``height`` (filter 0 on every row) as the RGB PNG of ``width / 3`` pixels
     per row holding the same bytes: only its header changes."""
-    if png[:8] != _SIG or png[12:16] != b"IHDR" or width % 3:
+    if png[:8] != _SIG or png[12:16] != b"IHDR" or png[24:26] != b"\x08\x00" or width % 3:
         raise ValueError("not a greyscale PNG whose width is a multiple of 3")
     return _SIG + png_chunk(b"IHDR", struct.pack(">IIBBBBB", width // 3, height, 8, 2, 0, 0, 0)) + png[33:]
 
