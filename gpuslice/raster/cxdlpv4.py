@@ -111,9 +111,7 @@ def write_cxdlpv4(layers: Iterable[Tile | RunLayer], target, *, code: str, z_tra
 
     path = Path(os.fspath(target.path))
     spec, res, s = target.spec, target.result, target.settings
-    n = res.n_layers
-    if n == 0:
-        raise ParameterError(f"{path}: no layers to write")
+    n = target.layer_count()
     cols, rows = spec.png_size
     n_pixels = cols * rows
     pw, ph = (spec.py, spec.px) if spec.portrait else (spec.px, spec.py)

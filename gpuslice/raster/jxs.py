@@ -193,9 +193,7 @@ def write_jxs(layers: Iterable[Tile | RunLayer], target, *, machine_z: float) ->
 
     path = Path(os.fspath(target.path))
     spec, res, s = target.spec, target.result, target.settings
-    n = res.n_layers
-    if n == 0:
-        raise ParameterError(f"{path}: no layers to write")
+    n = target.layer_count()
     cols, rows = spec.png_size
     th = np.asarray(res.thickness, np.float64)
     layer_height = float(np.median(th[1:])) if n > 1 else float(th[0])  # (the program moves by each layer's own)

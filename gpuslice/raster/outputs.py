@@ -65,6 +65,13 @@ class ResinTarget:
         matches now and then: ``scripts/compare_outputs.py`` found it), zlib's is."""
         return "zlib" if self.now is not None else "auto"
 
+    def layer_count(self) -> int:
+        """The result's layer count; a :class:`ParameterError` naming ``path`` when there is none to write."""
+        n = int(self.result.n_layers)
+        if n == 0:
+            raise ParameterError(f"{self.path}: no layers to write")
+        return n
+
 
 @dataclass(frozen=True)
 class ResinFormat:
