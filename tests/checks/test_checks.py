@@ -379,6 +379,54 @@ def test_a_notch_the_grid_closes_is_no_trap():
         assert np.all(np.abs(cav.x) < 4) and np.all(np.abs(cav.y) < 4)  # the cavity's, not the channel's
 
 
+def _intervals_of(images: list[np.ndarray], layer0: int = 0):
+    """(layer, row, start, end) of the solid pixels of ``images`` (layer ``layer0 + k``), row by row."""
+    out = []
+    for k, img in enumerate(images):
+        pad = np.pad(img.astype(np.int8), ((0, 0), (1, 1)))
+        d = np.diff(pad, axis=1)
+        r0, s = np.nonzero(d == 1)
+        r1, e = np.nonzero(d == -1)
+        assert np.array_equal(r0, r1)
+        out.append((np.full(s.size, layer0 + k, np.int64), r0.astype(np.int64), s.astype(np.int64),
+                    e.astype(np.int64)))
+    return tuple(np.concatenate([o[i] for o in out]) for i in range(4))
+
+
+@pytest.mark.parametrize(("seed", "tol"), [(0, 0.1), (1, 0.1), (2, 0.25), (3, 0.1)])
+def test_pixel_unsupported_equals_a_dilation_of_the_layer_below(seed, tol):
+    """Random layers (blobs, single pixels, lines, shifts of the layer below by 0 to 3 pixels): each layer's
+    unsupported pixels are those outside the layer below dilated by the pixel centres within ``tol`` (scipy's
+    binary dilation with that disk), counted times the pixel area, fed in two batches; layer 0 has none."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(seed)
+    rows, cols, n, px = 40, 50, 12, 0.1
+    base = np.zeros((rows, cols), bool)
+    for _ in range(6):
+        r, c = rng.integers(0, rows - 8), rng.integers(0, cols - 8)
+        base[r : r + rng.integers(2, 12), c : c + rng.integers(2, 15)] = True
+    images = []
+    for k in range(n):
+        img = np.roll(base, (int(rng.integers(-3, 4)), int(rng.integers(-3, 4))), axis=(0, 1))
+        img = img ^ (rng.random((rows, cols)) < 0.03)  # lone pixels in and out
+        if k == 5:
+            img[:] = False  # a blank layer
+        images.append(img)
+    r = int(math.floor(tol / px + 1e-9))
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
+    disk = (yy * px) ** 2 + (xx * px) ** 2 <= tol**2 + 1e-12
+    want = np.zeros(n)
+    for k in range(1, n):
+        grown = ndimage.binary_dilation(images[k - 1], structure=disk)
+        want[k] = np.count_nonzero(images[k] & ~grown) * px * px
+    to_mm = np.array([[px, 0.0, 0.0], [0.0, px, 0.0]])
+    p = PixelIslands(n, rows, cols, to_mm, px, px, tol)
+    p.feed(0, 7, _intervals_of(images[:7]))
+    p.feed(7, n - 7, _intervals_of(images[7:], 7))
+    assert np.allclose(p.result().unsupported, want), (p.result().unsupported, want)
+
+
 def test_batches_give_the_same_answers():
     """Traps, cups and islands do not depend on how the layers are batched (the memory bound)."""
     res = _slice(_cat(hollow_sphere(), _at(cup(), x=25)))
