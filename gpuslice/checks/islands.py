@@ -342,24 +342,43 @@ class PixelIslands:
 
     def _islands(self, lines: Lines, idx: np.ndarray) -> None:
         line, a, b = lines.line[idx], lines.start[idx], lines.end[idx]
-        # 8-connected components inside each layer: an interval touches those of the next row within one column
-        nxt = line + 1
-        valid = (lines.row[idx] + 1) < lines.rows
-        lo, hi = lines.overlapping(nxt, a - 1, b + 1, valid)
-        q, j = expand_pairs(lo, hi)
-        pos = np.full(lines.n, -1, np.int64)
-        pos[idx] = np.arange(idx.size)
-        comp = components(idx.size, q, pos[j])
         # support: a solid pixel of the same row in the layer below (layer 0: the plate)
         lay = lines.layer[idx]
         lo, hi = lines.overlapping(line - lines.rows, a, b, lay >= 1)
         sup = (hi > lo) | (lay == 0)
-        n_comp = int(comp.max()) + 1 if comp.size else 0
-        comp_sup = np.zeros(n_comp, bool)
-        comp_sup[comp[sup]] = True
-        bad = ~comp_sup[comp]
-        if not bad.any():
+        loose = np.flatnonzero(~sup)
+        if not loose.size:
             return
+        # islands: the 8-connected components (an interval touches those of the rows above and below within one
+        # column) with no supported interval, i.e. the components of the unsupported intervals alone that touch no
+        # supported one: searched from those few intervals only
+        pos = np.full(lines.n, -1, np.int64)
+        pos[idx] = np.arange(idx.size)
+        at = np.full(idx.size, -1, np.int64)
+        at[loose] = np.arange(loose.size)
+        row_l = lines.row[idx][loose]
+        held = np.zeros(loose.size, bool)
+        src, dst = [], []
+        for dy in (1, -1):
+            valid = (row_l + dy >= 0) & (row_l + dy < lines.rows)
+            lo, hi = lines.overlapping(line[loose] + dy, a[loose] - 1, b[loose] + 1, valid)
+            q, j = expand_pairs(lo, hi)
+            j = pos[j]  # (the same layer: one of this batch's own intervals)
+            s = sup[j]
+            held[q[s]] = True
+            src.append(q[~s])
+            dst.append(at[j[~s]])
+        comp = components(loose.size, np.concatenate(src), np.concatenate(dst))
+        comp_held = np.zeros(int(comp.max()) + 1, bool)
+        comp_held[comp[held]] = True
+        free = ~comp_held[comp]
+        if not free.any():
+            return
+        bad = np.zeros(idx.size, bool)
+        bad[loose[free]] = True
+        comp_full = np.full(idx.size, -1, np.int64)
+        comp_full[loose] = comp
+        comp = comp_full
         c, a, b, row, lay = comp[bad], a[bad], b[bad], lines.row[idx][bad], lay[bad]
         uniq, c = np.unique(c, return_inverse=True)
         length = (b - a).astype(np.float64)

@@ -427,6 +427,44 @@ def test_pixel_unsupported_equals_a_dilation_of_the_layer_below(seed, tol):
     assert np.allclose(p.result().unsupported, want), (p.result().unsupported, want)
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_pixel_islands_equal_scipys_labelling(seed):
+    """Random layers: the islands are the 8-connected components (scipy's labelling) with no pixel solid in the
+    layer below (layer 0 stands on the plate): the same layers, pixel counts and centroids, fed in two batches."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(seed)
+    rows, cols, n, px = 40, 50, 10, 0.1
+    images = []
+    for k in range(n):
+        img = np.zeros((rows, cols), bool)
+        for _ in range(8):
+            r, c = rng.integers(0, rows - 3), rng.integers(0, cols - 3)
+            img[r : r + rng.integers(1, 9), c : c + rng.integers(1, 12)] = True
+        img[rng.random((rows, cols)) < 0.02] = True  # lone pixels, some touching others only at a corner
+        if k == 4:
+            img[:] = False
+        images.append(img)
+    want = []
+    for k in range(n):
+        lab, m = ndimage.label(images[k], structure=np.ones((3, 3)))
+        for c in range(1, m + 1):
+            mask = lab == c
+            if k == 0 or (mask & images[k - 1]).any():
+                continue
+            rr, cc = np.nonzero(mask)
+            want.append((k, int(mask.sum()), float(np.mean(cc + 0.5)) * px, float(np.mean(rr + 0.5)) * px))
+    to_mm = np.array([[px, 0.0, 0.0], [0.0, px, 0.0]])
+    p = PixelIslands(n, rows, cols, to_mm, px, px, px)
+    p.feed(0, 6, _intervals_of(images[:6]))
+    p.feed(6, n - 6, _intervals_of(images[6:], 6))
+    got = p.result()
+    assert len(want) > 3
+    assert sorted(zip(got.layer.tolist(), np.round(got.area / px**2).astype(int).tolist(), np.round(got.x, 6).tolist(),
+                      np.round(got.y, 6).tolist(), strict=True)) == sorted(
+        (k, a, round(x, 6), round(y, 6)) for k, a, x, y in want)
+
+
 def test_batches_give_the_same_answers():
     """Traps, cups and islands do not depend on how the layers are batched (the memory bound)."""
     res = _slice(_cat(hollow_sphere(), _at(cup(), x=25)))
