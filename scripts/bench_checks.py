@@ -10,7 +10,8 @@ median of ``--repeat`` runs, and the best).
 
 "slicing" is the pipeline's load + topology + schedule + crossings + chaining + nesting (the device's one-off
 kernel build left out); "checks" is the ``checks`` stage, split into ``islands`` (islands and unsupported area) and
-``cavities`` (the voxel grid's rasterisation, traps and suction cups). Timings are wall-clock seconds; the machine's
+``cavities`` (the voxel grid's rasterisation, traps and suction cups; in contour mode they run alongside the islands,
+so their share is only the wait left after them). Timings are wall-clock seconds; the machine's
 load average (1 min) is printed before and after each mesh, since other work on the machine slows both.
 
 ``--screen`` measures an exact screen of the contour-mode unsupported area that was tried and dropped (BENCHMARKS,

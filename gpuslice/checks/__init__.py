@@ -167,6 +167,17 @@ def _backend(backend: str, device) -> tuple[str, Any]:
         return "numpy", None
 
 
+def _cavities(result, finder, grid_spec, bounds, backend: str, device, spec, options):
+    """The traps and suction cups: the layers with holes rasterised on the trap grid (unless they were fed with the
+    printer's pixels already), then :meth:`CavityFinder.result`."""
+    if not (spec is not None and options.trap_grid == 0):
+        near = hole_layers(result)  # the other layers have no enclosed empty space: not rasterised
+        for layer0, k, parts in layer_intervals(result, grid_spec, bounds, backend=backend, device=device,
+                                                layers=near):
+            finder.feed(layer0, k, parts)
+    return finder.result(enclosed=lambda lay, x, y: enclosed_in_outlines(result, lay, x, y))
+
+
 def run_checks(result, spec=None, settings=None, *, options: CheckOptions | None = None,
                bounds: tuple[float, float, float, float] | None = None, backend: str = "auto", device=None,
                workers: int | None = None, name: str = "model") -> CheckReport:
@@ -205,6 +216,13 @@ def run_checks(result, spec=None, settings=None, *, options: CheckOptions | None
                               result.thickness, result.z, cw if cw == rh else math.sqrt(cw * rh))
     t = time.perf_counter()
     if spec is None or empty:
+        traps = None
+        if finder is not None:  # the cavities' grid on the device while GEOS's threads take the contours
+            from concurrent.futures import ThreadPoolExecutor
+
+            pool = ThreadPoolExecutor(1)
+            traps = pool.submit(_cavities, result, finder, grid_spec, bounds, backend, device, spec, options)
+            pool.shutdown(wait=False)
         islands = contour_islands(result, tol, workers=workers) if not empty else Islands.concat([], n)
     else:
         check_fits(result, spec, bounds, name=name)
@@ -220,13 +238,10 @@ def run_checks(result, spec=None, settings=None, *, options: CheckOptions | None
     t = time.perf_counter()
     if finder is None:
         cavities = CavityFinder(1, 1, np.eye(3)[:2], 1.0, np.zeros(0), np.zeros(0), float(options.trap_grid)).result()
+    elif spec is None:
+        cavities = traps.result()
     else:
-        if not (spec is not None and options.trap_grid == 0):
-            near = hole_layers(result)  # the other layers have no enclosed empty space: not rasterised
-            for layer0, k, parts in layer_intervals(result, grid_spec, bounds, backend=backend, device=device,
-                                                    layers=near):
-                finder.feed(layer0, k, parts)
-        cavities = finder.result(enclosed=lambda lay, x, y: enclosed_in_outlines(result, lay, x, y))
+        cavities = _cavities(result, finder, grid_spec, bounds, backend, device, spec, options)
     timings["cavities"] = time.perf_counter() - t
     peel = peel_and_time(result, settings)
     display = None

@@ -46,7 +46,9 @@ class CheckReport:
     area : (L,) cross-section per layer; max_area, max_area_layer : its largest value and that layer (-1: none).
     print_time_s, resin_ml, resin_g, resin_density : the estimates and the density used (g/ml).
     mode : ``"contours"`` (islands contour-exact) or ``"pixels"`` (on ``display``'s grid); display : the printer's
-    display (resolution, pixel) or None; overhang_tolerance : mm. timings : seconds per part of the checks.
+    display (resolution, pixel) or None; overhang_tolerance : mm. timings : seconds per part of the checks
+    (``islands``, then ``cavities``: on the contours the cavities run alongside the islands, on a thread of their
+    own, and their time is what is left to wait for once the islands are done).
     open_chains, open_chain_layers : the result's chains left open and the layers they are in (a broken mesh: they
     bound no area, so no island, overhang, trap or cup is found along them).
     """
