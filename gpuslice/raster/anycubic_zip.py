@@ -61,7 +61,7 @@ from .coverage import Tile
 from .layers import RunLayer, pixel_runs, run_groups
 from .photon import _stages, encode_pw0_batch, encode_pw0_runs
 from .png import encode_all
-from .settings import layer_table, print_time_s, resin_ml
+from .settings import header_layer_height, layer_table, print_time_s, resin_ml
 
 __all__ = ["ZIP_MACHINES", "ZipMachine", "refuse_settings", "write_anycubic_zip", "write_target", "PREVIEWS",
            "SCENE_MAGIC", "VOLUMES_MAGIC"]
@@ -251,7 +251,7 @@ def write_anycubic_zip(layers: Iterable[Tile | RunLayer], target, *, machine: Zi
     name = name or machine.name
     th = np.asarray(res.thickness, np.float64)
     area = np.asarray(res.area, np.float64)
-    layer_height = float(np.median(th[1:])) if n > 1 else (float(th[0]) if n else 0.0)
+    layer_height = header_layer_height(th)
     table = layer_table(s, n)
     boxes = np.full((n, 4), -1, np.int64)
     greys = False

@@ -71,7 +71,7 @@ from .coverage import Tile
 from .layers import RunLayer, batch_image_segments, batch_pixel_runs, pixel_runs, run_groups
 from .png import encode_all
 from .run_encoder import RunImageEncoder
-from .settings import PrintSettings, layer_table, print_time_s, resin_ml
+from .settings import PrintSettings, header_layer_height, layer_table, print_time_s, resin_ml
 from .sl1 import _Thumb
 from .spec import RasterSpec
 
@@ -437,7 +437,7 @@ def _header(spec: RasterSpec, settings: PrintSettings, info: CtbInfo, version: i
     else:
         bed_x, bed_y = cols * spec.px, rows * spec.py
     height = float(z[-1])
-    layer_h = float(np.median(thickness[1:])) if n > 1 else float(thickness[0])
+    layer_h = header_layer_height(thickness)
     normal_off = _rows(settings, version)[1]["light_off"]
     magic = MAGIC_CTB_V4 if version >= 4 else MAGIC_CTB
     return HEADER.pack(

@@ -62,7 +62,7 @@ from .ctb import _ex_columns, _timestamp_minutes, rgb15_rle, rle7, rle7_runs
 from .cxdlp import _model_code, largest_regions
 from .layers import RunLayer, batch_pixel_runs, pixel_runs, run_groups
 from .png import encode_all
-from .settings import layer_table, print_time_s, resin_ml
+from .settings import header_layer_height, layer_table, print_time_s, resin_ml
 
 __all__ = ["MAGIC", "PREVIEWS", "VERSION", "refuse_settings", "write_cxdlpv4", "write_target"]
 
@@ -175,7 +175,7 @@ def write_cxdlpv4(layers: Iterable[Tile | RunLayer], target, *, code: str, z_tra
         f.seek(at_params)
         f.write(_settings_blocks(s, ml, anti_alias, target.now, min(s.bottom_layers, n), per_layer))
         f.seek(0)
-        layer_height = float(np.median(th[1:])) if n > 1 else float(th[0])
+        layer_height = header_layer_height(th)
         f.write(struct.pack(">I", len(MAGIC)) + MAGIC + struct.pack(">HI", VERSION, len(model)) + model)
         f.write(HEAD.pack(cols, rows, cols * pw, rows * ph, float(z_travel), float(z[-1]), layer_height,
                           min(s.bottom_layers, n), at_small, at_table, n, at_large, int(round(print_time_s(s, n))),

@@ -55,7 +55,7 @@ from .coverage import Tile
 from .layers import RunLayer, batch_image_segments, batch_pixel_runs, image_segments, pixel_runs, run_groups
 from .png import encode_all
 from .run_encoder import RunImageEncoder
-from .settings import layer_table, print_time_s, resin_ml
+from .settings import header_layer_height, layer_table, print_time_s, resin_ml
 
 __all__ = ["HEADER_SIZE", "LAYER_DEF", "MAGIC", "ENDING", "PREVIEWS", "MAX_RUN", "encode_runs", "encode_batch",
            "GooEncoder", "encode_segments", "header_bytes", "layer_definitions", "rgb565", "write_goo", "write_target"]
@@ -229,7 +229,7 @@ def header_bytes(target, previews: tuple[bytes, bytes], *, machine_z: float) -> 
     cols, rows = _image_size(target.path, spec)
     cw, rh = _pitch(spec)
     th = np.asarray(res.thickness, np.float64)
-    layer_height = float(np.median(th[1:])) if th.size > 1 else (float(th[0]) if th.size else 0.0)
+    layer_height = header_layer_height(th)
     preset = target.options.preset
     machine = (preset.machine if preset is not None else "") or ""
     when = (target.now or _dt.datetime.now(_dt.timezone.utc)).strftime("%Y-%m-%d %H:%M:%S")

@@ -51,7 +51,7 @@ from .coverage import Tile
 from .layers import RUNS_LEVEL, RunLayer, encode_png, run_groups
 from .png import PngEncoder, encode_all, png_chunk
 from .png_runs import png_group
-from .settings import layer_table, resin_ml
+from .settings import header_layer_height, layer_table, resin_ml
 
 __all__ = ["RESOLUTION", "program", "program_seconds", "refuse_settings", "stated_print_time", "rgb_packed",
            "write_jxs", "write_target"]
@@ -196,7 +196,7 @@ def write_jxs(layers: Iterable[Tile | RunLayer], target, *, machine_z: float) ->
     n = target.layer_count()
     cols, rows = spec.png_size
     th = np.asarray(res.thickness, np.float64)
-    layer_height = float(np.median(th[1:])) if n > 1 else float(th[0])  # (the program moves by each layer's own)
+    layer_height = header_layer_height(th)  # (the program moves by each layer's own)
     top = np.cumsum(th)
     ml = resin_ml(res.area, th)
     level = target.options.png_level

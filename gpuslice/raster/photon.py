@@ -69,7 +69,7 @@ from .layers import HeightMap, RunLayer, batch_image_segments, batch_pixel_runs,
 from .photon_machines import MACHINES, VERSIONS, Machine, machine_version, refuse_settings, wait_s
 from .png import encode_all
 from .run_encoder import RunImageEncoder
-from .settings import layer_table, print_time_s, resin_ml
+from .settings import header_layer_height, layer_table, print_time_s, resin_ml
 
 __all__ = ["MACHINES", "VERSIONS", "Machine", "refuse_settings", "PhotonEncoder", "encode_pw0", "encode_pw0_batch",
            "encode_pw0_runs", "quantise", "write_photon", "write_target"]
@@ -273,7 +273,7 @@ def _tables(target, machine: Machine, version: int, name: str, machine_z: float,
     cols, rows = spec.png_size
     pw, ph = _pitch(spec)
     th = np.asarray(res.thickness, np.float64)
-    layer_height = float(np.median(th[1:])) if n > 1 else (float(th[0]) if n else 0.0)
+    layer_height = header_layer_height(th)
     sizes = _sizes(version, n)
     at, pos = {}, 0
     for key, size in sizes.items():

@@ -41,8 +41,8 @@ import numpy as np
 from ..errors import ParameterError
 from ..options import option, shown
 
-__all__ = ["PrintSettings", "layer_table", "layer_times", "print_time_s", "resin_ml", "transition_step",
-           "format_duration", "LAYER_COLUMNS"]
+__all__ = ["PrintSettings", "layer_table", "layer_times", "print_time_s", "resin_ml", "header_layer_height",
+           "transition_step", "format_duration", "LAYER_COLUMNS"]
 
 #: settings with a bottom-layer twin ``bottom_<name>`` (None: the normal value)
 BOTTOM_TWINS = ("lift_height", "lift_speed", "lift_height2", "lift_speed2", "retract_speed", "retract_height2",
@@ -264,6 +264,15 @@ def layer_times(settings: PrintSettings, n_layers: int) -> np.ndarray:
 def print_time_s(settings: PrintSettings, n_layers: int) -> float:
     """Estimated print time of ``n_layers`` layers in s: the sum of :func:`layer_times`."""
     return float(layer_times(settings, n_layers).sum())
+
+
+def header_layer_height(thickness_mm: np.ndarray, empty: float = 0.0) -> float:
+    """The one layer height (mm) an archive header states for layers of these thicknesses: the median of the layers
+    after the first (which may be thicker), the first's when it is alone, ``empty`` when there are none."""
+    th = np.asarray(thickness_mm, np.float64)
+    if th.size == 0:
+        return float(empty)
+    return float(np.median(th[1:])) if th.size > 1 else float(th[0])
 
 
 def resin_ml(area_mm2: np.ndarray, thickness_mm: np.ndarray) -> float:

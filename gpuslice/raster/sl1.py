@@ -26,6 +26,7 @@ from .coverage import Tile
 from .layers import HeightMap, RunLayer, encode_png, run_groups
 from .png import PngEncoder, encode_all
 from .png_runs import png_encoders, png_group
+from .settings import header_layer_height
 from .spec import RasterSpec
 
 __all__ = ["SL1Info", "config_ini", "prusaslicer_ini", "read_sl1_config", "write_sl1", "info_from",
@@ -336,7 +337,7 @@ def used_material_ml(area_mm2: np.ndarray, thickness: np.ndarray) -> float:
 def info_from(result, job_dir: str, values: Mapping[str, object] | None = None) -> SL1Info:
     """An :class:`SL1Info` for a sliced result (layer height from its thickness, material from its volume)."""
     th = np.asarray(result.thickness, np.float64)
-    lh = float(np.median(th[1:])) if th.size > 1 else (float(th[0]) if th.size else 0.05)
+    lh = header_layer_height(th, empty=0.05)
     info = SL1Info(job_dir=job_dir, layer_height=round(lh, 6), initial_layer_height=round(float(th[0]), 6)
                    if th.size else None, used_material_ml=used_material_ml(result.area, th))
     for k, v in (values or {}).items():
