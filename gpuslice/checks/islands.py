@@ -374,12 +374,8 @@ class PixelIslands:
         free = ~comp_held[comp]
         if not free.any():
             return
-        bad = np.zeros(idx.size, bool)
-        bad[loose[free]] = True
-        comp_full = np.full(idx.size, -1, np.int64)
-        comp_full[loose] = comp
-        comp = comp_full
-        c, a, b, row, lay = comp[bad], a[bad], b[bad], lines.row[idx][bad], lay[bad]
+        bad = loose[free]  # (in order, as the intervals)
+        c, a, b, row, lay = comp[free], a[bad], b[bad], row_l[free], lay[bad]
         uniq, c = np.unique(c, return_inverse=True)
         length = (b - a).astype(np.float64)
         cells = np.bincount(c, length)
