@@ -11,6 +11,7 @@ import click
 import numpy as np
 
 from ..checks import CheckOptions
+from ..checks.summary import hours_minutes
 from ..errors import ParameterError
 from ..options import flag_of
 from ..raster.settings import PrintSettings
@@ -32,12 +33,6 @@ __all__ = ["check", "print_report"]
 
 #: rows of each list printed (the JSON report has them all)
 MAX_ROWS = 10
-
-
-def _duration(seconds: float) -> str:
-    from ..checks.summary import hours_minutes
-
-    return hours_minutes(seconds)
 
 
 def print_report(report, name: str, *, console=None, max_rows: int = MAX_ROWS) -> None:
@@ -70,7 +65,7 @@ def print_report(report, name: str, *, console=None, max_rows: int = MAX_ROWS) -
     if report.max_area_layer >= 0:
         t.add_row("largest cross-section", f"{report.max_area:.1f} mm² at layer {report.max_area_layer} "
                   f"(z {z[report.max_area_layer]:.3f} mm)")
-    t.add_row("print time", _duration(report.print_time_s))
+    t.add_row("print time", hours_minutes(report.print_time_s))
     t.add_row("resin", f"{report.resin_ml:.2f} ml, {report.resin_g:.2f} g at {report.resin_density:g} g/ml")
     if report.open_chains:  # a broken mesh: what bounds nothing is not checked (it read as a clean bill)
         t.add_row("not checked", f"[yellow]{report.open_chains} open chains in {report.open_chain_layers} layers: "

@@ -86,7 +86,7 @@ def refuse_settings(path, name: str, options, settings, spec=None) -> None:
     """Photon Workshop's settings check (:meth:`gpuslice.raster.outputs.ResinFormat.check_settings`), before any
     work: where the file carries the suffix's machine name (no preset, or one without a ``machine``), the display
     ``spec`` must be that machine's (its firmware checks it: ``.pm5s`` is the M5s's 11520x5120 of 0.019 x 0.024
-    mm); one rest for every layer (:func:`_wait`); before version 516 one lift and one retract stage (as CTB v2/v3);
+    mm); one rest for every layer (:func:`wait_s`); before version 516 one lift and one retract stage (as CTB v2/v3);
     from 516 two stages, whose slow retract is the first lift stage's height, so a ``retract_height2`` other than
     ``lift_height`` (or 0) is refused rather than changed (the module docstring's stage mapping)."""
     machine, version = machine_version(name, options)
