@@ -7,21 +7,42 @@ the producer is raised in the consumer at the item where it happened; when the c
 (``close``, or garbage collection of an abandoned one) the producer stops at its next item, closes the source (a
 generator's ``finally`` blocks run then, on the producer's thread) and its thread ends: callers that may stop early
 close it in a ``finally`` (an exception held somewhere keeps the generator alive).
+
+Both start their threads without waiting for them to run (:func:`_spawn`): ``threading.Thread.start`` waits until the
+new thread has been scheduled, which with both cores busy (the device's threads) is often a whole scheduler tick
+(4 ms: a tenth of the starts, measured), and a resin job starts about a hundred. Such threads are not in
+``threading.enumerate()``: :func:`live_threads` names those still running.
 """
 
 from __future__ import annotations
 
+import _thread
+import itertools
+import os
 import queue
 import threading
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future
 from typing import TypeVar
 
-__all__ = ["prefetch", "beside"]
+__all__ = ["prefetch", "beside", "live_threads"]
 
 T = TypeVar("T")
 
 _DONE = object()
+_LIVE: dict[int, str] = {}  # threads started by _spawn and not yet ended: token -> name
+_LIVE_LOCK = threading.Lock()
+_TOKENS = itertools.count()
+
+
+def _forked() -> None:  # a forked child has none of its parent's threads, and its lock may have been held
+    global _LIVE_LOCK
+    _LIVE_LOCK = threading.Lock()
+    _LIVE.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forked)
 
 
 class _Failed:
@@ -52,7 +73,10 @@ def prefetch(items: Iterable[T], depth: int = 1) -> Iterator[T]:
                 continue
         return False
 
+    producer = [0]  # the producer thread's identifier, once it runs
+
     def produce() -> None:
+        producer[0] = threading.get_ident()
         source = iter(items)
         try:
             for item in source:
@@ -69,8 +93,8 @@ def prefetch(items: Iterable[T], depth: int = 1) -> Iterator[T]:
                 except BaseException:  # noqa: BLE001, S110 - the consumer has gone: nobody to hand it to
                     pass
 
-    worker = threading.Thread(target=produce, name="gpuslice-prefetch", daemon=True)
-    worker.start()
+    finished = threading.Event()
+    _spawn(produce, "gpuslice-prefetch", finished)
     try:
         while True:
             got = box.get()
@@ -84,14 +108,14 @@ def prefetch(items: Iterable[T], depth: int = 1) -> Iterator[T]:
             del got
     finally:
         stop.set()
-        if worker is not threading.current_thread():  # (closed by the collector on the producer's own thread)
-            worker.join()
+        if threading.get_ident() != producer[0]:  # (closed by the collector on the producer's own thread)
+            finished.wait()
 
 
 def beside(fn: Callable, *args, name: str = "gpuslice-beside") -> Future:
-    """``fn(*args)`` started on a daemon thread of its own, named ``name``; its :class:`Future`. For work independent
-    of what the caller does meanwhile, so that a second core takes it. A thread per call (~0.1 ms), not a pool: the
-    thread ends with its call, so nothing outlives the result, also when the caller fails and an exception held
+    """``fn(*args)`` started on a thread of its own, named ``name`` (:func:`live_threads`); its :class:`Future`. For
+    work independent of what the caller does meanwhile, so that a second core takes it. A thread per call, not a pool:
+    the thread ends with its call, so nothing outlives the result, also when the caller fails and an exception held
     somewhere keeps its frames alive (a pool's idle thread would stay as long as the pool object), a forked child
     has nothing to rebuild, and no idle thread keeps the command line from ending without the interpreter's teardown
     (``gpuslice.cli.main.exit_now``)."""
@@ -104,5 +128,37 @@ def beside(fn: Callable, *args, name: str = "gpuslice-beside") -> Future:
             except BaseException as exc:  # noqa: BLE001 - handed to whoever waits on the future
                 fut.set_exception(exc)
 
-    threading.Thread(target=run, name=name, daemon=True).start()
+    _spawn(run, name)
     return fut
+
+
+def _spawn(fn: Callable[[], None], name: str, finished: threading.Event | None = None) -> None:
+    """Start ``fn()`` on a new thread, listed by :func:`live_threads` as ``name`` until it returns (``finished`` is
+    set then), and return at once, before it runs (module docstring). Like a daemon thread, it does not keep the
+    interpreter from ending; ``fn`` handles its own exceptions."""
+    token = next(_TOKENS)
+    with _LIVE_LOCK:
+        _LIVE[token] = name
+
+    def run() -> None:
+        try:
+            fn()
+        finally:
+            with _LIVE_LOCK:
+                _LIVE.pop(token, None)
+            if finished is not None:
+                finished.set()
+
+    try:
+        _thread.start_new_thread(run, ())
+    except BaseException:  # (no thread: "can't start new thread")
+        with _LIVE_LOCK:
+            _LIVE.pop(token, None)
+        raise
+
+
+def live_threads() -> list[str]:
+    """The names of the threads :func:`prefetch` and :func:`beside` started that have not ended yet (they are not
+    ``threading.Thread`` objects: ``threading.enumerate()`` does not list them)."""
+    with _LIVE_LOCK:
+        return list(_LIVE.values())

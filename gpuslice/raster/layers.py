@@ -177,7 +177,7 @@ class HeightMap:
                 if len(self._pending) >= self.PENDING:
                     self._pending[0].result()  # (raises a batch's error here; it stays pending for img)
                 self._pending.append(beside(self._add_runs, item.runs, item.index - int(item.runs.layers[item.j]),
-                                            name="gpuslice-heightmap"))
+                                            name=f"gpuslice-heightmap-{id(self):x}"))
             return
         if self._pending:  # (never with one writer's layers, all tiles or all runs: the map is not shared)
             self._drain()

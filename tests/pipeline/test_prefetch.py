@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from gpuslice.prefetch import prefetch
+from gpuslice.prefetch import beside, live_threads, prefetch
 
 
 def test_items_in_order_made_on_another_thread():
@@ -77,7 +77,7 @@ def test_early_close_stops_the_producer():
     n = len(made)
     time.sleep(0.1)
     assert len(made) == n < 10_000
-    assert not [t for t in threading.enumerate() if t.name == "gpuslice-prefetch"]
+    assert "gpuslice-prefetch" not in live_threads()
 
 
 def test_a_source_stopped_early_is_closed_also_while_an_exception_keeps_the_consumer():
@@ -100,7 +100,10 @@ def test_a_source_stopped_early_is_closed_also_while_an_exception_keeps_the_cons
     except KeyboardInterrupt as exc:
         kept.append(exc)  # its traceback holds the consumer's frame, hence the source
     assert closed.wait(5)
-    assert kept and not [t for t in threading.enumerate() if t.name == "gpuslice-prefetch"]
+    deadline = time.monotonic() + 5  # (the producer ends just after it closes the source)
+    while time.monotonic() < deadline and "gpuslice-prefetch" in live_threads():
+        time.sleep(0.01)
+    assert kept and "gpuslice-prefetch" not in live_threads()
 
 
 @pytest.mark.parametrize("fmt", ["goo", "sl1", "pwmx"])
@@ -129,7 +132,30 @@ def test_a_failed_resin_job_leaves_no_thread_while_its_exception_is_kept(tmp_pat
         kept.append(info.value)
     ours = ("gpuslice-heightmap", "gpuslice-runs-lane", "gpuslice-prefetch")
     deadline = time.monotonic() + 5
-    while time.monotonic() < deadline and [t for t in threading.enumerate() if t.name.startswith(ours)]:
+    names = lambda: [n for n in [*live_threads(), *(t.name for t in threading.enumerate())] if n.startswith(ours)]  # noqa: E731
+    while time.monotonic() < deadline and names():
         time.sleep(0.05)
-    assert not [t.name for t in threading.enumerate() if t.name.startswith(ours)]
+    assert not names()
     assert len(kept) == 3 and not list(tmp_path.glob("out*"))
+
+
+def test_live_threads_names_a_running_call_until_it_returns():
+    """The threads are started without ``threading.Thread`` (not waiting for them to run): the registry is what
+    shows one still running, from before it runs until it has returned."""
+    go = threading.Event()
+    fut = beside(go.wait, 5, name="gpuslice-test-beside")
+    assert "gpuslice-test-beside" in live_threads()
+    go.set()
+    assert fut.result(5) is True
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline and "gpuslice-test-beside" in live_threads():
+        time.sleep(0.01)
+    assert "gpuslice-test-beside" not in live_threads()
+
+
+def test_a_producer_is_listed_while_it_runs():
+    it = prefetch(iter(range(100)))
+    assert next(it) == 0
+    assert "gpuslice-prefetch" in live_threads()
+    it.close()
+    assert "gpuslice-prefetch" not in live_threads()

@@ -4,13 +4,14 @@ covers and the next does not, against the plain maximum over every layer's mask.
 from __future__ import annotations
 
 import dataclasses
-import threading
+import time
 
 import numpy as np
 import pytest
 
 from gpuslice import mesh_from_triangles, slice_mesh
 from gpuslice.mesh import shapes
+from gpuslice.prefetch import live_threads
 from gpuslice.raster import RasterSpec, masks
 from gpuslice.raster.coverage import Tile
 from gpuslice.raster.layers import HeightMap, RunLayer, run_groups
@@ -102,7 +103,10 @@ def test_height_map_raises_a_batchs_error_when_read_and_ends_its_thread(device, 
     with pytest.raises(ValueError):
         hm.img  # noqa: B018
     mine = f"gpuslice-heightmap-{id(hm):x}"
-    assert not [t for t in threading.enumerate() if t.name.startswith(mine) and t.is_alive()]
+    deadline = time.monotonic() + 5  # (a batch's thread ends just after its result is set)
+    while time.monotonic() < deadline and mine in live_threads():
+        time.sleep(0.01)
+    assert mine not in live_threads()
     assert hm.img.shape == (-(-spec.shape[0] // 4), -(-spec.shape[1] // 4))  # read again: the error was given once
 
 
