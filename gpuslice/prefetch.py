@@ -1,5 +1,6 @@
 """Threads: one producer thread ahead of its consumer (:func:`prefetch`: the next batch is made while the current
-one is used), and one call on a thread of its own (:func:`beside`).
+one is used), one call on a thread of its own (:func:`beside`), and a few threads taking calls in turn
+(:class:`Workers`: the runs' lanes, the layer encoders, the checks' GEOS chunks).
 
 The resin path's runs kernel (OpenCL: it releases the GIL while the device works) and the archive encoders
 (numpy on worker threads) then overlap instead of taking turns. Items are handed over in order; an exception in
@@ -8,10 +9,10 @@ the producer is raised in the consumer at the item where it happened; when the c
 generator's ``finally`` blocks run then, on the producer's thread) and its thread ends: callers that may stop early
 close it in a ``finally`` (an exception held somewhere keeps the generator alive).
 
-Both start their threads without waiting for them to run (:func:`_spawn`): ``threading.Thread.start`` waits until the
-new thread has been scheduled, which with both cores busy (the device's threads) is often a whole scheduler tick
-(4 ms: a tenth of the starts, measured), and a resin job starts about a hundred. Such threads are not in
-``threading.enumerate()``: :func:`live_threads` names those still running.
+All three start their threads without waiting for them to run (:func:`_spawn`): ``threading.Thread.start`` waits
+until the new thread has been scheduled, which with both cores busy (the device's threads) is often a whole
+scheduler tick (4 ms: a tenth of the starts, measured), and a resin job starts about a hundred. Such threads are not
+in ``threading.enumerate()``: :func:`live_threads` names those still running.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future
 from typing import TypeVar
 
-__all__ = ["prefetch", "beside", "live_threads"]
+__all__ = ["prefetch", "beside", "Workers", "live_threads"]
 
 T = TypeVar("T")
 
@@ -157,8 +158,83 @@ def _spawn(fn: Callable[[], None], name: str, finished: threading.Event | None =
         raise
 
 
+class Workers:
+    """Up to ``n`` threads named ``name`` taking the calls given to :meth:`submit` in order: the part of
+    ``concurrent.futures.ThreadPoolExecutor`` used here, with its threads started as :func:`_spawn` starts them (the
+    module docstring), each when a call finds no idle one. :meth:`shutdown` lets the threads end once the calls given
+    so far are done (a ``with`` block: and waits for them)."""
+
+    def __init__(self, n: int, name: str) -> None:
+        self._n = max(int(n), 1)
+        self._name = name
+        self._calls: queue.SimpleQueue = queue.SimpleQueue()
+        self._ended: list[threading.Event] = []
+        self._idle = 0
+        self._lock = threading.Lock()
+        self._idents: set[int] = set()
+
+    def submit(self, fn: Callable[..., T], *args) -> Future:
+        """``fn(*args)`` on one of the threads; its :class:`Future`."""
+        fut: Future = Future()
+        with self._lock:
+            start = self._idle <= 0 and len(self._ended) < self._n  # (idle: idle threads less calls waiting)
+            if start:
+                self._ended.append(threading.Event())
+            else:
+                self._idle -= 1
+        self._calls.put((fut, fn, args))
+        if start:
+            _spawn(self._work, self._name, self._ended[-1])
+        return fut
+
+    def map(self, fn: Callable[..., T], items: Iterable) -> list[T]:
+        """``[fn(x) for x in items]`` on the threads (the first error raised, after every call is done)."""
+        futures = [self.submit(fn, x) for x in items]
+        for f in futures:
+            f.exception()
+        return [f.result() for f in futures]
+
+    def on_own_thread(self) -> bool:
+        """Whether the caller is one of these threads (which cannot wait for itself to end)."""
+        return threading.get_ident() in self._idents
+
+    def _work(self) -> None:
+        self._idents.add(threading.get_ident())
+        while True:
+            call = self._calls.get()
+            if call is None:
+                return
+            fut, fn, args = call
+            del call
+            if fut.set_running_or_notify_cancel():
+                try:
+                    fut.set_result(fn(*args))
+                except BaseException as exc:  # noqa: BLE001 - handed to whoever waits on the future
+                    fut.set_exception(exc)
+            del fut, fn, args  # (nothing of a finished call stays alive while the thread waits)
+            with self._lock:
+                self._idle += 1
+
+    def shutdown(self, wait: bool = True) -> None:
+        """No more calls: each thread ends after the calls given before this; ``wait``: return when they have."""
+        with self._lock:
+            ended = list(self._ended)
+            self._n = 0  # (a later submit would start no thread: it is a mistake, as with the executor)
+        for _ in ended:
+            self._calls.put(None)
+        if wait and not self.on_own_thread():
+            for e in ended:
+                e.wait()
+
+    def __enter__(self) -> Workers:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.shutdown(wait=True)
+
+
 def live_threads() -> list[str]:
-    """The names of the threads :func:`prefetch` and :func:`beside` started that have not ended yet (they are not
-    ``threading.Thread`` objects: ``threading.enumerate()`` does not list them)."""
+    """The names of the threads :func:`prefetch`, :func:`beside` and :class:`Workers` started that have not ended yet
+    (they are not ``threading.Thread`` objects: ``threading.enumerate()`` does not list them)."""
     with _LIVE_LOCK:
         return list(_LIVE.values())

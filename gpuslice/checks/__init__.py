@@ -218,11 +218,10 @@ def run_checks(result, spec=None, settings=None, *, options: CheckOptions | None
     if spec is None or empty:
         traps = None
         if finder is not None:  # the cavities' grid on the device while GEOS's threads take the contours
-            from concurrent.futures import ThreadPoolExecutor
+            from ..prefetch import beside
 
-            pool = ThreadPoolExecutor(1)
-            traps = pool.submit(_cavities, result, finder, grid_spec, bounds, backend, device, spec, options)
-            pool.shutdown(wait=False)
+            traps = beside(_cavities, result, finder, grid_spec, bounds, backend, device, spec, options,
+                           name="gpuslice-cavities")
         islands = contour_islands(result, tol, workers=workers) if not empty else Islands.concat([], n)
     else:
         check_fits(result, spec, bounds, name=name)

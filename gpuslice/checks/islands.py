@@ -42,11 +42,11 @@ from __future__ import annotations
 
 import math
 import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
+from ..prefetch import Workers
 from .intervals import Lines, components, expand_pairs
 
 __all__ = ["Islands", "contour_islands", "PixelIslands", "TOUCH_AREA_MM2", "SIMPLIFY"]
@@ -295,9 +295,8 @@ def contour_islands(result, tolerance: float | None, *, workers: int | None = No
     if workers == 1:
         done = [_contour_chunk(result, a, b, tolerance, eps, support, join) for a, b in chunks]
     else:
-        with ThreadPoolExecutor(workers) as pool:
-            done = list(pool.map(lambda ab: _contour_chunk(result, ab[0], ab[1], tolerance, eps, support, join),
-                                 chunks))
+        with Workers(workers, "gpuslice-islands") as pool:
+            done = pool.map(lambda ab: _contour_chunk(result, ab[0], ab[1], tolerance, eps, support, join), chunks)
     unsup = np.concatenate([d[1] for d in done]) if done else np.zeros(0)
     return Islands.concat([d[0] for d in done], n, unsup)
 

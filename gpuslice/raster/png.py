@@ -23,11 +23,11 @@ import threading
 import zlib
 from collections import deque
 from collections.abc import Callable, Iterable
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from ..errors import ParameterError
+from ..prefetch import Workers
 from .coverage import Tile
 
 __all__ = ["PngEncoder", "deflate_module", "encode_all", "png_chunk"]
@@ -177,7 +177,7 @@ def encode_all(
     # in flight: at most 4 tasks a thread, and at most max(128, 16 per thread) layers (their runs' batches stay alive)
     max_layers = max(128, 16 * workers)
     in_flight = 0
-    with ThreadPoolExecutor(max_workers=workers) as pool:
+    with Workers(workers, "gpuslice-encode") as pool:
         pending: deque = deque()
         sizes: deque = deque()
         for group in groups:

@@ -39,7 +39,7 @@ import numpy as np
 
 from ..device import KernelDriver, aligned_empty, get_device
 from ..errors import ParameterError
-from ..prefetch import prefetch
+from ..prefetch import Workers, prefetch
 from ..ragged import expand_ranges, group_ranks
 from .edges import LayerEdges, check_fits, check_raster_args, iter_layer_edges
 from .runs_twin import Runs, _cells_to_runs, _piece_records, _rows, _sum_cells, runs_numpy, runs_to_mask
@@ -271,9 +271,7 @@ def _in_lanes(kerns: list[RunsKernel], calls: Iterable[tuple]) -> Iterator[Runs]
         for args in calls:
             yield kerns[0].run(*args)
         return
-    from concurrent.futures import ThreadPoolExecutor
-
-    pools = [ThreadPoolExecutor(1, thread_name_prefix=f"gpuslice-runs-lane{i}") for i in range(n)]
+    pools = [Workers(1, f"gpuslice-runs-lane{i}") for i in range(n)]
     pending: deque = deque()
     try:
         for i, args in enumerate(calls):
@@ -285,8 +283,8 @@ def _in_lanes(kerns: list[RunsKernel], calls: Iterable[tuple]) -> Iterator[Runs]
     finally:
         for f in pending:
             f.cancel()
-        # (closed by the garbage collector on one of its own lanes' threads: that thread cannot join itself)
-        inside = threading.current_thread().name.startswith("gpuslice-runs-lane")
+        # (closed by the garbage collector on one of its own lanes' threads: that thread cannot wait for itself)
+        inside = any(pool.on_own_thread() for pool in pools)
         for pool in pools:
             pool.shutdown(wait=not inside)
 

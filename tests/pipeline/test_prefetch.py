@@ -159,3 +159,39 @@ def test_a_producer_is_listed_while_it_runs():
     assert "gpuslice-prefetch" in live_threads()
     it.close()
     assert "gpuslice-prefetch" not in live_threads()
+
+
+def test_workers_run_calls_on_at_most_n_threads_and_end_them():
+    from gpuslice.prefetch import Workers
+
+    seen: set[int] = set()
+    lock = threading.Lock()
+
+    def call(x):
+        with lock:
+            seen.add(threading.get_ident())
+        time.sleep(0.002)
+        return x * x
+
+    with Workers(3, "gpuslice-test-workers") as pool:
+        assert pool.map(call, range(40)) == [x * x for x in range(40)]
+        futures = [pool.submit(call, x) for x in range(10)]
+    assert [f.result() for f in futures] == [x * x for x in range(10)]  # (shutdown ran the calls given before it)
+    assert 1 <= len(seen) <= 3 and threading.get_ident() not in seen
+    assert "gpuslice-test-workers" not in live_threads()  # (the with block waited for the threads to end)
+
+
+def test_workers_hand_an_error_to_its_future_and_go_on():
+    from gpuslice.prefetch import Workers
+
+    def call(x):
+        if x == 2:
+            raise ValueError("bad call")
+        return x
+
+    with Workers(2, "gpuslice-test-workers") as pool:
+        futures = [pool.submit(call, x) for x in range(5)]
+        with pytest.raises(ValueError, match="bad call"):
+            pool.map(call, range(5))
+    assert [f.exception() is not None for f in futures] == [False, False, True, False, False]
+    assert futures[4].result() == 4

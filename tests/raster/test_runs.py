@@ -336,8 +336,7 @@ def test_lanes_same_runs_in_order_and_errors_where_they_happen(device):
     """Batches made in 1, 2 or 3 lanes (queues and threads of their own): the same runs in the same order; closing
     the iterator early leaves no lane thread behind; an error in one lane's batch is raised where that batch would
     have come, after the batches before it."""
-    import threading
-
+    from gpuslice.prefetch import live_threads
     from gpuslice.raster import runs as runs_mod
 
     res = slice_mesh(mesh_from_triangles(shapes.torus(15.0, 5.0, 48, 24)), thickness=1.0, backend="numpy")
@@ -351,7 +350,7 @@ def test_lanes_same_runs_in_order_and_errors_where_they_happen(device):
     it = iter_runs(res, spec, device=device, max_batch_pieces=2_000, lanes=2)
     next(it)
     it.close()
-    assert not [t for t in threading.enumerate() if t.name.startswith("gpuslice-runs-lane")]
+    assert not [name for name in live_threads() if name.startswith("gpuslice-runs-lane")]
     lane1 = RunsKernel.of(device.lane(1))
 
     def broken(*args):
