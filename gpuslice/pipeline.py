@@ -3,7 +3,8 @@ function that runs it, :func:`run_job`. ``gpuslice slice``, ``raster``, ``view``
 all run jobs through here, with the same stage names and timings:
 
 ``device`` (OpenCL context and kernels) → ``load`` (read the file) → ``topology`` (weld, edge ids, placement) →
-``schedule``, ``crossings``, ``chaining``, ``nesting`` (the slicer's own) → ``mesh_check`` (defect counts) →
+``schedule``, ``crossings``, ``chaining``, ``nesting`` (the slicer's own) → ``mesh_check`` (defect counts, counted
+on a thread beside the slicing: its time is what the job then waited for them) →
 ``write`` (the contour file) → ``cusp`` (schedule quality, for the report) → ``checks`` (pre-print checks) →
 ``raster`` (masks, encoding and the archive) → ``view`` (the viewer page; ``masks`` when it shows resin masks).
 
@@ -295,16 +296,25 @@ def _open_contour_stream(job: Job):
 def _slice(job: Job, mesh: Mesh, dev, timings: dict[str, float], stream=None) -> SliceResult:
     from .slicing.slicer import slice_mesh
 
-    result = slice_mesh(mesh, job.params, points_sink=stream)
+    repairs = None
+    if job.mesh_check:  # what the mesh needed: flipped facets, non-manifold edges, ... (mesh/defects.py), counted
+        # on a second core while the layers are sliced (its device part waits for the slicer's turn on the device)
+        from .mesh.defects import mesh_repairs
+        from .prefetch import beside
+
+        repairs = beside(mesh_repairs, mesh, name="gpuslice-mesh-check")
+    try:
+        result = slice_mesh(mesh, job.params, points_sink=stream)
+    finally:
+        if repairs is not None:  # (also when slicing failed: the mesh is not left to a thread still reading it)
+            t = time.perf_counter()
+            repairs.exception()  # (waits; its error, if any, is raised below by result())
+            timings["mesh_check"] = time.perf_counter() - t
     meta = result.meta
     for key, value in meta.pop("timings_s", {}).items():
         timings[key] = timings.get(key, 0.0) + value
-    if job.mesh_check:  # what the mesh needed: flipped facets, non-manifold edges, ... (mesh/defects.py)
-        from .mesh.defects import mesh_repairs
-
-        t = time.perf_counter()
-        meta["repairs"] = {**mesh_repairs(mesh), **meta["repairs"]}
-        timings["mesh_check"] = time.perf_counter() - t
+    if repairs is not None:
+        meta["repairs"] = {**repairs.result(), **meta["repairs"]}
     if job.portable:  # output bytes depend on the model and the options only
         meta.pop("device", None)
         meta.pop("backend", None)

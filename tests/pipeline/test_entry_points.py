@@ -55,6 +55,42 @@ def test_library_job_equals_slice_command(model, reference, device):
         done.timings)
 
 
+def test_mesh_check_beside_the_slicing_gives_its_counts_and_errors(model, device, monkeypatch):
+    """The mesh check counts on a thread while the layers are sliced: its counts land in the report as before, its
+    error is the job's error, and a slice that fails waits for it (no thread left reading the mesh)."""
+    import gpuslice.mesh.defects as defects
+    import gpuslice.slicing.slicer as slicer
+
+    job = Job(source=str(model), placement=Placement(fit=30.0), params=SliceParams(thickness=0.25))
+    done = run_job(job, device=device)
+    assert set(defects.MESH_REPAIR_KINDS) <= set(done.result.meta["repairs"])
+
+    def broken(mesh):
+        raise ValueError("mesh check failed")
+
+    monkeypatch.setattr(defects, "mesh_repairs", broken)
+    with pytest.raises(ValueError, match="mesh check failed"):
+        run_job(job, device=device)
+
+    finished = []
+
+    def slow(mesh):
+        import time
+
+        time.sleep(0.2)
+        finished.append(True)
+        return {}
+
+    def no_slice(*args, **kwargs):
+        raise RuntimeError("slicing failed")
+
+    monkeypatch.setattr(defects, "mesh_repairs", slow)
+    monkeypatch.setattr(slicer, "slice_mesh", no_slice)
+    with pytest.raises(RuntimeError, match="slicing failed"):
+        run_job(job, device=device)
+    assert finished  # (the job waited for the mesh check before its error went up)
+
+
 def test_view_agrees(model, reference, tmp_path):
     page = tmp_path / "v.html"
     assert main(["view", str(model), *ARGS, "-o", str(page), "-q"]) == 0
