@@ -102,6 +102,18 @@ def _solid_angle_winding(points: np.ndarray, tri: np.ndarray, orient: np.ndarray
     return out
 
 
+def _volume_terms(verts: np.ndarray, faces: np.ndarray, blocks: list[slice], centre: np.ndarray) -> np.ndarray:
+    """(F,) float64 six times the signed volume of each facet's tetrahedron with ``centre`` (mm³): the differences
+    once a vertex, as columns (1-D gathers: 2-D fancy indexing is ~3x slower), a block of facets at a time."""
+    det = np.empty(faces.shape[0])
+    about = [verts[:, k].astype(np.float64) - centre[k] for k in range(3)]
+    for b in blocks:
+        f = faces[b]
+        (x0, y0, z0), (x1, y1, z1), (x2, y2, z2) = ([c[f[:, j]] for c in about] for j in range(3))
+        det[b] = x0 * (y1 * z2 - z1 * y2) + y0 * (z1 * x2 - x1 * z2) + z0 * (x1 * y2 - y1 * x2)
+    return det
+
+
 def outward_facets(mesh: Mesh) -> tuple[np.ndarray, dict[str, int]]:
     """Which facets are wound against their shell's outward orientation, and the counts of :func:`mesh_repairs`.
 
@@ -120,14 +132,18 @@ def outward_facets(mesh: Mesh) -> tuple[np.ndarray, dict[str, int]]:
     }
     if n == 0:
         return np.zeros(0, bool), counts
-    shell, sign, non_orientable = _shells(mesh)
-    n_shells = non_orientable.size
     verts, faces = mesh.vertices, mesh.faces
     blocks = [slice(a, min(n, a + _FACET_BLOCK)) for a in range(0, n, _FACET_BLOCK)]
+    # the volume terms about the whole mesh's box centre, before the shells are known (the shells' components wait
+    # for the device while a slicer has it: pipeline._slice counts beside the slicing); a single shell's own centre
+    lo1 = np.array([[verts[:, k].min() for k in range(3)]], dtype=np.float64)
+    hi1 = np.array([[verts[:, k].max() for k in range(3)]], dtype=np.float64)
+    det1 = _volume_terms(verts, faces, blocks, (lo1 + hi1)[0] / 2)
+    shell, sign, non_orientable = _shells(mesh)
+    n_shells = non_orientable.size
     # per-shell bounding boxes; volumes about the box centre (translation matters only for open shells)
     if n_shells == 1:
-        lo = np.array([[verts[:, k].min() for k in range(3)]], dtype=np.float64)
-        hi = np.array([[verts[:, k].max() for k in range(3)]], dtype=np.float64)
+        lo, hi = lo1, hi1
     else:
         lo = np.full((n_shells, 3), np.inf)
         hi = np.full((n_shells, 3), -np.inf)
@@ -138,18 +154,14 @@ def outward_facets(mesh: Mesh) -> tuple[np.ndarray, dict[str, int]]:
                 np.minimum.at(lo[:, k], shell[b], np.minimum(np.minimum(c[:, 0], c[:, 1]), c[:, 2]))
                 np.maximum.at(hi[:, k], shell[b], np.maximum(np.maximum(c[:, 0], c[:, 1]), c[:, 2]))
     centre = (lo + hi) / 2
-    det = np.empty(n)
-    if n_shells == 1:  # the differences once a vertex, as columns: 1-D gathers (2-D fancy indexing is ~3x slower)
-        about = [verts[:, k].astype(np.float64) - centre[0, k] for k in range(3)]
-        for b in blocks:
-            f = faces[b]
-            (x0, y0, z0), (x1, y1, z1), (x2, y2, z2) = ([c[f[:, j]] for c in about] for j in range(3))
-            det[b] = x0 * (y1 * z2 - z1 * y2) + y0 * (z1 * x2 - x1 * z2) + z0 * (x1 * y2 - y1 * x2)
-        del about
+    if n_shells == 1:
+        det = det1
     else:
+        det = np.empty(n)
         for b in blocks:  # a block at a time: the same per-facet arithmetic as on the whole (F, 3, 3) array
             r = verts[faces[b]].astype(np.float64) - centre[shell[b]][:, None, :]
             det[b] = np.einsum("ij,ij->i", r[:, 0], np.cross(r[:, 1], r[:, 2]))
+    del det1
     volume = np.bincount(shell, weights=sign * det, minlength=n_shells) / 6.0  # with the first facet's winding
     del det
     # a shell is judged by its volume only when it is closed enough to have an inside (few open edges, not flat)
