@@ -46,13 +46,10 @@ def components(n: int, a: np.ndarray, b: np.ndarray, device=None) -> np.ndarray:
     """:func:`connected_labels` (labels: the smallest node of each component) in linear time: on ``device`` (the
     union-find of ``kernels/weld.cl``), else with scipy's ``connected_components`` for large graphs (its import,
     ~0.2 s, pays off), else :func:`connected_labels`. Returns (n,) int32 or int64 labels."""
-    if device is not None:
-        from .weld import WeldKernel
+    if device is not None:  # (on a queue and with buffers of its own: not waiting for a slicer holding the device)
+        from .weld import COMPONENTS_LANE, ComponentsKernel
 
-        kernel = WeldKernel.of(device)
-        labels = kernel.components(n, a, b)
-        kernel.release()
-        return labels
+        return ComponentsKernel.of(device.lane(COMPONENTS_LANE)).components(n, a, b)
     if n < SCIPY_NODES:
         return connected_labels(n, a, b)
     from scipy.sparse import csr_matrix

@@ -14,19 +14,22 @@ Two numberings by first occurrence (see :func:`first_occurrence_ids`):
 The device path uses a hash table with atomics but is deterministic: each slot ends up holding the smallest index
 with its key (atomic_min after the insert), and ids are the ranks of those firsts (a prefix sum), so the result is
 exactly that of :func:`weld_numpy` / :func:`edge_ids_numpy`, the numpy twins (the code of ``mesh.py``).
-:meth:`WeldKernel.components` is the mesh check's connected components (a union-find, roots the smallest nodes).
+:class:`ComponentsKernel` is the mesh check's connected components (a union-find, roots the smallest nodes), with
+buffers, kernels and a lock of its own, on a queue of its own (:data:`COMPONENTS_LANE`): the mesh check counts
+beside the slicing (``pipeline._slice``) without waiting for the slicer's turn on the device.
 """
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..device import KernelDriver, locked
 
-__all__ = ["EdgeSides", "WeldKernel", "first_occurrence_ids", "weld_device", "edge_ids_device", "weld_numpy",
-           "edge_ids_numpy", "edge_table_numpy"]
+__all__ = ["EdgeSides", "WeldKernel", "ComponentsKernel", "COMPONENTS_LANE", "first_occurrence_ids", "weld_device",
+           "edge_ids_device", "weld_numpy", "edge_ids_numpy", "edge_table_numpy"]
 
 # items per work-item in the counting and numbering passes
 _CHUNK = 32
@@ -44,10 +47,10 @@ _KERNEL_NAMES = (
     "emit_sides",
     "gather_ids",
     "gather_sides",
-    "cc_init",
-    "cc_hook",
-    "cc_flatten",
 )
+#: the device lane (:meth:`gpuslice.device.Device.lane`: a queue of its own) of :class:`ComponentsKernel`: the
+#: runs' lanes are 0 .. LANES - 1
+COMPONENTS_LANE = 8
 
 
 @dataclass
@@ -291,29 +294,47 @@ class WeldKernel(KernelDriver):
         if sum(size for _, size in self._buffers.values()) > keep_bytes:
             self._buffers.clear()
 
-    @locked
-    def components(self, n: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+
+class ComponentsKernel(KernelDriver):
+    """Driver of the union-find of ``kernels/weld.cl``: connected components on one device (or lane), with kernel
+    objects, buffers and a lock of its own (not one of :data:`gpuslice.device.SHARED_DRIVERS`): a thread may use it
+    while another holds the device's turn (:meth:`gpuslice.device.Device.exclusive`), on its lane's queue."""
+
+    def __init__(self, device) -> None:
+        import pyopencl as cl
+
+        super().__init__(device)
+        prg = device.program("weld.cl")
+        self._k = {name: cl.Kernel(prg, f"weld_{name}") for name in ("cc_init", "cc_hook", "cc_flatten")}
+        self._lock = threading.Lock()
+
+    def components(self, n: int, a: np.ndarray, b: np.ndarray, keep_bytes: int = _KEEP_BYTES) -> np.ndarray:
         """Connected components of the graph on nodes ``0 .. n - 1`` with edges ``a[i] -- b[i]``: (n,) int32 labels,
         each node labelled with the smallest node of its component (as :func:`gpuslice.mesh.graph.connected_labels`).
-        """
+        The buffers are dropped afterwards when they hold more than ``keep_bytes``."""
         import pyopencl as cl
 
         if n == 0:
             return np.zeros(0, np.int32)
         if n > 2**31 - 1:
             raise ValueError(f"{n} nodes: more than int32 node ids address")
-        q, k = self.device.queue, self._k
-        m = int(np.asarray(a).shape[0])
-        d_parent = self._buffer("cc_parent", 4 * n)
-        d_label = self._buffer("cc_label", 4 * n)
-        k["cc_init"](q, *self._grid(n), d_parent, np.int32(n))
-        if m:
-            d_a = self._put("cc_a", np.asarray(a, dtype=np.int32))
-            d_b = self._put("cc_b", np.asarray(b, dtype=np.int32))
-            k["cc_hook"](q, *self._grid(m), d_parent, d_a, d_b, np.int32(m))
-        k["cc_flatten"](q, *self._grid(n), d_parent, np.int32(n), d_label)
-        label = np.empty(n, dtype=np.int32)
-        cl.enqueue_copy(q, label, d_label, is_blocking=True)
+        with self._lock:
+            q, k = self.device.queue, self._k
+            m = int(np.asarray(a).shape[0])
+            d_parent = self._buffer("cc_parent", 4 * n)
+            d_label = self._buffer("cc_label", 4 * n)
+            k["cc_init"](q, *self._grid(n), d_parent, np.int32(n))
+            if m:
+                d_a = self._put("cc_a", np.asarray(a, dtype=np.int32))
+                d_b = self._put("cc_b", np.asarray(b, dtype=np.int32))
+                k["cc_hook"](q, *self._grid(m), d_parent, d_a, d_b, np.int32(m))
+            k["cc_flatten"](q, *self._grid(n), d_parent, np.int32(n), d_label)
+            label = np.empty(n, dtype=np.int32)
+            cl.enqueue_copy(q, label, d_label, is_blocking=True)
+            q.finish()  # (the uploads' events too: their arrays may go now)
+            self._events.clear()
+            if sum(size for _, size in self._buffers.values()) > keep_bytes:
+                self._buffers.clear()
         return label
 
 

@@ -109,6 +109,32 @@ def test_components_label_each_node_with_its_smallest(where, device, monkeypatch
         assert np.array_equal(connected_labels(50, np.array([3, 9]), np.array([9, 40]))[[3, 9, 40]], [3, 3, 3])
 
 
+def test_device_components_do_not_wait_for_a_slicer_holding_the_device(device):
+    """The mesh check's union-find has a queue, buffers and a lock of its own: it runs beside a thread that holds the
+    device's turn (a slicer), as ``pipeline._slice`` counts the defects while the layers are sliced."""
+    import threading
+
+    from gpuslice.prefetch import beside
+
+    held, done = threading.Event(), threading.Event()
+
+    def slicer():
+        with device.exclusive():
+            held.set()
+            done.wait(30)
+
+    holder = beside(slicer)
+    try:
+        assert held.wait(10)
+        rng = np.random.default_rng(3)
+        a, b = rng.integers(0, 3000, 2000), rng.integers(0, 3000, 2000)
+        got = beside(components, 3000, a, b, device).result(timeout=20)  # (would wait 30 s for the device's turn)
+        assert np.array_equal(got, _scipy_labels(3000, a, b))
+    finally:
+        done.set()
+        holder.result(30)
+
+
 def test_weld_reads_negative_zero_as_zero(device):
     rng = np.random.default_rng(6)
     pts = rng.integers(-2, 3, (4000, 3)).astype(np.float32)  # many zeros
