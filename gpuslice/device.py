@@ -75,7 +75,7 @@ class Device:
     def exclusive(self) -> threading.RLock:
         """The lock of this device (and its lanes) for one job's use of the kernel drivers that keep no lock of
         their own (:data:`SHARED_DRIVERS`): re-entrant; held by :func:`~gpuslice.slicing.slicer.slice_mesh`, by the
-        mesh's weld and mesh check and by the adaptive schedules on a device, so that two threads slicing at once
+        mesh's weld and by the adaptive schedules on a device, so that two threads slicing at once
         take turns instead of overwriting each other's buffers (segfaults, wrong layers: found with two batch tasks
         on one Dask worker's threads). Also checks that the context belongs to this process (:meth:`check_process`)."""
         self.check_process()
