@@ -222,7 +222,14 @@ def _workload(pass_name: str) -> dict:
     from gpuslice import mesh_from_triangles, slice_mesh
     from gpuslice.device import get_device
     from gpuslice.mesh import shapes as S
-    from gpuslice.mesh.weld import WeldKernel, edge_ids_device, edge_ids_numpy, weld_device, weld_numpy
+    from gpuslice.mesh.weld import (
+        ComponentsKernel,
+        WeldKernel,
+        edge_ids_device,
+        edge_ids_numpy,
+        weld_device,
+        weld_numpy,
+    )
     from gpuslice.raster import RasterSpec, masks
     from gpuslice.raster.runs import layer_runs, runs_to_mask
     from gpuslice.schedule.adaptive import facet_slopes, facet_slopes_numpy, slab_max_nz, slab_max_nz_numpy
@@ -253,7 +260,8 @@ def _workload(pass_name: str) -> dict:
     pairing = (WeldKernel.of(dev).edge_table(sphere.faces, n_v)[2], edge_table_numpy(sphere.faces, n_v)[2])
     _same(astuple(pairing[0]), astuple(pairing[1]), "edge pairing")
     a, b = np.random.default_rng(5).integers(0, 300, (2, 200))
-    _same([WeldKernel.of(dev).components(300, a, b)], [connected_labels(300, a, b).astype(np.int32)], "components")
+    labels = ComponentsKernel.of(dev).components(300, a, b)
+    _same([labels], [connected_labels(300, a, b).astype(np.int32)], "components")
     # crossings.cl, with planes through vertices (the on-plane rule); walk.cl on a host successor array
     zs = np.unique(np.concatenate([np.linspace(0.3, sphere.height - 0.3, 5), sphere.vertices[:, 2].astype(float)]))
     zs = zs[(zs > 0) & (zs <= sphere.height)]
