@@ -199,10 +199,12 @@ class Workers:
         return threading.get_ident() in self._idents
 
     def _work(self) -> None:
-        self._idents.add(threading.get_ident())
+        me = threading.get_ident()
+        self._idents.add(me)
         while True:
             call = self._calls.get()
             if call is None:
+                self._idents.discard(me)  # (an identifier is reused once its thread has ended)
                 return
             fut, fn, args = call
             del call
