@@ -177,6 +177,8 @@ class Workers:
         """``fn(*args)`` on one of the threads; its :class:`Future`."""
         fut: Future = Future()
         with self._lock:
+            if self._n == 0:
+                raise RuntimeError(f"{self._name}: no calls after shutdown")
             start = self._idle <= 0 and len(self._ended) < self._n  # (idle: idle threads less calls waiting)
             if start:
                 self._ended.append(threading.Event())
@@ -221,7 +223,7 @@ class Workers:
         """No more calls: each thread ends after the calls given before this; ``wait``: return when they have."""
         with self._lock:
             ended = list(self._ended)
-            self._n = 0  # (a later submit would start no thread: it is a mistake, as with the executor)
+            self._n = 0  # (a later submit raises, as the executor's does)
         for _ in ended:
             self._calls.put(None)
         if wait and not self.on_own_thread():

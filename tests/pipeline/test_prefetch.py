@@ -195,3 +195,5 @@ def test_workers_hand_an_error_to_its_future_and_go_on():
             pool.map(call, range(5))
     assert [f.exception() is not None for f in futures] == [False, False, True, False, False]
     assert futures[4].result() == 4
+    with pytest.raises(RuntimeError, match="after shutdown"):  # (not a call queued that no thread takes)
+        pool.submit(call, 1)
