@@ -298,18 +298,21 @@ def _slice(job: Job, mesh: Mesh, dev, timings: dict[str, float], stream=None) ->
 
     repairs = None
     if job.mesh_check:  # what the mesh needed: flipped facets, non-manifold edges, ... (mesh/defects.py), counted
-        # on a second core while the layers are sliced (its device part waits for the slicer's turn on the device)
+        # on a second core while the layers are sliced (its union-find on a queue of its own: mesh/weld.py)
         from .mesh.defects import mesh_repairs
         from .prefetch import beside
 
         repairs = beside(mesh_repairs, mesh, name="gpuslice-mesh-check")
     try:
         result = slice_mesh(mesh, job.params, points_sink=stream)
-    finally:
-        if repairs is not None:  # (also when slicing failed: the mesh is not left to a thread still reading it)
-            t = time.perf_counter()
-            repairs.exception()  # (waits; its error, if any, is raised below by result())
-            timings["mesh_check"] = time.perf_counter() - t
+    except Exception:
+        if repairs is not None:  # (the mesh is not left to a thread still reading it; an interrupt does not wait)
+            repairs.exception()
+        raise
+    if repairs is not None:
+        t = time.perf_counter()
+        repairs.exception()  # (waits; its error, if any, is raised below by result())
+        timings["mesh_check"] = time.perf_counter() - t
     meta = result.meta
     for key, value in meta.pop("timings_s", {}).items():
         timings[key] = timings.get(key, 0.0) + value

@@ -21,17 +21,19 @@ import _thread
 import itertools
 import os
 import queue
+import sys
 import threading
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future
 from typing import TypeVar
 
-__all__ = ["prefetch", "beside", "Workers", "live_threads"]
+__all__ = ["prefetch", "beside", "Workers", "current_name", "live_threads"]
 
 T = TypeVar("T")
 
 _DONE = object()
 _LIVE: dict[int, str] = {}  # threads started by _spawn and not yet ended: token -> name
+_LOCAL = threading.local()  # .name: the name _spawn gave the calling thread
 _LIVE_LOCK = threading.Lock()
 _TOKENS = itertools.count()
 
@@ -143,6 +145,13 @@ def _spawn(fn: Callable[[], None], name: str, finished: threading.Event | None =
 
     def run() -> None:
         try:
+            _LOCAL.name = name
+            # (what threading.Thread does: a tracer or profiler set for threads, e.g. coverage's, sees this one too)
+            trace, profile = threading.gettrace(), threading.getprofile()
+            if trace is not None:
+                sys.settrace(trace)
+            if profile is not None:
+                sys.setprofile(profile)
             fn()
         finally:
             with _LIVE_LOCK:
@@ -174,19 +183,18 @@ class Workers:
         self._idents: set[int] = set()
 
     def submit(self, fn: Callable[..., T], *args) -> Future:
-        """``fn(*args)`` on one of the threads; its :class:`Future`."""
+        """``fn(*args)`` on one of the threads; its :class:`Future`. Safe to call from several threads."""
         fut: Future = Future()
-        with self._lock:
+        with self._lock:  # (the call is queued under it: a shutdown's end marks never overtake it)
             if self._n == 0:
                 raise RuntimeError(f"{self._name}: no calls after shutdown")
-            start = self._idle <= 0 and len(self._ended) < self._n  # (idle: idle threads less calls waiting)
-            if start:
-                self._ended.append(threading.Event())
+            if self._idle <= 0 and len(self._ended) < self._n:  # (idle: idle threads less calls waiting)
+                ended = threading.Event()
+                _spawn(self._work, self._name, ended)  # (raises when no thread can start: nothing is queued then)
+                self._ended.append(ended)
             else:
                 self._idle -= 1
-        self._calls.put((fut, fn, args))
-        if start:
-            _spawn(self._work, self._name, self._ended[-1])
+            self._calls.put((fut, fn, args))
         return fut
 
     def map(self, fn: Callable[..., T], items: Iterable) -> list[T]:
@@ -224,8 +232,8 @@ class Workers:
         with self._lock:
             ended = list(self._ended)
             self._n = 0  # (a later submit raises, as the executor's does)
-        for _ in ended:
-            self._calls.put(None)
+            for _ in ended:
+                self._calls.put(None)
         if wait and not self.on_own_thread():
             for e in ended:
                 e.wait()
@@ -235,6 +243,14 @@ class Workers:
 
     def __exit__(self, *exc) -> None:
         self.shutdown(wait=True)
+
+
+def current_name() -> str:
+    """The name of the calling thread: the one :func:`prefetch`, :func:`beside` or :class:`Workers` gave it, else
+    ``threading.current_thread().name`` (asked only then: on a thread not started by ``threading``, that call leaves a
+    dummy thread object behind)."""
+    name = getattr(_LOCAL, "name", None)
+    return name if name is not None else threading.current_thread().name
 
 
 def live_threads() -> list[str]:

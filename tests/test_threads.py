@@ -66,10 +66,19 @@ def test_a_slice_waits_while_another_thread_holds_the_device(device):
         assert slice_mesh(mesh, thickness=0.5, device=device).n_layers > 0
 
 
-def _child(conn) -> None:
+_PARENT_DEVICE: list = []  # (the parent's device, inherited by a forked child)
+
+
+def _child(conn, what: str) -> None:
     try:
-        slice_mesh(mesh_from_triangles(shapes.torus(15.0, 5.0, 40, 20)), thickness=0.5)
-        conn.send("sliced")
+        if what == "components":  # (the mesh check's union-find, on the parent's device object: a driver with a lock
+            # and a queue of its own, not the device's turn, which checks the process)
+            from gpuslice.mesh.graph import components
+
+            components(10, np.arange(5), np.arange(1, 6), _PARENT_DEVICE[0])
+        else:
+            slice_mesh(mesh_from_triangles(shapes.torus(15.0, 5.0, 40, 20)), thickness=0.5)
+        conn.send("done")
     except DeviceError as exc:
         conn.send(f"DeviceError: {exc}")
     except BaseException as exc:  # noqa: BLE001 - anything else is a failure, shown by the parent's assertion
@@ -80,13 +89,18 @@ def _child(conn) -> None:
 
 @pytest.mark.skipif("fork" not in multiprocessing.get_all_start_methods(), reason="the platform has no fork")
 @pytest.mark.filterwarnings("ignore:This process .* is multi-threaded:DeprecationWarning")
-def test_a_forked_child_gets_an_error_not_a_hang(device):
+@pytest.mark.parametrize("what", ["slice", "components"])
+def test_a_forked_child_gets_an_error_not_a_hang(device, what):
     """The parent's context does not work in a forked child (PoCL's threads were not forked): before, the child's
     first kernel waited forever; now the child is told so at once."""
     slice_mesh(mesh_from_triangles(shapes.torus(15.0, 5.0, 40, 20)), thickness=0.5)  # the default device in use
+    from gpuslice.mesh.graph import components
+
+    components(10, np.arange(5), np.arange(1, 6), device)  # (its lane's queue made in the parent too)
+    _PARENT_DEVICE[:] = [device]
     ctx = multiprocessing.get_context("fork")
     parent, child = ctx.Pipe(duplex=False)
-    p = ctx.Process(target=_child, args=(child,))
+    p = ctx.Process(target=_child, args=(child, what))
     t0 = time.monotonic()
     p.start()
     child.close()

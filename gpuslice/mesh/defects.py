@@ -132,18 +132,14 @@ def outward_facets(mesh: Mesh) -> tuple[np.ndarray, dict[str, int]]:
     }
     if n == 0:
         return np.zeros(0, bool), counts
-    verts, faces = mesh.vertices, mesh.faces
-    blocks = [slice(a, min(n, a + _FACET_BLOCK)) for a in range(0, n, _FACET_BLOCK)]
-    # the volume terms about the whole mesh's box centre, before the shells are known (the shells' components wait
-    # for the device while a slicer has it: pipeline._slice counts beside the slicing); a single shell's own centre
-    lo1 = np.array([[verts[:, k].min() for k in range(3)]], dtype=np.float64)
-    hi1 = np.array([[verts[:, k].max() for k in range(3)]], dtype=np.float64)
-    det1 = _volume_terms(verts, faces, blocks, (lo1 + hi1)[0] / 2)
     shell, sign, non_orientable = _shells(mesh)
     n_shells = non_orientable.size
+    verts, faces = mesh.vertices, mesh.faces
+    blocks = [slice(a, min(n, a + _FACET_BLOCK)) for a in range(0, n, _FACET_BLOCK)]
     # per-shell bounding boxes; volumes about the box centre (translation matters only for open shells)
     if n_shells == 1:
-        lo, hi = lo1, hi1
+        lo = np.array([[verts[:, k].min() for k in range(3)]], dtype=np.float64)
+        hi = np.array([[verts[:, k].max() for k in range(3)]], dtype=np.float64)
     else:
         lo = np.full((n_shells, 3), np.inf)
         hi = np.full((n_shells, 3), -np.inf)
@@ -155,13 +151,12 @@ def outward_facets(mesh: Mesh) -> tuple[np.ndarray, dict[str, int]]:
                 np.maximum.at(hi[:, k], shell[b], np.maximum(np.maximum(c[:, 0], c[:, 1]), c[:, 2]))
     centre = (lo + hi) / 2
     if n_shells == 1:
-        det = det1
+        det = _volume_terms(verts, faces, blocks, centre[0])
     else:
         det = np.empty(n)
         for b in blocks:  # a block at a time: the same per-facet arithmetic as on the whole (F, 3, 3) array
             r = verts[faces[b]].astype(np.float64) - centre[shell[b]][:, None, :]
             det[b] = np.einsum("ij,ij->i", r[:, 0], np.cross(r[:, 1], r[:, 2]))
-    del det1
     volume = np.bincount(shell, weights=sign * det, minlength=n_shells) / 6.0  # with the first facet's winding
     del det
     # a shell is judged by its volume only when it is closed enough to have an inside (few open edges, not flat)

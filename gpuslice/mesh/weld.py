@@ -318,6 +318,7 @@ class ComponentsKernel(KernelDriver):
             return np.zeros(0, np.int32)
         if n > 2**31 - 1:
             raise ValueError(f"{n} nodes: more than int32 node ids address")
+        self.device.check_process()  # (a forked child's context: a DeviceError, not a wait for ever)
         with self._lock:
             q, k = self.device.queue, self._k
             m = int(np.asarray(a).shape[0])

@@ -39,7 +39,7 @@ import numpy as np
 
 from ..device import KernelDriver, aligned_empty, get_device
 from ..errors import ParameterError
-from ..prefetch import Workers, prefetch
+from ..prefetch import Workers, current_name, prefetch
 from ..ragged import expand_ranges, group_ranks
 from .edges import LayerEdges, check_fits, check_raster_args, iter_layer_edges
 from .runs_twin import Runs, _cells_to_runs, _piece_records, _rows, _sum_cells, runs_numpy, runs_to_mask
@@ -283,8 +283,9 @@ def _in_lanes(kerns: list[RunsKernel], calls: Iterable[tuple]) -> Iterator[Runs]
     finally:
         for f in pending:
             f.cancel()
-        # (closed by the garbage collector on one of its own lanes' threads: that thread cannot wait for itself)
-        inside = any(pool.on_own_thread() for pool in pools)
+        # (closed by the garbage collector on a lane's thread, this job's or another's holding a lane's lock: it
+        # waits for no lane)
+        inside = current_name().startswith("gpuslice-runs-lane")
         for pool in pools:
             pool.shutdown(wait=not inside)
 

@@ -32,11 +32,11 @@ def in_halves(fn, work: np.ndarray, *arrays: np.ndarray) -> np.ndarray:
     """``fn(*arrays)`` for a function of arrays element by element (a shapely predicate or constructor): its first
     half (cut where the cumulative ``work``, e.g. each element's points, reaches half) :func:`beside` the second,
     concatenated, when the work is large (else, or on the worker thread itself, one call)."""
-    import threading
+    from ..prefetch import current_name
 
     total = np.cumsum(work)
     n = int(total.size)
-    if n < 2 or total[-1] < HALVES_MIN_POINTS or threading.current_thread().name.startswith(_WORKER):
+    if n < 2 or total[-1] < HALVES_MIN_POINTS or current_name().startswith(_WORKER):
         return fn(*arrays)
     half = max(1, min(int(np.searchsorted(total, total[-1] / 2)), n - 1))
     first = beside(fn, *(x[:half] for x in arrays))

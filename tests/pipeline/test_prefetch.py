@@ -197,3 +197,95 @@ def test_workers_hand_an_error_to_its_future_and_go_on():
     assert futures[4].result() == 4
     with pytest.raises(RuntimeError, match="after shutdown"):  # (not a call queued that no thread takes)
         pool.submit(call, 1)
+
+
+def test_workers_that_cannot_start_a_thread_raise_and_do_not_hang(monkeypatch):
+    """A thread that cannot start ("can't start new thread") is the caller's error at submit; nothing is queued for
+    it and the pool's shutdown does not wait for a thread that never ran."""
+    import gpuslice.prefetch as P
+
+    real, made = P._spawn, []
+
+    def spawn(fn, name, finished=None):  # (the test's own thread and the pool's first start; then none)
+        if len(made) >= 2:
+            raise RuntimeError("can't start new thread")
+        made.append(name)
+        return real(fn, name, finished)
+
+    monkeypatch.setattr(P, "_spawn", spawn)
+
+    def run():
+        gate = threading.Event()
+        with P.Workers(3, "gpuslice-test-workers") as pool:
+            first = pool.submit(gate.wait, 5)  # (its thread busy: the next call needs a second thread)
+            with pytest.raises(RuntimeError, match="start new thread"):
+                pool.submit(time.sleep, 0)
+            gate.set()
+            return first.result(5)
+
+    assert beside(run).result(timeout=20) is True
+
+
+def test_workers_take_calls_from_several_threads_at_once(monkeypatch):
+    """Threads submitting at once each start their own worker thread when none is idle, and each worker gets its own
+    end mark: before, a submit read the newest mark after letting go of the pool's lock, so two of them could hand
+    their threads the same one, and a shutdown then waited for ever (a review found it). The queue is slowed here to
+    hold that window open."""
+    import queue
+
+    import gpuslice.prefetch as P
+
+    class SlowQueue(queue.SimpleQueue):
+        def put(self, item, block=True, timeout=None):
+            if item is not None:
+                time.sleep(0.005)
+            super().put(item, block, timeout)
+
+    real, marks = P._spawn, []
+
+    def spawn(fn, name, finished=None):
+        if name == "gpuslice-test-workers":
+            marks.append(finished)
+        return real(fn, name, finished)
+
+    monkeypatch.setattr(P, "_spawn", spawn)
+    for _ in range(5):
+        marks.clear()
+        pool = P.Workers(4, "gpuslice-test-workers")
+        pool._calls = SlowQueue()
+        go = threading.Barrier(2)
+        gate = threading.Event()
+
+        def feed(pool=pool, go=go, gate=gate):
+            go.wait(10)
+            return pool.submit(gate.wait, 10)  # (busy until the gate opens: the next call needs a thread of its own)
+
+        calls = [f.result(20) for f in [beside(feed) for _ in range(2)]]
+        gate.set()
+        beside(pool.shutdown, True).result(timeout=10)  # (every thread had its end mark)
+        assert len(marks) == 2 and marks[0] is not marks[1]
+        assert all(c.result(0) is True for c in calls)
+
+
+def test_thread_names_and_tracers_reach_the_threads():
+    """``current_name`` on a thread started here is the name it was given (nesting's halves ask it so as not to
+    split work again on their own thread); a tracer set for threads (coverage's) runs on them too."""
+    from gpuslice.prefetch import current_name
+
+    assert beside(current_name, name="gpuslice-test-name").result(5) == "gpuslice-test-name"
+    seen = []
+
+    def tracer(frame, event, arg):
+        if event == "call" and frame.f_code.co_name == "traced_call":
+            seen.append(current_name())
+        return None
+
+    def traced_call():
+        return 1
+
+    threading.settrace(tracer)
+    try:
+        beside(traced_call, name="gpuslice-test-traced").result(5)
+    finally:
+        threading.settrace(None)
+    assert seen == ["gpuslice-test-traced"]

@@ -141,6 +141,25 @@ def test_geos_calls_in_halves_equal_one_call(monkeypatch):
         assert np.array_equal(shapely.get_coordinates(a), shapely.get_coordinates(b))
 
 
+def test_in_halves_splits_once_not_again_on_its_own_thread():
+    """A large call is split in two, one half on nesting's thread; on that thread it is not split again (a review
+    found every half split anew once the threads stopped being ``threading.Thread`` objects: more threads than
+    cores)."""
+    from gpuslice.slicing import rings
+
+    calls = []
+
+    def fn(x):
+        calls.append(x.size)
+        return x * 2
+
+    x = np.arange(100_000)
+    work = np.ones(x.size)
+    assert np.array_equal(rings.in_halves(fn, work, x), x * 2) and len(calls) == 2 and sum(calls) == x.size
+    calls.clear()
+    assert np.array_equal(rings.beside(rings.in_halves, fn, work, x).result(10), x * 2) and calls == [100_000]
+
+
 @pytest.mark.parametrize("n_squares", [5, 90])  # few reversed loops (turned after the run copy), many (a gather)
 def test_nesting_turns_clockwise_outer_loops(n_squares):
     """Separate squares in one layer, every other one clockwise: each comes out counter-clockwise as an outer loop,
