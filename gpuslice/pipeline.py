@@ -309,15 +309,14 @@ def _slice(job: Job, mesh: Mesh, dev, timings: dict[str, float], stream=None) ->
         if repairs is not None:  # (the mesh is not left to a thread still reading it; an interrupt does not wait)
             repairs.exception()
         raise
-    if repairs is not None:
-        t = time.perf_counter()
-        repairs.exception()  # (waits; its error, if any, is raised below by result())
-        timings["mesh_check"] = time.perf_counter() - t
     meta = result.meta
     for key, value in meta.pop("timings_s", {}).items():
         timings[key] = timings.get(key, 0.0) + value
     if repairs is not None:
-        meta["repairs"] = {**repairs.result(), **meta["repairs"]}
+        t = time.perf_counter()
+        counts = repairs.result()  # (waits; its error is the job's)
+        timings["mesh_check"] = time.perf_counter() - t
+        meta["repairs"] = {**counts, **meta["repairs"]}
     if job.portable:  # output bytes depend on the model and the options only
         meta.pop("device", None)
         meta.pop("backend", None)

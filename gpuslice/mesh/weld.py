@@ -291,8 +291,13 @@ class WeldKernel(KernelDriver):
         """Drop this driver's device buffers when together they hold more than ``keep_bytes``: a large mesh's tables
         (~140 bytes a facet) would otherwise stay allocated through slicing, raising the job's peak memory; small
         ones are kept for reuse (batches of small models). They are made again, at the size needed, on next use."""
-        if sum(size for _, size in self._buffers.values()) > keep_bytes:
-            self._buffers.clear()
+        _drop_buffers_over(self, keep_bytes)
+
+
+def _drop_buffers_over(driver: KernelDriver, keep_bytes: int) -> None:
+    """Drop ``driver``'s device buffers when together they hold more than ``keep_bytes`` (its caller's lock held)."""
+    if sum(size for _, size in driver._buffers.values()) > keep_bytes:
+        driver._buffers.clear()
 
 
 class ComponentsKernel(KernelDriver):
@@ -312,8 +317,6 @@ class ComponentsKernel(KernelDriver):
         """Connected components of the graph on nodes ``0 .. n - 1`` with edges ``a[i] -- b[i]``: (n,) int32 labels,
         each node labelled with the smallest node of its component (as :func:`gpuslice.mesh.graph.connected_labels`).
         The buffers are dropped afterwards when they hold more than ``keep_bytes``."""
-        import pyopencl as cl
-
         if n == 0:
             return np.zeros(0, np.int32)
         if n > 2**31 - 1:
@@ -331,11 +334,8 @@ class ComponentsKernel(KernelDriver):
                 k["cc_hook"](q, *self._grid(m), d_parent, d_a, d_b, np.int32(m))
             k["cc_flatten"](q, *self._grid(n), d_parent, np.int32(n), d_label)
             label = np.empty(n, dtype=np.int32)
-            cl.enqueue_copy(q, label, d_label, is_blocking=True)
-            q.finish()  # (the uploads' events too: their arrays may go now)
-            self._events.clear()
-            if sum(size for _, size in self._buffers.values()) > keep_bytes:
-                self._buffers.clear()
+            self._read((label, d_label))  # (waits for the queue: the uploads' arrays may go now)
+            _drop_buffers_over(self, keep_bytes)
         return label
 
 
