@@ -108,7 +108,7 @@ def _with_flags(exc: ParameterError) -> ParameterError:
 @with_options(slicing_options(overrides=RESIN_DEFAULTS))
 @with_options(click_options(ResinOptions, only=("printer",)))
 @with_options(click_options(CheckOptions))
-@with_options(click_options(PrintSettings, defaults=False))  # None unless given: they override the preset
+@with_options(click_options(PrintSettings, defaults=False, preset=True))  # None unless given: they override the preset
 @click.option("--json", "json_path", type=click.Path(path_type=str), default=None,
               help="Write the JSON report (every island, trap and cup; per-layer areas).")
 @click.option("-q", "--quiet", is_flag=True, help="No table on stdout.")

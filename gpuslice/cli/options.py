@@ -106,8 +106,9 @@ def check_resin_layers(params) -> None:
                  "(no resin printer moves in finer steps)")
 
 
-def _click_option(info: OptionInfo, defaults: bool, default: Any) -> Callable:
+def _click_option(info: OptionInfo, defaults: bool, default: Any, preset: bool = False) -> Callable:
     help_text = info.describe()
+    also = ", or the --printer preset's" if preset else ""  # (the value a preset gives comes first)
     kw: dict[str, Any] = {"help": help_text}
     if info.metavar:
         kw["metavar"] = info.metavar
@@ -121,7 +122,7 @@ def _click_option(info: OptionInfo, defaults: bool, default: Any) -> Callable:
                 kw["show_default"] = True
             else:
                 on, off = names[-1].split("/")
-                kw["help"] = f"{help_text} [default: {on if default else off}]"
+                kw["help"] = f"{help_text} [default: {on if default else off}{also}]"
         else:
             kw["is_flag"] = True
             kw["default"] = False
@@ -139,17 +140,20 @@ def _click_option(info: OptionInfo, defaults: bool, default: Any) -> Callable:
     else:  # None unless given: the dataclass default applies (shown in the help)
         kw["default"] = None
         if shown is not None:
-            kw["help"] = f"{help_text} [default: {shown}]"
+            kw["help"] = f"{help_text} [default: {shown}{also}]"
+        elif preset:
+            kw["help"] = f"{help_text} [default: the --printer preset's]"
     return click.option(*names, info.name, **kw)
 
 
 def click_options(cls: type, *, only: Iterable[str] | None = None, exclude: Iterable[str] = (), defaults: bool = True,
-                  overrides: dict[str, Any] | None = None) -> list[Callable]:
+                  overrides: dict[str, Any] | None = None, preset: bool = False) -> list[Callable]:
     """Click option decorators for the declared fields of ``cls`` (those with flags), in declaration order.
 
     only / exclude : field names to keep / leave out. defaults : show each field's default as the option's
     default (False: every value is None unless given, so a command can tell what the user gave; defaults named in
     the help). overrides : a command's own defaults for some fields (e.g. ``raster``'s 0.05 mm layers).
+    preset : (with ``defaults=False``) a ``--printer`` preset's values come before the defaults: the help says so.
     """
     keep = set(only) if only is not None else None
     out = []
@@ -157,7 +161,7 @@ def click_options(cls: type, *, only: Iterable[str] | None = None, exclude: Iter
         if not info.flags or info.name in exclude or (keep is not None and info.name not in keep):
             continue
         default = (overrides or {}).get(info.name, info.default)
-        out.append(_click_option(info, defaults, default))
+        out.append(_click_option(info, defaults, default, preset and not defaults))
     return out
 
 

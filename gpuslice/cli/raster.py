@@ -77,9 +77,9 @@ class _Bar:
               help="The output format, whatever -o's suffix (default: -o's suffix picks it; `png`: a PNG stack).")
 @with_options(slicing_options(overrides=RESIN_DEFAULTS))
 @with_options(click_options(ResinOptions, only=("printer",)))
-@with_options(click_options(RasterSpec, defaults=False))  # None unless given: they override the preset
+@with_options(click_options(RasterSpec, defaults=False, preset=True))  # None unless given: they override the preset
 @with_options(click_options(ResinOptions, exclude=("printer",)))
-@with_options(click_options(PrintSettings, defaults=False))  # None unless given: they override the preset
+@with_options(click_options(PrintSettings, defaults=False, preset=True))  # None unless given: they override the preset
 @click.option("--progress/--no-progress", default=None, help="Progress bar on stderr [TTY or long runs].")
 @click.option("--report", type=click.Path(path_type=str), default=None, help="Write timings and counts as JSON.")
 @click.option("--check", is_flag=True, help="Run the pre-print checks on the printer's pixels (as `gpuslice check "

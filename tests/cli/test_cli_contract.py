@@ -229,3 +229,23 @@ def test_slicing_options_come_from_the_dataclasses(name):
         if name in ("slice", "batch") and info.parse is None and info.type is not bool:
             assert p.default == info.default, (name, info.name)
     assert params["--thickness"].default == {"raster": 0.05, "view": None}.get(name, 0.1)
+
+
+@pytest.mark.parametrize("name", ["raster", "check"])
+def test_preset_options_say_the_preset_comes_first(name):
+    """The display and print options a ``--printer`` preset sets are None unless given (the preset's value, else the
+    dataclass's default, applies): their help names both, so ``--help`` does not promise 15 s where a preset gives
+    its own bottom exposure."""
+    from gpuslice.raster.settings import PrintSettings
+    from gpuslice.raster.spec import RasterSpec
+
+    params = _params(name)
+    classes = (RasterSpec, PrintSettings) if name == "raster" else (PrintSettings,)
+    for cls in classes:
+        for info in options_of(cls):
+            if not info.flags or info.type is bool and not info.negatable:
+                continue
+            p = params[info.flag.split("/")[0]]
+            assert p.default is None, (name, info.name)
+            assert "--printer preset's" in p.help, (name, info.name, p.help)
+    assert "[default: 15.0, or the --printer preset's]" in params["--bottom-exposure"].help
