@@ -224,7 +224,7 @@ class BatchRunner:
         ctx = _mp_context()
         # the whole environment: a forkserver started earlier carries the environment of that moment
         env = {**os.environ, **pocl_thread_env(threads)}
-        init_args = (env, self.opts.params.device, self.opts.params.backend)
+        init_args = (env, self.opts.params.device, self.opts.params.backend, self.opts.raster is not None)
 
         def new_executor():
             return ProcessPoolExecutor(1, mp_context=ctx, initializer=init_worker, initargs=init_args)

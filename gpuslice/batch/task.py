@@ -73,13 +73,20 @@ def _worker_device(spec: str | None):
     return _WORKER[key]
 
 
-def init_worker(env: dict[str, str] | None = None, device: str | None = None, backend: str = "opencl") -> None:
-    """Initializer of a local worker process: PoCL threads, signals, the OpenCL device and kernels (built once).
+def init_worker(env: dict[str, str] | None = None, device: str | None = None, backend: str = "opencl",
+                one_arena: bool = False) -> None:
+    """Initializer of a local worker process: PoCL threads, signals, the OpenCL device and kernels (built once);
+    ``one_arena``: its threads share one malloc arena (a batch of resin outputs: as ``gpuslice raster``,
+    :func:`gpuslice.device.one_malloc_arena`).
 
     Ctrl-C goes to the whole process group; the workers ignore it (the driver stops them), and SIGTERM unwinds
     the worker (``SystemExit``) so a half-written temporary output is removed.
     """
     os.environ.update(env or {})
+    if one_arena:  # (before the device's threads start)
+        from ..device import one_malloc_arena
+
+        one_malloc_arena()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     t = time.perf_counter()

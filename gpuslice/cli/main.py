@@ -139,11 +139,21 @@ def entry() -> None:
     Before numpy loads (``import gpuslice`` and this module import none), ``OPENBLAS_NUM_THREADS`` is set to 1 unless
     the user set it: nothing here runs a threaded BLAS call, and numpy's OpenBLAS otherwise starts a thread per core
     at import that spins for ≈ 0.1 s waiting for work, taking a core from start-up (measured: a 0.05 mm nefertiti
-    slice 7 % slower on 2 cores). The variable is inherited by the PNG and batch worker processes."""
+    slice 7 % slower on 2 cores). The variable is inherited by the PNG and batch worker processes. For ``raster``,
+    the process's threads share one malloc arena (:func:`gpuslice.device.one_malloc_arena`)."""
     if "numpy" not in sys.modules:
         os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     sys.unraisablehook = _unraisable
+    if _command(sys.argv[1:]) == "raster":  # slicing, then the layers on other threads: what one frees, the next uses
+        from ..device import one_malloc_arena
+
+        one_malloc_arena()
     exit_now(main())
+
+
+def _command(args: list[str]) -> str | None:
+    """The subcommand named by ``args`` (the first word that is not an option: the group's options take no value)."""
+    return next((a for a in args if not a.startswith("-")), None)
 
 
 #: set once the command was interrupted (Ctrl-C): see :func:`_unraisable`
