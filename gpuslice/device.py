@@ -33,7 +33,7 @@ import numpy as np
 from .errors import DeviceError
 
 __all__ = ["Device", "KernelDriver", "aligned_empty", "drained", "input_buffer", "get_device", "list_devices",
-           "release_scratch", "one_malloc_arena", "ENV_VAR"]
+           "release_scratch", "ENV_VAR"]
 
 ENV_VAR = "GPUSLICE_DEVICE"
 
@@ -282,42 +282,15 @@ def aligned_empty(n: int, dtype) -> np.ndarray:
     return raw[k : k + n * dtype.itemsize].view(dtype)
 
 
-#: set by :func:`one_malloc_arena`: this process's threads allocate from one arena, so memory a stage frees is the
-#: next stage's (and :func:`release_scratch` leaves it in the process)
-_ONE_ARENA = False
-
-
-def one_malloc_arena() -> bool:
-    """Make every thread this process starts from now on allocate from glibc's main arena (``mallopt(M_ARENA_MAX,
-    1)``), and say whether that was done (False off glibc, or when glibc refused).
-
-    For a process that slices and then writes resin layers (``gpuslice raster``): glibc gives each new thread an
-    arena of its own, so the layers' threads (the runs' lanes, the encoders) never reuse the ~200 MB the slicer freed
-    on the main thread, and every page they touch is fresh: zeroed by the kernel, and on a virtual machine perhaps
-    first backed by the host (``docs/BENCHMARKS.md``, twentieth session: the armadillo job at 12K faulted 26k pages
-    in its raster stage, 2.3–2.7k with one arena, and ``--z-samples 4`` ran in 0.93× the time at 0.89× the peak).
-    Not for the library (a caller's process is the caller's) nor for ``check``: GEOS's many small allocations on
-    two threads contend for one arena (the nefertiti check 1.07× slower)."""
-    global _ONE_ARENA
-    try:
-        if not (os.confstr("CS_GNU_LIBC_VERSION") or "").startswith("glibc"):
-            return False
-        import ctypes
-
-        _ONE_ARENA = ctypes.CDLL(None).mallopt(-8, 1) == 1  # M_ARENA_MAX (malloc.h)
-    except (ValueError, OSError, AttributeError):  # no such name on this system, no mallopt
-        return False
-    return _ONE_ARENA
-
-
 def release_scratch(device: Device | None = None) -> None:
     """Give the memory of a finished stage back to the system before a memory-heavy one (the resin layers): every
     kernel driver's reused buffers of ``device`` and of its lanes (default: every device) are dropped (made again,
     at the size needed, on next use), the young generations of the garbage collector are collected (a full
     collection took ~20 ms of a resin job and found no array), and on glibc the heap's free pages are returned
-    (``malloc_trim``, as Dask's workers do: numpy's freed temporaries otherwise stay in the process), unless the
-    process's threads share one arena (:func:`one_malloc_arena`), where they are the next stage's. Measured on the
-    346k-facet armadillo job: the resident memory after slicing falls from ~330 MB to ~130 MB."""
+    (:func:`gpuslice.allocator.trim_heap`, as Dask's workers do: numpy's freed temporaries otherwise stay in the
+    process), unless the process's threads share one arena (:func:`gpuslice.allocator.one_malloc_arena`), where they
+    are the next stage's. Measured on the 346k-facet armadillo job: the resident memory after slicing falls from
+    ~330 MB to ~130 MB."""
     import gc
 
     for (_, dev_id), drv in list(KernelDriver._instances.items()):
@@ -330,14 +303,9 @@ def release_scratch(device: Device | None = None) -> None:
                 drv._buffers.clear()
                 drv._events.clear()
     gc.collect(1)  # (the young generations: the stage's own cycles; a full collection took ~20 ms and found none)
-    if _ONE_ARENA:  # (the next stage's threads allocate where this memory was freed: it stays, and is reused)
-        return
-    try:
-        import ctypes
+    from .allocator import trim_heap
 
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):  # not glibc (macOS, Windows, musl): nothing to trim
-        pass
+    trim_heap()
 
 
 def _cache_dir() -> Path:

@@ -1,6 +1,6 @@
-"""One malloc arena for the processes that slice and then write resin layers (``gpuslice.device.one_malloc_arena``):
-the layers' threads then reuse what the slicer freed, and ``release_scratch`` leaves that memory in the process.
-Process-wide settings are changed only in child processes here."""
+"""One malloc arena for the processes that slice and then write resin layers (``gpuslice.allocator``): the layers'
+threads then reuse what the slicer freed, and ``release_scratch`` leaves that memory in the process. Process-wide
+settings are changed only in child processes here."""
 
 from __future__ import annotations
 
@@ -11,17 +11,17 @@ import textwrap
 
 import pytest
 
+import gpuslice.allocator as allocator
 import gpuslice.device as device_mod
 
-GLIBC = (os.confstr("CS_GNU_LIBC_VERSION") or "").startswith("glibc") if hasattr(os, "confstr") else False
-needs_glibc = pytest.mark.skipif(not GLIBC, reason="malloc arenas are glibc's")
+needs_glibc = pytest.mark.skipif(not allocator.on_glibc(), reason="malloc arenas are glibc's")
 
 # a thread mallocs blocks below the mmap threshold (so from an arena), then glibc's malloc_info lists the heaps
 HEAPS = textwrap.dedent("""
-    import ctypes, re, sys, tempfile, threading
-    import gpuslice.device as d
+    import ctypes, re, sys, threading
+    import gpuslice.allocator as a
     if sys.argv[1] == "one":
-        assert d.one_malloc_arena() is True and d._ONE_ARENA
+        assert a.one_malloc_arena() is True and a.one_arena()
     libc = ctypes.CDLL(None)
     libc.malloc.restype = ctypes.c_void_p
     libc.fopen.restype = ctypes.c_void_p
@@ -31,24 +31,41 @@ HEAPS = textwrap.dedent("""
     t = threading.Thread(target=work)
     t.start()
     t.join()
-    path = tempfile.mktemp()
-    f = libc.fopen(path.encode(), b"w")
+    f = libc.fopen(sys.argv[2].encode(), b"w")
     libc.malloc_info(0, ctypes.c_void_p(f))
     libc.fclose(ctypes.c_void_p(f))
-    print(len(re.findall(r'<heap nr="[0-9]+"', open(path).read())))
+    print(len(re.findall(r'<heap nr="[0-9]+"', open(sys.argv[2]).read())))
 """)
 
 
-def _heaps(mode: str) -> int:
-    out = subprocess.run([sys.executable, "-c", HEAPS, mode], capture_output=True, text=True, timeout=120)
+def _child_env() -> dict[str, str]:
+    """This environment without the user's own arena limits (which would make the default case one arena too)."""
+    return {k: v for k, v in os.environ.items() if k not in ("MALLOC_ARENA_MAX", "GLIBC_TUNABLES")}
+
+
+def _heaps(mode: str, tmp_path) -> int:
+    out = subprocess.run([sys.executable, "-c", HEAPS, mode, str(tmp_path / f"{mode}.xml")], capture_output=True,
+                         text=True, timeout=120, env=_child_env())
     assert out.returncode == 0, out.stderr
     return int(out.stdout.split()[-1])
 
 
 @needs_glibc
-def test_one_arena_keeps_a_threads_allocations_in_the_main_heap():
-    assert _heaps("default") >= 2  # (a thread's own arena: the test can tell the two apart)
-    assert _heaps("one") == 1
+def test_one_arena_keeps_a_threads_allocations_in_the_main_heap(tmp_path):
+    assert _heaps("default", tmp_path) >= 2  # (a thread's own arena: the test can tell the two apart)
+    assert _heaps("one", tmp_path) == 1
+
+
+def test_off_glibc_nothing_is_done_and_nothing_raises(monkeypatch):
+    def refused(name):
+        raise ValueError("unrecognized configuration name")  # (macOS; musl raises OSError)
+
+    monkeypatch.setattr(os, "confstr", refused, raising=False)
+    assert allocator.on_glibc() is False
+    assert allocator.one_malloc_arena() is False
+    allocator.trim_heap()
+    monkeypatch.delattr(os, "confstr")  # (Windows)
+    assert allocator.on_glibc() is False
 
 
 def test_release_scratch_trims_the_heap_unless_one_arena(monkeypatch):
@@ -60,12 +77,13 @@ def test_release_scratch_trims_the_heap_unless_one_arena(monkeypatch):
         def malloc_trim(self, pad):
             calls.append(pad)
 
+    monkeypatch.setattr(allocator, "on_glibc", lambda: True)
     monkeypatch.setattr(ctypes, "CDLL", lambda *a, **k: FakeLibc())
     monkeypatch.setattr(device_mod.KernelDriver, "_instances", {})
-    monkeypatch.setattr(device_mod, "_ONE_ARENA", False)
+    monkeypatch.setattr(allocator, "_ONE_ARENA", False)
     device_mod.release_scratch()
     assert calls == [0]
-    monkeypatch.setattr(device_mod, "_ONE_ARENA", True)
+    monkeypatch.setattr(allocator, "_ONE_ARENA", True)
     device_mod.release_scratch()
     assert calls == [0]  # (left in the process: the next stage's threads reuse it)
 
@@ -77,7 +95,7 @@ def test_the_command_line_asks_for_one_arena_for_raster_only(monkeypatch, args, 
 
     cli_main = sys.modules["gpuslice.cli.main"]
     asked = []
-    monkeypatch.setattr(device_mod, "one_malloc_arena", lambda: asked.append(True) or True)
+    monkeypatch.setattr(allocator, "one_malloc_arena", lambda: asked.append(True) or True)
     monkeypatch.setattr(cli_main, "main", lambda: 0)
     monkeypatch.setattr(cli_main, "exit_now", lambda code: None)
     monkeypatch.setattr(sys, "argv", ["gpuslice", *args])
@@ -89,8 +107,32 @@ def test_the_command_line_asks_for_one_arena_for_raster_only(monkeypatch, args, 
 @needs_glibc
 @pytest.mark.parametrize("one", [True, False])
 def test_a_batch_worker_for_resin_outputs_uses_one_arena(one):
-    code = ("import gpuslice.device as d; from gpuslice.batch.task import init_worker; "
-            f"init_worker(None, None, 'numpy', {one}); print(d._ONE_ARENA)")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    code = ("import gpuslice.allocator as a; from gpuslice.batch.task import init_worker; "
+            f"init_worker(None, None, 'numpy', {one}); print(a.one_arena())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=_child_env())
     assert out.returncode == 0, out.stderr
     assert out.stdout.split()[-1] == str(one)
+
+
+@pytest.mark.parametrize("raster", [None, "goo"])
+def test_the_batch_runner_asks_its_workers_for_one_arena_with_resin_outputs(monkeypatch, tmp_path, raster):
+    from gpuslice.batch import runner as runner_mod
+    from gpuslice.batch.options import BatchOptions
+
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def executor(*args, initializer=None, initargs=(), **kw):
+        seen.append((initializer, initargs))
+        raise Stop
+
+    monkeypatch.setattr(runner_mod, "ProcessPoolExecutor", executor)
+    opts = BatchOptions(raster=raster, raster_options=(("printer", "elegoo-saturn-3-ultra"),) if raster else ())
+    run = runner_mod.BatchRunner([], opts, tmp_path)
+    with pytest.raises(Stop):
+        run._run_local([], 1, 1)
+    (init, args), = seen
+    assert init is runner_mod.init_worker
+    assert args[3] is (raster is not None)

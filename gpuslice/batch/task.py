@@ -77,14 +77,14 @@ def init_worker(env: dict[str, str] | None = None, device: str | None = None, ba
                 one_arena: bool = False) -> None:
     """Initializer of a local worker process: PoCL threads, signals, the OpenCL device and kernels (built once);
     ``one_arena``: its threads share one malloc arena (a batch of resin outputs: as ``gpuslice raster``,
-    :func:`gpuslice.device.one_malloc_arena`).
+    :func:`gpuslice.allocator.one_malloc_arena`).
 
     Ctrl-C goes to the whole process group; the workers ignore it (the driver stops them), and SIGTERM unwinds
     the worker (``SystemExit``) so a half-written temporary output is removed.
     """
     os.environ.update(env or {})
     if one_arena:  # (before the device's threads start)
-        from ..device import one_malloc_arena
+        from ..allocator import one_malloc_arena
 
         one_malloc_arena()
     signal.signal(signal.SIGINT, signal.SIG_IGN)

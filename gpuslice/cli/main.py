@@ -140,12 +140,12 @@ def entry() -> None:
     the user set it: nothing here runs a threaded BLAS call, and numpy's OpenBLAS otherwise starts a thread per core
     at import that spins for ≈ 0.1 s waiting for work, taking a core from start-up (measured: a 0.05 mm nefertiti
     slice 7 % slower on 2 cores). The variable is inherited by the PNG and batch worker processes. For ``raster``,
-    the process's threads share one malloc arena (:func:`gpuslice.device.one_malloc_arena`)."""
+    the process's threads share one malloc arena (:func:`gpuslice.allocator.one_malloc_arena`)."""
     if "numpy" not in sys.modules:
         os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     sys.unraisablehook = _unraisable
     if _command(sys.argv[1:]) == "raster":  # slicing, then the layers on other threads: what one frees, the next uses
-        from ..device import one_malloc_arena
+        from ..allocator import one_malloc_arena
 
         one_malloc_arena()
     exit_now(main())

@@ -1,0 +1,68 @@
+"""The process's C allocator between the pipeline's stages (glibc's malloc): one arena for the resin job, and the
+heap's free pages handed back after slicing otherwise.
+
+Imports nothing heavy (no numpy), so the command line can call :func:`one_malloc_arena` first thing, before any
+thread starts.
+"""
+
+from __future__ import annotations
+
+import os
+
+__all__ = ["on_glibc", "one_malloc_arena", "one_arena", "trim_heap"]
+
+#: set by :func:`one_malloc_arena`
+_ONE_ARENA = False
+
+
+def on_glibc() -> bool:
+    """Whether this process's C library is glibc (``os.confstr``: absent on Windows, refused on macOS and musl)."""
+    try:
+        return (os.confstr("CS_GNU_LIBC_VERSION") or "").startswith("glibc")
+    except (AttributeError, ValueError, OSError):
+        return False
+
+
+def one_malloc_arena() -> bool:
+    """Make the threads of this process allocate from glibc's main arena (``mallopt(M_ARENA_MAX, 1)``), and say
+    whether that was done (False off glibc, or when glibc refused). Call it before any other thread has allocated:
+    an arena a thread already had (or left behind when it ended) is still handed out afterwards.
+
+    For a process that slices and then writes resin layers (``gpuslice raster``, a batch's local workers for resin
+    outputs): glibc gives each new thread an arena of its own, so the layers' threads (the runs' lanes, the
+    encoders) never reuse the ~200 MB the slicer freed on the main thread, and every page they touch is fresh:
+    zeroed by the kernel, and on a virtual machine perhaps first backed by the host (``docs/BENCHMARKS.md``,
+    twentieth session: the armadillo job at 12K faulted 26k pages in its raster stage, 2.3–2.7k with one arena, and
+    ``--z-samples 4`` ran in 0.93× the time at 0.89× the peak). Not done by the library, whose caller owns the
+    process, nor by ``check``: GEOS's many small allocations on two threads contend for one arena (the nefertiti
+    check 1.07× slower)."""
+    global _ONE_ARENA
+    if not on_glibc():
+        return False
+    try:
+        import ctypes
+
+        _ONE_ARENA = ctypes.CDLL(None).mallopt(-8, 1) == 1  # M_ARENA_MAX (malloc.h)
+    except (OSError, AttributeError):  # no mallopt after all
+        return False
+    return _ONE_ARENA
+
+
+def one_arena() -> bool:
+    """Whether :func:`one_malloc_arena` was done in this process."""
+    return _ONE_ARENA
+
+
+def trim_heap() -> None:
+    """Hand the heap's free pages back to the system (glibc's ``malloc_trim``, as Dask's workers do: numpy's freed
+    temporaries otherwise stay in the process), unless this process's threads share one arena
+    (:func:`one_malloc_arena`): then the next stage's threads allocate where that memory was freed, and it stays to
+    be reused. Nothing off glibc."""
+    if _ONE_ARENA or not on_glibc():
+        return
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):  # no malloc_trim after all
+        pass
