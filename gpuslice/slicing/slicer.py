@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import ParameterError
+from ..errors import InvalidGeometryError, ParameterError
 from ..mesh.mesh import Mesh
 from ..prefetch import prefetch
 from ..schedule.adaptive import AdaptiveSchedule
@@ -209,7 +209,10 @@ def slice_mesh(
         for a, b, loops, count in prefetch(chained(), 1 if len(batches) > 1 else 0):
             n_segments += count
             t = time.perf_counter()
-            nested = nest_loops(loops, b - a, params.fill_rule)
+            try:
+                nested = nest_loops(loops, b - a, params.fill_rule)
+            except InvalidGeometryError as exc:  # (overlaps._node: loops GEOS cannot node even on a grid)
+                raise InvalidGeometryError(f"{mesh.name}: layers {a}-{b - 1}: {exc}") from None
             if gather and points_sink is None:  # the batch's points join the others' now, and its own array goes
                 points.append(nested.points)
                 nested = replace(nested, points=_GATHERED)
