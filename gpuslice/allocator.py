@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["on_glibc", "one_malloc_arena", "one_arena", "trim_heap"]
+__all__ = ["on_glibc", "one_malloc_arena", "one_arena", "trim_heap", "prefault", "PREFAULT_CHUNK"]
 
 #: set by :func:`one_malloc_arena`
 _ONE_ARENA = False
@@ -66,3 +66,63 @@ def trim_heap() -> None:
         ctypes.CDLL("libc.so.6").malloc_trim(0)
     except (OSError, AttributeError):  # no malloc_trim after all
         pass
+
+
+#: the blocks :func:`prefault` grows the heap by (below glibc's largest mmap threshold, 32 MiB: from the heap)
+PREFAULT_CHUNK = 8 << 20
+_MADV_POPULATE_WRITE = 23  # Linux 5.14 and later
+
+
+def prefault(nbytes: int) -> bool:
+    """Grow the main heap's free top by about ``nbytes`` and fault its pages in on a thread of its own, and say
+    whether that was started (False off glibc, on a kernel older than Linux 5.14, or for less than one
+    :data:`PREFAULT_CHUNK`).
+
+    A command's first touch of each page of its working memory costs a page fault and the page's zeroing by the
+    kernel, and on a virtual machine often the host's backing of it too: a cold ``gpuslice slice`` spent ~15 % of its
+    CPU in ``clear_page`` (``docs/BENCHMARKS.md``, twentieth session). Called first thing by the command line (no
+    other thread yet), this moves that work onto the core the start-up leaves idle (the imports run on one):
+
+    * glibc is told to keep freed memory: its mmap threshold raised to 32 MiB (blocks up to that size come from the
+      heap) and its trim threshold to 1 GiB (the heap's free top is not handed back);
+    * blocks are allocated from the top of the heap and freed at once, so the heap's free top chunk now spans them;
+    * the thread asks the kernel to populate that range (``madvise(MADV_POPULATE_WRITE)``: pages allocated and
+      zeroed as a write would, but nothing written, so the main thread carving allocations out of the same range
+      meanwhile is safe).
+
+    The job's later allocations from the main arena (numpy's arrays and PoCL's buffers made on the main thread;
+    with :func:`one_malloc_arena`, every thread's) are then carved from pages already there. Arrays over 32 MiB are
+    still mapped fresh. The thread makes one system call (ctypes releases the GIL) and is not waited for."""
+    if nbytes < PREFAULT_CHUNK or not on_glibc():
+        return False
+    try:
+        import _thread
+        import ctypes
+        import mmap
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        malloc, free, madvise = libc.malloc, libc.free, libc.madvise
+        malloc.restype, malloc.argtypes = ctypes.c_void_p, [ctypes.c_size_t]
+        free.restype, free.argtypes = None, [ctypes.c_void_p]
+        madvise.restype, madvise.argtypes = ctypes.c_int, [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
+        if madvise(0, 0, _MADV_POPULATE_WRITE) != 0:  # (an empty range: EINVAL where the kernel lacks the advice)
+            return False
+        if libc.mallopt(-3, 32 << 20) != 1 or libc.mallopt(-1, 1 << 30) != 1:  # M_MMAP_THRESHOLD, M_TRIM_THRESHOLD
+            return False
+        blocks = [malloc(PREFAULT_CHUNK) for _ in range(int(nbytes) // PREFAULT_CHUNK)]
+        lo, hi = min(blocks), max(blocks) + PREFAULT_CHUNK
+        for b in reversed(blocks):  # (the last first: each joins the top chunk as it is freed)
+            free(b)
+        if 0 in blocks or hi - lo > 2 * len(blocks) * PREFAULT_CHUNK:  # not one stretch of the heap: leave it
+            return False
+    except (OSError, AttributeError):  # no such functions after all
+        return False
+    page = mmap.PAGESIZE
+    start = (lo + page - 1) // page * page
+    length = (hi - start) // page * page
+
+    def populate() -> None:
+        madvise(start, length, _MADV_POPULATE_WRITE)
+
+    _thread.start_new_thread(populate, ())
+    return True

@@ -88,20 +88,79 @@ def test_release_scratch_trims_the_heap_unless_one_arena(monkeypatch):
     assert calls == [0]  # (left in the process: the next stage's threads reuse it)
 
 
-@pytest.mark.parametrize("args, one", [(["raster", "m.stl", "-o", "x.goo"], True), (["--debug", "raster"], True),
-                                       (["slice", "m.stl"], False), (["check", "raster.stl"], False), ([], False)])
-def test_the_command_line_asks_for_one_arena_for_raster_only(monkeypatch, args, one):
+@pytest.mark.parametrize("args, one, pre", [(["raster", "m.stl", "-o", "x.goo"], True, False),
+                                            (["--debug", "raster"], True, False), (["slice", "m.stl"], False, True),
+                                            (["check", "raster.stl"], False, True), (["info", "m.stl"], False, False),
+                                            ([], False, False)])
+def test_the_command_line_asks_for_one_arena_for_raster_and_a_prefault_for_slice_and_check(monkeypatch, args, one,
+                                                                                           pre):
     import gpuslice.cli.main  # noqa: F401  (the package exports a function of the same name)
 
     cli_main = sys.modules["gpuslice.cli.main"]
-    asked = []
+    asked, prefaulted = [], []
     monkeypatch.setattr(allocator, "one_malloc_arena", lambda: asked.append(True) or True)
+    monkeypatch.setattr(allocator, "prefault", lambda n: prefaulted.append(n) or True)
     monkeypatch.setattr(cli_main, "main", lambda: 0)
     monkeypatch.setattr(cli_main, "exit_now", lambda code: None)
     monkeypatch.setattr(sys, "argv", ["gpuslice", *args])
     monkeypatch.setattr(sys, "unraisablehook", sys.unraisablehook)  # (entry sets its own)
     cli_main.entry()
     assert bool(asked) is one
+    assert bool(prefaulted) is pre
+
+
+def test_the_prefault_is_sized_by_the_model_file(tmp_path):
+    import gpuslice.cli.main  # noqa: F401
+
+    cli_main = sys.modules["gpuslice.cli.main"]
+    model, old_out = tmp_path / "m.stl", tmp_path / "old.npz"
+    model.write_bytes(b"\0" * 3_000_000)
+    old_out.write_bytes(b"\0" * 9_000_000)  # (an output being overwritten: not the model)
+    args = ["slice", "-t", "0.05", str(model), "-o", str(old_out), "--report", str(old_out), str(tmp_path)]
+    assert cli_main._prefault_bytes("slice", args) == cli_main.PREFAULT["slice"] * 3_000_000
+    assert cli_main._prefault_bytes("check", ["check", str(tmp_path / "missing.stl")]) == 0
+    assert cli_main._prefault_bytes("info", ["info", str(model)]) == 0
+    big = tmp_path / "big.stl"
+    with open(big, "wb") as f:
+        f.truncate(cli_main.PREFAULT_MAX)  # (sparse)
+    assert cli_main._prefault_bytes("slice", ["slice", str(big)]) == cli_main.PREFAULT_MAX
+
+
+# after prefault (or not), numpy arrays of 8-24 MB: the page faults their first touch costs
+REUSE = textwrap.dedent("""
+    import resource, sys, time
+    import gpuslice.allocator as a
+    n = int(sys.argv[1]) << 20
+    started = a.prefault(n) if n else False
+    import numpy as np
+    def rss():
+        return int(open("/proc/self/statm").read().split()[1]) * 4096
+    t = time.monotonic()
+    while started and rss() < n and time.monotonic() - t < 10:  # (the thread populating the heap's top)
+        time.sleep(0.01)
+    keep, f0 = [], resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for mb in (8, 16, 24):
+        keep.append(np.ones(mb << 18, np.float32))
+    print(started, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0)
+""")
+
+
+@needs_glibc
+def test_prefault_makes_the_first_touch_of_new_arrays_fault_free():
+    def run(mb):
+        out = subprocess.run([sys.executable, "-c", REUSE, str(mb)], capture_output=True, text=True, timeout=120,
+                             env=_child_env())
+        assert out.returncode == 0, out.stderr
+        started, faults = out.stdout.split()
+        return started == "True", int(faults)
+
+    started, faults = run(96)
+    if not started:
+        pytest.skip("no MADV_POPULATE_WRITE on this kernel (Linux < 5.14): prefault() does nothing there")
+    started0, faults0 = run(0)
+    assert not started0
+    assert faults0 >= 20  # (48 MB of arrays: ~12k pages, or ~24 huge pages)
+    assert faults <= 2  # (a page or two of the arrays' headers at most)
 
 
 @needs_glibc
