@@ -344,39 +344,6 @@ def _geos_region(noded, ids, pc, offsets, lo, hi, fill_rule):
     return shapely.union_all(kept)
 
 
-#: mm: the precision grid a group's lines are snapped to when GEOS cannot node them as they are (as the checks'
-#: overlays retry: ``checks/islands._overlay``); far below a float32 coordinate's resolution at a few mm
-SNAP_GRID = 1e-6
-
-
-def _node(lines: np.ndarray) -> np.ndarray:
-    """``shapely.node`` of every group's lines (:func:`gpuslice.slicing.rings.node_lines`: GEOS, half of the groups
-    on a second thread when large). Where GEOS fails (its noding does not converge: a broken file whose
-    coordinates span some 40 orders of magnitude, e.g. float32 subnormals beside millimetres), each group is noded
-    alone and a failing one again on the :data:`SNAP_GRID` grid; one that still fails raises
-    :class:`~gpuslice.errors.InvalidGeometryError` (the slicer names the file and the layers)."""
-    import shapely
-
-    try:
-        return _rings.node_lines(lines)
-    except shapely.errors.GEOSException:
-        pass
-    out = np.empty(lines.size, dtype=object)
-    for g in range(lines.size):  # (only after a failure: a loop over the groups of one batch)
-        for grid in (None, SNAP_GRID):
-            try:
-                out[g] = shapely.node(lines[g] if grid is None else
-                                      shapely.set_precision(lines[g], grid, mode="pointwise"))
-                break
-            except shapely.errors.GEOSException as exc:
-                failure = exc
-        else:
-            from ..errors import InvalidGeometryError, one_line
-
-            raise InvalidGeometryError(f"GEOS could not node its crossing loops ({one_line(failure)})") from None
-    return out
-
-
 def _regions(points, pc, offsets, groups, lo, hi, fill_rule):
     """The region (polygonal geometry, or None: no face) of every group (layer, ids)."""
     import shapely
@@ -388,7 +355,7 @@ def _regions(points, pc, offsets, groups, lo, hi, fill_rule):
     rz, roff = _ring_points(points, offsets, lid, pc, always_close=True)  # as np.vstack([ring, ring[:1]])
     lines = shapely.from_ragged_array(shapely.GeometryType.MULTILINESTRING, rz.view(np.float64).reshape(-1, 2),
                                       (roff, g_off))
-    noded = _node(lines)
+    noded = _rings.node_groups(lines)
     loop_g = np.repeat(np.arange(per.size), per)
     ok, geoms = _arrangement(_Noded(noded), rz, roff, loop_g, lid, per.size,
                              pc, offsets, lo, hi, fill_rule)

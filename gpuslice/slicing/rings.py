@@ -13,7 +13,8 @@ from ..mesh.graph import connected_labels
 from ..prefetch import beside as _beside
 from ..ragged import expand_ranges
 
-__all__ = ["Nested", "signed_areas", "filled", "cycle_labels", "beside", "in_halves", "node_lines", "move_chains"]
+__all__ = ["Nested", "signed_areas", "filled", "cycle_labels", "beside", "in_halves", "node_lines", "node_groups",
+           "move_chains"]
 
 #: points above which nesting runs independent GEOS steps on a second thread (GEOS and numpy release the GIL)
 BESIDE_MIN_POINTS = 100_000
@@ -49,6 +50,39 @@ def node_lines(lines: np.ndarray) -> np.ndarray:
     import shapely
 
     return in_halves(shapely.node, shapely.get_num_coordinates(lines), lines)
+
+
+#: mm: the precision grid a group's lines are snapped to when GEOS cannot node them as they are (as the checks'
+#: overlays retry: ``checks/islands._overlay``); far below a float32 coordinate's resolution at a few mm
+SNAP_GRID = 1e-6
+
+
+def node_groups(lines: np.ndarray) -> np.ndarray:
+    """``shapely.node`` of every group's lines (:func:`node_lines`: GEOS, half of the groups on a second thread when
+    large). Where GEOS fails (its noding does not converge: a broken file whose coordinates span some 40 orders of
+    magnitude, e.g. float32 subnormals beside millimetres), each group is noded alone and a failing one again on the
+    :data:`SNAP_GRID` grid; one that still fails raises
+    :class:`~gpuslice.errors.InvalidGeometryError` (the slicer names the file and the layers)."""
+    import shapely
+
+    try:
+        return node_lines(lines)
+    except shapely.errors.GEOSException:
+        pass
+    out = np.empty(lines.size, dtype=object)
+    for g in range(lines.size):  # (only after a failure: a loop over the groups of one batch)
+        for grid in (None, SNAP_GRID):
+            try:
+                out[g] = shapely.node(lines[g] if grid is None else
+                                      shapely.set_precision(lines[g], grid, mode="pointwise"))
+                break
+            except shapely.errors.GEOSException as exc:
+                failure = exc
+        else:
+            from ..errors import InvalidGeometryError, one_line
+
+            raise InvalidGeometryError(f"GEOS could not node its crossing loops ({one_line(failure)})") from None
+    return out
 
 
 @dataclass

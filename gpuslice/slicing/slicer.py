@@ -211,7 +211,7 @@ def slice_mesh(
             t = time.perf_counter()
             try:
                 nested = nest_loops(loops, b - a, params.fill_rule)
-            except InvalidGeometryError as exc:  # (overlaps._node: loops GEOS cannot node even on a grid)
+            except InvalidGeometryError as exc:  # (rings.node_groups: loops GEOS cannot node on a grid)
                 raise InvalidGeometryError(f"{mesh.name}: layers {a}-{b - 1}: {exc}") from None
             if gather and points_sink is None:  # the batch's points join the others' now, and its own array goes
                 points.append(nested.points)

@@ -1,4 +1,4 @@
-"""Loops GEOS cannot node as they are (``slicing/overlaps._node``): a broken file whose coordinates span ~40 orders
+"""Loops GEOS cannot node as they are (``slicing/rings.node_groups``): a broken file whose coordinates span ~40 orders
 of magnitude (float32 subnormals beside millimetres, found by ``scripts/fuzz_stl.py``: 20 bytes spliced into a
 binary STL) made ``shapely.node`` raise "Iterated noding failed to converge" out of the slicer, and the command line
 exit 1 with "internal error". Such a group is now noded alone, then on a 1e-6 mm grid; one that still fails is a
@@ -12,7 +12,7 @@ import shapely
 
 import gpuslice
 from gpuslice.errors import InvalidGeometryError
-from gpuslice.slicing import overlaps
+from gpuslice.slicing import rings
 
 # the fuzzer's case, cut down to 5 facets: subnormal x, y (~7.8e-41 mm) next to exact zeros and 3-37 mm
 D1, D2, D3 = 7.787435955792306e-41, 7.593215988636886e-41, 7.79500296749966e-41
@@ -35,7 +35,7 @@ def test_geos_fails_on_these_lines_as_they_are():
     them, the retry is untested here and this says so)."""
     mesh = gpuslice.mesh_from_triangles(_triangles((D1, D2, D3)))
     seen = []
-    real = overlaps._rings.node_lines
+    real = rings.node_lines
 
     def record(lines):
         try:
@@ -45,9 +45,9 @@ def test_geos_fails_on_these_lines_as_they_are():
             raise
 
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(overlaps._rings, "node_lines", record)
+        mp.setattr(rings, "node_lines", record)
         gpuslice.slice_mesh(mesh, thickness=0.2, backend="numpy")
-    assert seen, "GEOS nodes these lines now: the retry of overlaps._node is not exercised by this mesh"
+    assert seen, "GEOS nodes these lines now: the retry of rings.node_groups is not exercised by this mesh"
 
 
 def test_subnormal_coordinates_slice_as_zeros_do(backend):
@@ -59,7 +59,7 @@ def test_subnormal_coordinates_slice_as_zeros_do(backend):
     assert got.n_layers == ref.n_layers
     a, b = got.to_shapely(), ref.to_shapely()
     assert all(shapely.is_valid(g) for g in a)
-    bound = shapely.length(b) * overlaps.SNAP_GRID + 1e-12
+    bound = shapely.length(b) * rings.SNAP_GRID + 1e-12
     assert np.all(np.abs(shapely.area(a) - shapely.area(b)) <= bound)
 
 
@@ -67,7 +67,7 @@ def test_lines_geos_cannot_node_even_on_the_grid_are_a_one_line_error(monkeypatc
     def never(*args, **kwargs):
         raise shapely.errors.GEOSException("TopologyException: Iterated noding failed to converge")
 
-    monkeypatch.setattr(overlaps._rings, "node_lines", never)
+    monkeypatch.setattr(rings, "node_lines", never)
     monkeypatch.setattr(shapely, "node", never)
     mesh = gpuslice.mesh_from_triangles(_triangles((D1, D2, D3)), name="broken.stl")
     with pytest.raises(InvalidGeometryError) as info:
