@@ -1,8 +1,9 @@
-"""The process's C allocator between the pipeline's stages (glibc's malloc): one arena for the resin job, and the
-heap's free pages handed back after slicing otherwise.
+"""The process's C allocator (glibc's malloc) around the pipeline's stages: one arena for the resin job
+(:func:`one_malloc_arena`), the first working memory of a command faulted in ahead on an idle core
+(:func:`prefault`), and otherwise the heap's free pages handed back after slicing (:func:`trim_heap`).
 
-Imports nothing heavy (no numpy), so the command line can call :func:`one_malloc_arena` first thing, before any
-thread starts.
+Imports nothing heavy (no numpy), so the command line can call these first thing, before any other thread starts.
+Only the command line and its batch workers call the first two: the library leaves its caller's process alone.
 """
 
 from __future__ import annotations
@@ -113,8 +114,8 @@ def prefault(nbytes: int) -> bool:
         lo, hi = min(blocks), max(blocks) + PREFAULT_CHUNK
         for b in reversed(blocks):  # (the last first: each joins the top chunk as it is freed)
             free(b)
-        if 0 in blocks or hi - lo > 2 * len(blocks) * PREFAULT_CHUNK:  # not one stretch of the heap: leave it
-            return False
+        if 0 in blocks or hi - lo > 2 * len(blocks) * PREFAULT_CHUNK:  # not one stretch of the heap: leave it (the
+            return False  # thresholds stay: they only keep freed memory in the process)
     except (OSError, AttributeError):  # no such functions after all
         return False
     page = mmap.PAGESIZE

@@ -129,14 +129,14 @@ def test_the_prefault_is_sized_by_the_model_file(tmp_path):
 # after prefault (or not), numpy arrays of 8-24 MB: the page faults their first touch costs
 REUSE = textwrap.dedent("""
     import resource, sys, time
-    import gpuslice.allocator as a
-    n = int(sys.argv[1]) << 20
-    started = a.prefault(n) if n else False
     import numpy as np
+    import gpuslice.allocator as a
     def rss():
         return int(open("/proc/self/statm").read().split()[1]) * 4096
+    n, r0 = int(sys.argv[1]) << 20, rss()
+    started = a.prefault(n) if n else False
     t = time.monotonic()
-    while started and rss() < n and time.monotonic() - t < 10:  # (the thread populating the heap's top)
+    while started and rss() < r0 + 0.9 * n and time.monotonic() - t < 10:  # (the thread populating the heap's top)
         time.sleep(0.01)
     keep, f0 = [], resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     for mb in (8, 16, 24):
