@@ -109,6 +109,23 @@ def test_the_command_line_asks_for_one_arena_for_raster_and_a_prefault_for_slice
     assert bool(prefaulted) is pre
 
 
+@pytest.mark.parametrize("command", ["raster", "slice", "check"])
+def test_plain_malloc_leaves_the_allocator_alone(monkeypatch, command):
+    import gpuslice.cli.main  # noqa: F401
+
+    cli_main = sys.modules["gpuslice.cli.main"]
+    called = []
+    monkeypatch.setattr(allocator, "one_malloc_arena", lambda: called.append("arena") or True)
+    monkeypatch.setattr(allocator, "prefault", lambda n: called.append("prefault") or True)
+    monkeypatch.setattr(cli_main, "main", lambda: 0)
+    monkeypatch.setattr(cli_main, "exit_now", lambda code: None)
+    monkeypatch.setattr(sys, "argv", ["gpuslice", command, "m.stl"])
+    monkeypatch.setattr(sys, "unraisablehook", sys.unraisablehook)
+    monkeypatch.setenv("GPUSLICE_PLAIN_MALLOC", "1")
+    cli_main.entry()
+    assert called == []
+
+
 def test_the_prefault_is_sized_by_the_model_file(tmp_path):
     import gpuslice.cli.main  # noqa: F401
 

@@ -142,11 +142,12 @@ def entry() -> None:
     slice 7 % slower on 2 cores). The variable is inherited by the PNG and batch worker processes. For ``raster``,
     the process's threads share one malloc arena (:func:`gpuslice.allocator.one_malloc_arena`); for ``slice`` and
     ``check``, the job's first working memory is faulted in ahead on a second core
-    (:func:`gpuslice.allocator.prefault`)."""
+    (:func:`gpuslice.allocator.prefault`); ``GPUSLICE_PLAIN_MALLOC=1`` (any non-empty value) leaves glibc's malloc as
+    it is."""
     if "numpy" not in sys.modules:
         os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     sys.unraisablehook = _unraisable
-    command = _command(sys.argv[1:])
+    command = None if os.environ.get("GPUSLICE_PLAIN_MALLOC") else _command(sys.argv[1:])
     if command == "raster":  # slicing, then the layers on other threads: what one frees, the next uses
         from ..allocator import one_malloc_arena
 
