@@ -126,6 +126,53 @@ def test_plain_malloc_leaves_the_allocator_alone(monkeypatch, command):
     assert called == []
 
 
+def test_prefault_gives_up_quietly(monkeypatch):
+    """The user's own malloc settings, or no memory (malloc returns NULL): False, nothing raised."""
+    import ctypes
+
+    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "1000")
+    assert allocator.user_tuned_malloc() and allocator.prefault(64 << 20) is False
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_")
+    monkeypatch.setenv("GLIBC_TUNABLES", "glibc.malloc.arena_max=2")
+    assert allocator.prefault(64 << 20) is False
+    monkeypatch.delenv("GLIBC_TUNABLES")
+    monkeypatch.setattr(allocator, "on_glibc", lambda: True)
+    real = ctypes.CDLL
+
+    class NoMemory:
+        def __init__(self, *args, **kwargs):
+            self._libc = real(None)
+
+        def __getattr__(self, name):
+            fn = getattr(self._libc, name)
+            if name == "malloc":
+                return ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_size_t)(lambda n: None)
+            if name == "mallopt":
+                return lambda *a: 1  # (the process's real thresholds stay as they are)
+            return fn
+
+    monkeypatch.setattr(ctypes, "CDLL", NoMemory)
+    assert allocator.prefault(64 << 20) is False
+
+
+NO_THREAD = textwrap.dedent("""
+    import _thread
+    import gpuslice.allocator as a
+    def refuse(*args):
+        raise RuntimeError("can't start new thread")
+    _thread.start_new_thread = refuse
+    print(a.prefault(64 << 20))
+""")
+
+
+@needs_glibc
+def test_prefault_without_a_thread_is_false():
+    out = subprocess.run([sys.executable, "-c", NO_THREAD], capture_output=True, text=True, timeout=120,
+                         env=_child_env())
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split()[-1] == "False"
+
+
 def test_the_prefault_is_sized_by_the_model_file(tmp_path):
     import gpuslice.cli.main  # noqa: F401
 
@@ -137,6 +184,12 @@ def test_the_prefault_is_sized_by_the_model_file(tmp_path):
     assert cli_main._prefault_bytes("slice", args) == cli_main.PREFAULT["slice"] * 3_000_000
     assert cli_main._prefault_bytes("check", ["check", str(tmp_path / "missing.stl")]) == 0
     assert cli_main._prefault_bytes("info", ["info", str(model)]) == 0
+    ascii_stl = tmp_path / "a.stl"
+    ascii_stl.write_bytes(b"solid part\n" + b" " * 4_999_989)  # (an ASCII STL holds ~5x fewer facets a byte)
+    assert cli_main._prefault_bytes("slice", ["slice", str(ascii_stl)]) == cli_main.PREFAULT["slice"] * 1_000_000
+    binary = tmp_path / "b.stl"
+    binary.write_bytes(b"solid but binary".ljust(80) + (100_000).to_bytes(4, "little") + b"\0" * 5_000_000)
+    assert cli_main._prefault_bytes("slice", ["slice", str(binary)]) == cli_main.PREFAULT["slice"] * 5_000_084
     big = tmp_path / "big.stl"
     with open(big, "wb") as f:
         f.truncate(cli_main.PREFAULT_MAX)  # (sparse)
@@ -146,19 +199,21 @@ def test_the_prefault_is_sized_by_the_model_file(tmp_path):
 # after prefault (or not), numpy arrays of 8-24 MB: the page faults their first touch costs
 REUSE = textwrap.dedent("""
     import resource, sys, time
+    import os
     import numpy as np
     import gpuslice.allocator as a
     def rss():
-        return int(open("/proc/self/statm").read().split()[1]) * 4096
+        return int(open("/proc/self/statm").read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
     n, r0 = int(sys.argv[1]) << 20, rss()
     started = a.prefault(n) if n else False
     t = time.monotonic()
     while started and rss() < r0 + 0.9 * n and time.monotonic() - t < 10:  # (the thread populating the heap's top)
         time.sleep(0.01)
-    keep, f0 = [], resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    # (this thread's faults only: the populating thread's are charged to it)
+    keep, f0 = [], resource.getrusage(resource.RUSAGE_THREAD).ru_minflt
     for mb in (8, 16, 24):
         keep.append(np.ones(mb << 18, np.float32))
-    print(started, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0)
+    print(started, resource.getrusage(resource.RUSAGE_THREAD).ru_minflt - f0)
 """)
 
 

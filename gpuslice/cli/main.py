@@ -142,8 +142,8 @@ def entry() -> None:
     slice 7 % slower on 2 cores). The variable is inherited by the PNG and batch worker processes. For ``raster``,
     the process's threads share one malloc arena (:func:`gpuslice.allocator.one_malloc_arena`); for ``slice`` and
     ``check``, the job's first working memory is faulted in ahead on a second core
-    (:func:`gpuslice.allocator.prefault`); ``GPUSLICE_PLAIN_MALLOC=1`` (any non-empty value) leaves glibc's malloc as
-    it is."""
+    (:func:`gpuslice.allocator.prefault`, not where the user tunes malloc with ``MALLOC_*`` or ``GLIBC_TUNABLES``);
+    ``GPUSLICE_PLAIN_MALLOC=1`` (any non-empty value) leaves glibc's malloc as it is."""
     if "numpy" not in sys.modules:
         os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     sys.unraisablehook = _unraisable
@@ -155,7 +155,8 @@ def entry() -> None:
     elif command in PREFAULT:  # the job's first pages faulted in on the core the imports leave idle
         from ..allocator import prefault
 
-        prefault(_prefault_bytes(command, sys.argv[1:]))
+        with contextlib.suppress(Exception):  # (only ever a speed-up: never a reason to fail the command)
+            prefault(_prefault_bytes(command, sys.argv[1:]))
     exit_now(main())
 
 
@@ -171,8 +172,9 @@ _OUTPUT_OPTIONS = {"-o", "--output", "--report", "--json"}
 
 
 def _prefault_bytes(command: str, args: list[str]) -> int:
-    """What to fault in ahead for ``command`` given the command line's ``args``: its factor times the size of the
-    largest regular file they name (the model; not the value of an output option), at most :data:`PREFAULT_MAX`."""
+    """What to fault in ahead for ``command`` given the command line's ``args``: its factor times the largest
+    regular file they name (the model; not the value of an output option), counted as binary STL bytes
+    (:func:`_binary_stl_bytes`), at most :data:`PREFAULT_MAX`."""
     import stat
 
     size, after_output = 0, False
@@ -183,9 +185,21 @@ def _prefault_bytes(command: str, args: list[str]) -> int:
             except (OSError, ValueError):  # (not a file: a number, the command's name, a file not yet written)
                 st = None
             if st is not None and stat.S_ISREG(st.st_mode):
-                size = max(size, st.st_size)
+                size = max(size, _binary_stl_bytes(a, st.st_size))
         after_output = a in _OUTPUT_OPTIONS
     return min(PREFAULT.get(command, 0) * size, PREFAULT_MAX)
+
+
+def _binary_stl_bytes(path: str, size: int) -> int:
+    """``size`` bytes of the file ``path`` as the bytes of a binary STL of as many facets: an ASCII STL (a text
+    beginning ``solid`` whose size is not a binary one's for its header's count) holds ~5x fewer facets per byte."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(84)
+    except OSError:
+        return size
+    binary = len(head) == 84 and 84 + 50 * int.from_bytes(head[80:84], "little") == size
+    return size // 5 if head[:5].lower() == b"solid" and not binary else size
 
 
 def _command(args: list[str]) -> str | None:
