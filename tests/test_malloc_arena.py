@@ -88,151 +88,39 @@ def test_release_scratch_trims_the_heap_unless_one_arena(monkeypatch):
     assert calls == [0]  # (left in the process: the next stage's threads reuse it)
 
 
-@pytest.mark.parametrize("args, one, pre", [(["raster", "m.stl", "-o", "x.goo"], True, False),
-                                            (["--debug", "raster"], True, False), (["slice", "m.stl"], False, True),
-                                            (["check", "raster.stl"], False, True), (["info", "m.stl"], False, False),
-                                            ([], False, False)])
-def test_the_command_line_asks_for_one_arena_for_raster_and_a_prefault_for_slice_and_check(monkeypatch, args, one,
-                                                                                           pre):
+@pytest.mark.parametrize("args, one", [(["raster", "m.stl", "-o", "x.goo"], True), (["--debug", "raster"], True),
+                                       (["slice", "m.stl"], False), (["check", "raster.stl"], False), ([], False)])
+def test_the_command_line_asks_for_one_arena_for_raster_only(monkeypatch, args, one):
     import gpuslice.cli.main  # noqa: F401  (the package exports a function of the same name)
 
     cli_main = sys.modules["gpuslice.cli.main"]
-    asked, prefaulted = [], []
+    asked = []
     monkeypatch.setattr(allocator, "one_malloc_arena", lambda: asked.append(True) or True)
-    monkeypatch.setattr(allocator, "prefault", lambda n: prefaulted.append(n) or True)
     monkeypatch.setattr(cli_main, "main", lambda: 0)
     monkeypatch.setattr(cli_main, "exit_now", lambda code: None)
     monkeypatch.setattr(sys, "argv", ["gpuslice", *args])
     monkeypatch.setattr(sys, "unraisablehook", sys.unraisablehook)  # (entry sets its own)
+    for name in ("GPUSLICE_PLAIN_MALLOC", "GLIBC_TUNABLES", *allocator._MALLOC_VARIABLES):
+        monkeypatch.delenv(name, raising=False)
     cli_main.entry()
     assert bool(asked) is one
-    assert bool(prefaulted) is pre
 
 
-@pytest.mark.parametrize("command", ["raster", "slice", "check"])
-def test_plain_malloc_leaves_the_allocator_alone(monkeypatch, command):
+@pytest.mark.parametrize("env", [("GPUSLICE_PLAIN_MALLOC", "1"), ("MALLOC_ARENA_MAX", "4"),
+                                 ("GLIBC_TUNABLES", "glibc.malloc.trim_threshold=0")])
+def test_the_users_own_malloc_settings_are_kept(monkeypatch, env):
     import gpuslice.cli.main  # noqa: F401
 
     cli_main = sys.modules["gpuslice.cli.main"]
-    called = []
-    monkeypatch.setattr(allocator, "one_malloc_arena", lambda: called.append("arena") or True)
-    monkeypatch.setattr(allocator, "prefault", lambda n: called.append("prefault") or True)
+    asked = []
+    monkeypatch.setattr(allocator, "one_malloc_arena", lambda: asked.append(True) or True)
     monkeypatch.setattr(cli_main, "main", lambda: 0)
     monkeypatch.setattr(cli_main, "exit_now", lambda code: None)
-    monkeypatch.setattr(sys, "argv", ["gpuslice", command, "m.stl"])
+    monkeypatch.setattr(sys, "argv", ["gpuslice", "raster", "m.stl", "-o", "x.goo"])
     monkeypatch.setattr(sys, "unraisablehook", sys.unraisablehook)
-    monkeypatch.setenv("GPUSLICE_PLAIN_MALLOC", "1")
+    monkeypatch.setenv(*env)
     cli_main.entry()
-    assert called == []
-
-
-def test_prefault_gives_up_quietly(monkeypatch):
-    """The user's own malloc settings, or no memory (malloc returns NULL): False, nothing raised."""
-    import ctypes
-
-    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "1000")
-    assert allocator.user_tuned_malloc() and allocator.prefault(64 << 20) is False
-    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_")
-    monkeypatch.setenv("GLIBC_TUNABLES", "glibc.malloc.arena_max=2")
-    assert allocator.prefault(64 << 20) is False
-    monkeypatch.delenv("GLIBC_TUNABLES")
-    monkeypatch.setattr(allocator, "on_glibc", lambda: True)
-    real = ctypes.CDLL
-
-    class NoMemory:
-        def __init__(self, *args, **kwargs):
-            self._libc = real(None)
-
-        def __getattr__(self, name):
-            fn = getattr(self._libc, name)
-            if name == "malloc":
-                return ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_size_t)(lambda n: None)
-            if name == "mallopt":
-                return lambda *a: 1  # (the process's real thresholds stay as they are)
-            return fn
-
-    monkeypatch.setattr(ctypes, "CDLL", NoMemory)
-    assert allocator.prefault(64 << 20) is False
-
-
-NO_THREAD = textwrap.dedent("""
-    import _thread
-    import gpuslice.allocator as a
-    def refuse(*args):
-        raise RuntimeError("can't start new thread")
-    _thread.start_new_thread = refuse
-    print(a.prefault(64 << 20))
-""")
-
-
-@needs_glibc
-def test_prefault_without_a_thread_is_false():
-    out = subprocess.run([sys.executable, "-c", NO_THREAD], capture_output=True, text=True, timeout=120,
-                         env=_child_env())
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.split()[-1] == "False"
-
-
-def test_the_prefault_is_sized_by_the_model_file(tmp_path):
-    import gpuslice.cli.main  # noqa: F401
-
-    cli_main = sys.modules["gpuslice.cli.main"]
-    model, old_out = tmp_path / "m.stl", tmp_path / "old.npz"
-    model.write_bytes(b"\0" * 3_000_000)
-    old_out.write_bytes(b"\0" * 9_000_000)  # (an output being overwritten: not the model)
-    args = ["slice", "-t", "0.05", str(model), "-o", str(old_out), "--report", str(old_out), str(tmp_path)]
-    assert cli_main._prefault_bytes("slice", args) == cli_main.PREFAULT["slice"] * 3_000_000
-    assert cli_main._prefault_bytes("check", ["check", str(tmp_path / "missing.stl")]) == 0
-    assert cli_main._prefault_bytes("info", ["info", str(model)]) == 0
-    ascii_stl = tmp_path / "a.stl"
-    ascii_stl.write_bytes(b"solid part\n" + b" " * 4_999_989)  # (an ASCII STL holds ~5x fewer facets a byte)
-    assert cli_main._prefault_bytes("slice", ["slice", str(ascii_stl)]) == cli_main.PREFAULT["slice"] * 1_000_000
-    binary = tmp_path / "b.stl"
-    binary.write_bytes(b"solid but binary".ljust(80) + (100_000).to_bytes(4, "little") + b"\0" * 5_000_000)
-    assert cli_main._prefault_bytes("slice", ["slice", str(binary)]) == cli_main.PREFAULT["slice"] * 5_000_084
-    big = tmp_path / "big.stl"
-    with open(big, "wb") as f:
-        f.truncate(cli_main.PREFAULT_MAX)  # (sparse)
-    assert cli_main._prefault_bytes("slice", ["slice", str(big)]) == cli_main.PREFAULT_MAX
-
-
-# after prefault (or not), numpy arrays of 8-24 MB: the page faults their first touch costs
-REUSE = textwrap.dedent("""
-    import resource, sys, time
-    import os
-    import numpy as np
-    import gpuslice.allocator as a
-    def rss():
-        return int(open("/proc/self/statm").read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-    n, r0 = int(sys.argv[1]) << 20, rss()
-    started = a.prefault(n) if n else False
-    t = time.monotonic()
-    while started and rss() < r0 + 0.9 * n and time.monotonic() - t < 10:  # (the thread populating the heap's top)
-        time.sleep(0.01)
-    # (this thread's faults only: the populating thread's are charged to it)
-    keep, f0 = [], resource.getrusage(resource.RUSAGE_THREAD).ru_minflt
-    for mb in (8, 16, 24):
-        keep.append(np.ones(mb << 18, np.float32))
-    print(started, resource.getrusage(resource.RUSAGE_THREAD).ru_minflt - f0)
-""")
-
-
-@needs_glibc
-def test_prefault_makes_the_first_touch_of_new_arrays_fault_free():
-    def run(mb):
-        out = subprocess.run([sys.executable, "-c", REUSE, str(mb)], capture_output=True, text=True, timeout=120,
-                             env=_child_env())
-        assert out.returncode == 0, out.stderr
-        started, faults = out.stdout.split()
-        return started == "True", int(faults)
-
-    started, faults = run(96)
-    if not started:
-        pytest.skip("no MADV_POPULATE_WRITE on this kernel (Linux < 5.14): prefault() does nothing there")
-    started0, faults0 = run(0)
-    assert not started0
-    assert faults0 >= 20  # (48 MB of arrays: ~12k pages, or ~24 huge pages)
-    assert faults <= 2  # (a page or two of the arrays' headers at most)
+    assert asked == []
 
 
 @needs_glibc

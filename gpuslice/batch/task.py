@@ -83,10 +83,11 @@ def init_worker(env: dict[str, str] | None = None, device: str | None = None, ba
     the worker (``SystemExit``) so a half-written temporary output is removed.
     """
     os.environ.update(env or {})
-    if one_arena:  # (before the device's threads start)
-        from ..allocator import one_malloc_arena
+    if one_arena and not os.environ.get("GPUSLICE_PLAIN_MALLOC"):  # (before the device's threads start)
+        from ..allocator import one_malloc_arena, user_tuned_malloc
 
-        one_malloc_arena()
+        if not user_tuned_malloc():
+            one_malloc_arena()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     t = time.perf_counter()

@@ -140,66 +140,18 @@ def entry() -> None:
     the user set it: nothing here runs a threaded BLAS call, and numpy's OpenBLAS otherwise starts a thread per core
     at import that spins for ≈ 0.1 s waiting for work, taking a core from start-up (measured: a 0.05 mm nefertiti
     slice 7 % slower on 2 cores). The variable is inherited by the PNG and batch worker processes. For ``raster``,
-    the process's threads share one malloc arena (:func:`gpuslice.allocator.one_malloc_arena`); for ``slice`` and
-    ``check``, the job's first working memory is faulted in ahead on a second core
-    (:func:`gpuslice.allocator.prefault`, not where the user tunes malloc with ``MALLOC_*`` or ``GLIBC_TUNABLES``);
-    ``GPUSLICE_PLAIN_MALLOC=1`` (any non-empty value) leaves glibc's malloc as it is."""
+    the process's threads share one malloc arena (:func:`gpuslice.allocator.one_malloc_arena`), unless the user tunes
+    malloc (``MALLOC_*``, ``GLIBC_TUNABLES``) or sets ``GPUSLICE_PLAIN_MALLOC`` (any non-empty value)."""
     if "numpy" not in sys.modules:
         os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     sys.unraisablehook = _unraisable
-    command = None if os.environ.get("GPUSLICE_PLAIN_MALLOC") else _command(sys.argv[1:])
-    if command == "raster":  # slicing, then the layers on other threads: what one frees, the next uses
-        from ..allocator import one_malloc_arena
+    if _command(sys.argv[1:]) == "raster" and not os.environ.get("GPUSLICE_PLAIN_MALLOC"):
+        # slicing, then the layers on other threads: what one frees, the next uses
+        from ..allocator import one_malloc_arena, user_tuned_malloc
 
-        one_malloc_arena()
-    elif command in PREFAULT:  # the job's first pages faulted in on the core the imports leave idle
-        from ..allocator import prefault
-
-        with contextlib.suppress(Exception):  # (only ever a speed-up: never a reason to fail the command)
-            prefault(_prefault_bytes(command, sys.argv[1:]))
+        if not user_tuned_malloc():
+            one_malloc_arena()
     exit_now(main())
-
-
-#: the commands whose process :func:`gpuslice.allocator.prefault` prepares, and how many bytes it faults in ahead per
-#: byte of the model's file (at most :data:`PREFAULT_MAX`): below what a 0.05 mm job of a binary STL allocates from
-#: the main heap, since memory faulted in and not used raises the peak. Not ``raster``: its layers reuse the
-#: slicer's memory already (one arena), and there the prefault's gain (0.95x) cost 55 MB of peak
-PREFAULT = {"slice": 10, "check": 10}
-PREFAULT_MAX = 128 << 20
-
-#: options whose value is a file the command writes (not the model)
-_OUTPUT_OPTIONS = {"-o", "--output", "--report", "--json"}
-
-
-def _prefault_bytes(command: str, args: list[str]) -> int:
-    """What to fault in ahead for ``command`` given the command line's ``args``: its factor times the largest
-    regular file they name (the model; not the value of an output option), counted as binary STL bytes
-    (:func:`_binary_stl_bytes`), at most :data:`PREFAULT_MAX`."""
-    import stat
-
-    size, after_output = 0, False
-    for a in args:
-        if not after_output and not a.startswith("-"):
-            try:
-                st = os.stat(a)
-            except (OSError, ValueError):  # (not a file: a number, the command's name, a file not yet written)
-                st = None
-            if st is not None and stat.S_ISREG(st.st_mode):
-                size = max(size, _binary_stl_bytes(a, st.st_size))
-        after_output = a in _OUTPUT_OPTIONS
-    return min(PREFAULT.get(command, 0) * size, PREFAULT_MAX)
-
-
-def _binary_stl_bytes(path: str, size: int) -> int:
-    """``size`` bytes of the file ``path`` as the bytes of a binary STL of as many facets: an ASCII STL (a text
-    beginning ``solid`` whose size is not a binary one's for its header's count) holds ~5x fewer facets per byte."""
-    try:
-        with open(path, "rb") as f:
-            head = f.read(84)
-    except OSError:
-        return size
-    binary = len(head) == 84 and 84 + 50 * int.from_bytes(head[80:84], "little") == size
-    return size // 5 if head[:5].lower() == b"solid" and not binary else size
 
 
 def _command(args: list[str]) -> str | None:
