@@ -39,8 +39,11 @@ HEAPS = textwrap.dedent("""
 
 
 def _child_env() -> dict[str, str]:
-    """This environment without the user's own arena limits (which would make the default case one arena too)."""
-    return {k: v for k, v in os.environ.items() if k not in ("MALLOC_ARENA_MAX", "GLIBC_TUNABLES")}
+    """This environment without malloc settings: the user's own (an arena limit would make the default case one
+    arena too), or those another test left in this process (Dask's LocalCluster sets ``MALLOC_TRIM_THRESHOLD_`` in
+    its parent's environment, which the command line then keeps as the user's)."""
+    drop = {"GLIBC_TUNABLES", "GPUSLICE_PLAIN_MALLOC", *allocator._MALLOC_VARIABLES}
+    return {k: v for k, v in os.environ.items() if k not in drop}
 
 
 def _heaps(mode: str, tmp_path) -> int:
