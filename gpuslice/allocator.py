@@ -75,5 +75,8 @@ _MALLOC_VARIABLES = ("MALLOC_ARENA_MAX", "MALLOC_ARENA_TEST", "MALLOC_MMAP_THRES
 
 def user_tuned_malloc() -> bool:
     """Whether the environment tunes glibc's malloc (a ``MALLOC_*`` variable, or ``GLIBC_TUNABLES`` naming
-    ``glibc.malloc``): the command line then keeps the user's settings as given."""
-    return any(os.environ.get(v) for v in _MALLOC_VARIABLES) or "glibc.malloc" in os.environ.get("GLIBC_TUNABLES", "")
+    ``glibc.malloc``) or asks for it as it is (``GPUSLICE_PLAIN_MALLOC``, any non-empty value): the command line and
+    its batch workers then keep the user's settings as given."""
+    env = os.environ
+    return (bool(env.get("GPUSLICE_PLAIN_MALLOC")) or any(env.get(v) for v in _MALLOC_VARIABLES)
+            or "glibc.malloc" in env.get("GLIBC_TUNABLES", ""))

@@ -83,7 +83,7 @@ def init_worker(env: dict[str, str] | None = None, device: str | None = None, ba
     the worker (``SystemExit``) so a half-written temporary output is removed.
     """
     os.environ.update(env or {})
-    if one_arena and not os.environ.get("GPUSLICE_PLAIN_MALLOC"):  # (before the device's threads start)
+    if one_arena:  # (before the device's threads start)
         from ..allocator import one_malloc_arena, user_tuned_malloc
 
         if not user_tuned_malloc():

@@ -145,8 +145,7 @@ def entry() -> None:
     if "numpy" not in sys.modules:
         os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     sys.unraisablehook = _unraisable
-    if _command(sys.argv[1:]) == "raster" and not os.environ.get("GPUSLICE_PLAIN_MALLOC"):
-        # slicing, then the layers on other threads: what one frees, the next uses
+    if _command(sys.argv[1:]) == "raster":  # slicing, then the layers on other threads: what one frees, the next uses
         from ..allocator import one_malloc_arena, user_tuned_malloc
 
         if not user_tuned_malloc():
