@@ -18,7 +18,8 @@ from ..options import OptionInfo, options_of
 
 __all__ = ["click_options", "with_options", "build", "values", "flag_for", "cli_message", "fail", "EXIT_USAGE",
            "option_classes", "slicing_options", "slicing_values", "refuse_model_as_output", "RESIN_DEFAULTS",
-           "check_output_file", "check_distinct_outputs", "check_resin_layers", "MIN_RESIN_LAYER"]
+           "check_output_file", "check_distinct_outputs", "check_resin_layers", "MIN_RESIN_LAYER", "warn",
+           "warn_open_chains"]
 
 EXIT_USAGE = 2
 
@@ -35,6 +36,25 @@ def fail(message: str, code: int = EXIT_USAGE) -> None:
     """Print ``gpuslice: error: <message>`` on stderr and exit with ``code`` (2: user error)."""
     click.echo(f"gpuslice: error: {message}", err=True)
     raise SystemExit(code)
+
+
+def warn(message: str) -> None:
+    """Print ``gpuslice: warning: <message>`` on stderr (the command goes on; ``-q`` does not hide it)."""
+    click.echo(f"gpuslice: warning: {message}", err=True)
+
+
+def warn_open_chains(model: str, result, output: str) -> None:
+    """Warn when ``result`` has open chains (a mesh not closed where they are): an archive or mask leaves what they
+    outline unfilled, so those layers print blank or partly blank, which nothing else would say (``slice`` reports
+    them in its summary; ``check`` lists them as not checked)."""
+    import numpy as np
+
+    per_layer = result.open_chains_per_layer
+    layers = np.flatnonzero(per_layer)
+    if layers.size:
+        span = f"layer {layers[0]}" if layers.size == 1 else f"layers {layers[0]}-{layers[-1]}"
+        warn(f"{model}: {int(per_layer.sum())} open chains in {layers.size} layers ({span}): the mesh is not closed "
+             f"there, and {output} leaves what they outline unfilled (repair the mesh; `gpuslice check` lists them)")
 
 
 def refuse_model_as_output(model: str, *outputs: str | None) -> None:

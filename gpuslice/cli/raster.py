@@ -25,6 +25,7 @@ from .options import (
     slicing_options,
     slicing_values,
     values,
+    warn_open_chains,
     with_options,
 )
 
@@ -133,6 +134,7 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
             bar.stop()
         timings = {**done.timings, "total": time.perf_counter() - t_start}
         stats, n = done.stats, done.result.n_layers
+        warn_open_chains(model, done.result, output)
         ml = resin_ml(done.result.area, done.result.thickness)
         # the format's own estimate where it keeps one (SL1: exposures and tilts), else the settings' (lifts, waits):
         # the one the checks state too (ResinFormat.print_time_s)
@@ -146,6 +148,7 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
                           **{k: v for k, v in stats.items() if k != "raster_backend"},
                           "display": {"resolution": list(spec.resolution), "pixel": [spec.px, spec.py],
                                       "portrait": spec.portrait, "mirror_x": spec.mirror_x, "mirror_y": spec.mirror_y},
+                          "repairs": done.result.meta["repairs"], "open_chains": done.result.meta["open_chains"],
                           **estimate},
                          report)
     if not quiet:

@@ -20,7 +20,7 @@ deflated (as Photon Workshop and UVtools write it), nothing signed or checksumme
   stage 0 = (``lift_height``, ``lift_speed``, the slow retract ``retract_speed2``, or ``retract_speed`` when
   ``retract_height2`` is 0), stage 1 = (``lift_height2``, ``lift_speed2``, ``retract_speed``), used when either
   second stage is set); the per-layer-settings switch (``use_indivi_layerpara``) is ``per_layer_settings``, off by
-  default.
+  default, and on whenever the layers' thicknesses vary (:func:`~gpuslice.raster.settings.per_layer_mode`).
 * ``layers_controller.conf`` (JSON): per layer its exposure (with the transition ramp), index, bottom Z, thickness,
   lift total and first-stage speed. Readers take the layers' heights from here.
 * ``print_info.json``, ``software_info.conf``, ``lcd_function.json`` (JSON): print time (s), resin volume (ml) and
@@ -61,7 +61,7 @@ from .coverage import Tile
 from .layers import RunLayer, pixel_runs, run_groups
 from .photon import _stages, encode_pw0_batch, encode_pw0_runs
 from .png import encode_all
-from .settings import header_layer_height, layer_table, print_time_s, resin_ml
+from .settings import header_layer_height, layer_table, per_layer_mode, print_time_s, resin_ml
 
 __all__ = ["ZIP_MACHINES", "ZipMachine", "refuse_settings", "write_anycubic_zip", "write_target", "PREVIEWS",
            "SCENE_MAGIC", "VOLUMES_MAGIC"]
@@ -143,8 +143,9 @@ def _stage(height: float, up: float, down: float) -> dict[str, float]:
     return {"height": _r(height), "up_speed": _r(up), "down_speed": _r(down)}
 
 
-def _resin(s, layer_height: float, aa: int, density: float) -> dict[str, Any]:
-    """The one resin of the archive, holding the print settings (speeds mm/s)."""
+def _resin(s, layer_height: float, aa: int, density: float, per_layer: bool) -> dict[str, Any]:
+    """The one resin of the archive, holding the print settings (speeds mm/s; ``per_layer``: the per-layer switch,
+    :func:`~gpuslice.raster.settings.per_layer_mode`)."""
     two_b, bottom = _stages(s, True)
     two_n, normal = _stages(s, False)
     b = s.group(True)
@@ -172,7 +173,7 @@ def _resin(s, layer_height: float, aa: int, density: float) -> dict[str, Any]:
             "bott_off_time": _r(b["wait_before_cure"], 2), "bott_time": _r(s.bottom_exposure, 2),
             "bott_time_dual": _r(s.bottom_exposure, 2), "bott_wait_before_lift": _r(b["wait_after_cure"], 2),
             "exposure_time": _r(s.exposure, 2), "wait_before_lift": _r(s.wait_after_cure, 2), "gray_level": 0,
-            "off_time": _r(s.wait_before_cure, 2), "use_indivi_layerpara": float(bool(s.per_layer_settings)),
+            "off_time": _r(s.wait_before_cure, 2), "use_indivi_layerpara": float(per_layer),
             "use_random_erode": 0, "zthick": _r(layer_height, 4), "zup_height": _r(s.lift_height + s.lift_height2),
             "zup_speed": _r(s.lift_speed / 60), "zdown_speed": _r(s.retract_speed / 60),
             "bott_wait_after_lift": _r(b["wait_after_lift"], 2), "wait_after_lift": _r(s.wait_after_lift, 2)},
@@ -299,7 +300,7 @@ def write_anycubic_zip(layers: Iterable[Tile | RunLayer], target, *, machine: Zi
         aa = 16 if greys else 1
         seconds = print_time_s(s, n)
         ml = resin_ml(area, th)
-        resin = _resin(s, layer_height, aa, s.resin_density)
+        resin = _resin(s, layer_height, aa, s.resin_density, per_layer_mode(s, th))
         put("anycubic_photon_resins.pwsp", _json(_pwsp(machine, suffix, name, spec,
                                                         machine.height if z_travel is None else z_travel, resin, aa)))
         put("print_info.json", _json({

@@ -71,7 +71,7 @@ from .coverage import Tile
 from .layers import RunLayer, batch_image_segments, batch_pixel_runs, pixel_runs, run_groups
 from .png import encode_all
 from .run_encoder import RunImageEncoder
-from .settings import PrintSettings, header_layer_height, layer_table, print_time_s, resin_ml
+from .settings import PrintSettings, header_layer_height, layer_table, per_layer_mode, print_time_s, resin_ml
 from .sl1 import _Thumb
 from .spec import RasterSpec
 
@@ -344,8 +344,7 @@ def write_ctb(
         previews, at["small"] = _previews(_preview_images(thumb), at["previews"])
         f.seek(at["previews"])
         f.write(previews)
-        varied = float(np.ptp(thickness)) > 1e-9  # layers of several thicknesses: each layer's z is its own
-        f.write(_params_block(settings, info, version, machine, n, at, now, varied))
+        f.write(_params_block(settings, info, version, machine, n, at, now, per_layer_mode(settings, thickness)))
         f.seek(0)
         f.write(_header(spec, settings, info, version, z, thickness, n, at))
     return {"layers": stats["layers"], "png_bytes": stats["png_bytes"], "ctb_bytes": file_size,
@@ -402,9 +401,10 @@ def _rows(settings: PrintSettings, version: int) -> tuple[dict[str, float], dict
 
 
 def _params_block(settings: PrintSettings, info: CtbInfo, version: int, machine: bytes, n: int,
-                  at: dict[str, int], now: _dt.datetime | None, varied: bool = False) -> bytes:
+                  at: dict[str, int], now: _dt.datetime | None, per_layer: bool = False) -> bytes:
     """Print parameters, slicer info, machine name and (v4) the v4 parameters, as laid out from ``at["params"]``.
-    Lift heights are the lift's total (v4 stores the second stage apart too)."""
+    Lift heights are the lift's total (v4 stores the second stage apart too); ``per_layer``: the per-layer switch
+    (:func:`~gpuslice.raster.settings.per_layer_mode`)."""
     s = settings
     b, m = _rows(s, version)
     two = 1.0 if version >= 4 else 0.0  # v4 stores second stages and waits; v2/v3 have no fields for them
@@ -413,7 +413,7 @@ def _params_block(settings: PrintSettings, info: CtbInfo, version: int, machine:
                                info.resin_ml, info.resin_ml * s.resin_density, 0.0, b["light_off"], m["light_off"],
                                s.bottom_layers, 0, 0, 0, 0x1234 if version <= 2 else 0)
     aa_flag = 0x0F if info.anti_alias > 1 else 0x07
-    per_layer = 0x10 * version if s.per_layer_settings or varied else 0
+    per_layer = 0x10 * version if per_layer else 0
     slicer = SLICER_INFO.pack(
         two * b["lift_height2"], two * b["lift_speed2"], two * m["lift_height2"], two * m["lift_speed2"],
         two * m["retract_height2"], two * m["retract_speed2"], two * m["wait_after_lift"], at["machine"],

@@ -62,7 +62,7 @@ from .ctb import _ex_columns, _timestamp_minutes, rgb15_rle, rle7, rle7_runs
 from .cxdlp import _model_code, largest_regions
 from .layers import RunLayer, batch_pixel_runs, pixel_runs, run_groups
 from .png import encode_all
-from .settings import header_layer_height, layer_table, print_time_s, resin_ml
+from .settings import header_layer_height, layer_table, per_layer_mode, print_time_s, resin_ml
 
 __all__ = ["MAGIC", "PREVIEWS", "VERSION", "refuse_settings", "write_cxdlpv4", "write_target"]
 
@@ -131,8 +131,7 @@ def write_cxdlpv4(layers: Iterable[Tile | RunLayer], target, *, code: str, z_tra
     thumb = _Thumb(spec, n)
     ml = resin_ml(res.area, th)
     anti_alias = 1 if spec.gamma == 0 else 8
-    # (more than one layer thickness: each layer's z is its own, which the printer follows with the flag set)
-    per_layer = bool(s.per_layer_settings) or float(np.ptp(th)) > 1e-9
+    per_layer = per_layer_mode(s, th)
 
     def encode(item: Tile | RunLayer) -> tuple[bytes, int]:  # on a worker thread
         start, length, grey = pixel_runs(item, cols)

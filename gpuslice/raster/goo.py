@@ -7,7 +7,8 @@ Layout, big-endian throughout (the spec leaves the byte order unsaid; every read
 * **header**, 195,477 bytes (:data:`HEADER_SIZE`): version ``V3.0``, magic, software, date, machine name/type,
   profile, anti-aliasing/grey/blur levels, two RGB565 previews (116×116 and 290×290, each followed by ``\\r\\n``),
   layer count, resolution, mirror flags, platform size (mm), layer height, the global print settings (bottom and
-  normal: exposure, waits, two-stage lift and retract, PWM), "advance mode" (per-layer settings), print time (s),
+  normal: exposure, waits, two-stage lift and retract, PWM), "advance mode" (per-layer settings: as asked, and on
+  whenever the layers' thicknesses vary, :func:`~gpuslice.raster.settings.per_layer_mode`), print time (s),
   volume (mm³), weight (g), price, the offset of the first layer (= :data:`HEADER_SIZE`), the grey-scale flag and
   the transition-layer count.
 * per layer: its **definition** (66 bytes: pause flag and Z, the layer's top Z, exposure, waits, lift, retract,
@@ -55,7 +56,7 @@ from .coverage import Tile
 from .layers import RunLayer, batch_image_segments, batch_pixel_runs, image_segments, pixel_runs, run_groups
 from .png import encode_all
 from .run_encoder import RunImageEncoder
-from .settings import header_layer_height, layer_table, print_time_s, resin_ml
+from .settings import header_layer_height, layer_table, per_layer_mode, print_time_s, resin_ml
 
 __all__ = ["HEADER_SIZE", "LAYER_DEF", "MAGIC", "ENDING", "PREVIEWS", "MAX_RUN", "encode_runs", "encode_batch",
            "GooEncoder", "encode_segments", "header_bytes", "layer_definitions", "rgb565", "write_goo", "write_target"]
@@ -249,7 +250,7 @@ def header_bytes(target, previews: tuple[bytes, bytes], *, machine_z: float) -> 
         # bottom then normal lift, bottom then normal retract (height, speed each); then the second stages
         *(c[f"{move}{stage}"] for stage in ("", "2") for part in ("lift", "retract") for c in (bottom, normal)
           for move in (f"{part}_height", f"{part}_speed")),
-        s.bottom_light_pwm, s.light_pwm, s.per_layer_settings,
+        s.bottom_light_pwm, s.light_pwm, per_layer_mode(s, th),  # ("advance mode": the layer table's own values)
         min(round(print_time_s(s, res.n_layers)), 0xFFFFFFFF),
         ml * 1000.0,  # mm³
         ml * s.resin_density,  # g

@@ -29,16 +29,17 @@ UVtools' rule); how a firmware maps grey codes to exposure is its own business.
 
 **Print settings** (:class:`~gpuslice.raster.settings.PrintSettings`; speeds are stored in mm/s): the header holds the
 bottom and normal exposures, bottom layer count, transition layer count, one rest before every exposure (the normal
-layers' ``wait_before_cure + wait_after_cure + wait_after_lift``: the format has no other wait; bottom waits that
-differ are refused), the normal lift (its total over both stages) at the first stage's speed and the retract speed;
-LAYERDEF repeats each layer's exposure (with the transition ramp), lift total, first-stage speed and thickness; the
+layers' ``wait_before_cure + wait_after_cure + wait_after_lift``: the format has no other wait; bottom waits that differ
+are refused), the normal lift (its total over both stages) at the first stage's speed and the retract speed; LAYERDEF
+repeats each layer's exposure (with the transition ramp), lift total, first-stage speed and thickness; the
 per-layer-settings flag is ``per_layer_settings`` (off by default: UVtools reports M5s firmware that never ends the
-first layer when it is on). From 516, two-stage motion goes to EXTRA, for the bottom and the normal layers, with the
-advanced mode on: stage 1 = (``lift_height``, ``lift_speed``, the slow retract speed ``retract_speed2``, or
-``retract_speed`` when ``retract_height2`` is 0), stage 2 = (``lift_height2``, ``lift_speed2``, ``retract_speed``),
-placed as UVtools places them; the format stores no retract heights (the retract stages follow the lift stages'
-heights). One-stage motion is written as Photon Workshop writes it in basic mode: stage 1 = (lift, lift speed, 0),
-stage 2 = (0, 0, retract speed), advanced mode off. The pixel size in the header is the larger pitch, µm.
+first layer when it is on), and on whenever the layers' thicknesses vary (the printer must then follow LAYERDEF's
+heights: :func:`~gpuslice.raster.settings.per_layer_mode`). From 516, two-stage motion goes to EXTRA, for the bottom and
+the normal layers, with the advanced mode on: stage 1 = (``lift_height``, ``lift_speed``, the slow retract speed
+``retract_speed2``, or ``retract_speed`` when ``retract_height2`` is 0), stage 2 = (``lift_height2``, ``lift_speed2``,
+``retract_speed``), placed as UVtools places them; the format stores no retract heights (the retract stages follow the
+lift stages' heights). One-stage motion is written as Photon Workshop writes it in basic mode: stage 1 = (lift, lift
+speed, 0), stage 2 = (0, 0, retract speed), advanced mode off. The pixel size in the header is the larger pitch, µm.
 
 **Machine and version**: the output's suffix names the machine (:data:`MACHINES`: its name as Photon Workshop writes
 it, display, Z travel and file version). A printer preset (``--printer``) overrides the name (``machine``), the Z
@@ -69,7 +70,7 @@ from .layers import HeightMap, RunLayer, batch_image_segments, batch_pixel_runs,
 from .photon_machines import MACHINES, VERSIONS, Machine, machine_version, refuse_settings, wait_s
 from .png import encode_all
 from .run_encoder import RunImageEncoder
-from .settings import header_layer_height, layer_table, print_time_s, resin_ml
+from .settings import header_layer_height, layer_table, per_layer_mode, print_time_s, resin_ml
 
 __all__ = ["MACHINES", "VERSIONS", "Machine", "refuse_settings", "PhotonEncoder", "encode_pw0", "encode_pw0_batch",
            "encode_pw0_runs", "quantise", "write_photon", "write_target"]
@@ -285,7 +286,7 @@ def _tables(target, machine: Machine, version: int, name: str, machine_z: float,
     head = struct.pack("<10f3I2f5I", max(pw, ph) * 1000, layer_height, s.exposure, wait_s(s, target.path),
                        s.bottom_exposure, min(s.bottom_layers, n), s.lift_height + s.lift_height2, s.lift_speed / 60,
                        s.retract_speed / 60, volume, aa, cols, rows, volume * s.resin_density, 0.0, 0x24,
-                       int(s.per_layer_settings), round(print_time_s(s, n)),
+                       int(per_layer_mode(s, th)), round(print_time_s(s, n)),
                        min(s.transition_layers, max(n - s.bottom_layers, 0)), 0)
     if version >= 516:
         head += struct.pack("<I", int(two_b or two_n))

@@ -42,7 +42,7 @@ from ..errors import ParameterError
 from ..options import option, shown
 
 __all__ = ["PrintSettings", "layer_table", "layer_times", "print_time_s", "resin_ml", "header_layer_height",
-           "transition_step", "format_duration", "LAYER_COLUMNS"]
+           "per_layer_mode", "transition_step", "format_duration", "LAYER_COLUMNS"]
 
 #: settings with a bottom-layer twin ``bottom_<name>`` (None: the normal value)
 BOTTOM_TWINS = ("lift_height", "lift_speed", "lift_height2", "lift_speed2", "retract_speed", "retract_height2",
@@ -102,7 +102,9 @@ class PrintSettings:
     light_pwm: int = option(255, "Light intensity of the normal layers (PWM, 1-255)")
     bottom_light_pwm: int = option(255, "Light intensity of the bottom layers (PWM, 1-255)")
     per_layer_settings: bool = option(False, "Let the printer read each layer's own settings from the archive "
-                                      "(off by default: some firmware freezes on it)", negatable=True)
+                                      "(off by default: some firmware freezes on it; on by itself when the layers' "
+                                      "thicknesses vary, as the printer must then read each layer's height)",
+                                      negatable=True)
     resin_density: float = option(1.1, "Resin density, for the mass estimate", unit="g/ml")
 
     def __post_init__(self) -> None:
@@ -264,6 +266,14 @@ def layer_times(settings: PrintSettings, n_layers: int) -> np.ndarray:
 def print_time_s(settings: PrintSettings, n_layers: int) -> float:
     """Estimated print time of ``n_layers`` layers in s: the sum of :func:`layer_times`."""
     return float(layer_times(settings, n_layers).sum())
+
+
+def per_layer_mode(settings: PrintSettings, thickness_mm: np.ndarray) -> bool:
+    """Whether an archive turns its per-layer-settings switch on: when asked (``per_layer_settings``), and always
+    when the layers' thicknesses vary (adaptive layers, a thicker first layer): the printer then follows each
+    layer's own height from the layer table, where the header holds one height for all."""
+    th = np.asarray(thickness_mm, np.float64)
+    return bool(settings.per_layer_settings) or (th.size > 1 and float(np.ptp(th)) > 1e-9)
 
 
 def header_layer_height(thickness_mm: np.ndarray, empty: float = 0.0) -> float:

@@ -180,6 +180,12 @@ def display_text(s: RasterSpec) -> str:
     return f"{s.resolution[0]}x{s.resolution[1]} px of {s.px:g} x {s.py:g} mm"
 
 
+def orientation_text(s: RasterSpec) -> str:
+    """``"landscape, mirror x"``: the display's orientation and mirrors (as ``gpuslice printers`` lists them)."""
+    return ", ".join(["portrait" if s.portrait else "landscape"]
+                     + [f"mirror {a}" for a in ("x", "y") if getattr(s, f"mirror_{a}")])
+
+
 def with_printer(name: str, **overrides) -> RasterSpec:
     """A :class:`RasterSpec` of the preset ``name`` (:data:`PRINTERS`, or a preset file) with ``overrides``."""
     return replace(RasterSpec(**find_printer(name).display()), **overrides)
@@ -262,10 +268,11 @@ class ResinOptions:
 
     def check_display(self, fmt: str, spec: RasterSpec) -> None:
         """:class:`ParameterError` when a printer archive ``fmt`` would carry the preset's machine name at a display
-        ``spec`` that is not the preset's (``--printer`` with another ``--resolution`` or ``--pixel``): a firmware
-        refuses such a file, or prints it at the wrong size. A PNG stack names no printer. Pixel sizes compare
-        within 0.5 % (:func:`same_display`). Without a preset, a format whose suffix names a machine checks the
-        display itself (Photon Workshop: :func:`gpuslice.raster.photon_machines.refuse_settings`)."""
+        ``spec`` that is not the preset's (``--printer`` with another ``--resolution`` or ``--pixel``, or another
+        orientation or mirror): a firmware refuses such a file, or prints it at the wrong size or mirrored. A PNG
+        stack names no printer. Pixel sizes compare within 0.5 % (:func:`same_display`). Without a preset, a format
+        whose suffix names a machine checks the display itself (Photon Workshop:
+        :func:`gpuslice.raster.photon_machines.refuse_settings`)."""
         from .printers import ANY_PRINTER_FORMATS
 
         preset = self.preset
@@ -276,3 +283,7 @@ class ResinOptions:
             raise ParameterError(f"printer {preset.name}'s display is {display_text(want)}, not the "
                                  f"{display_text(spec)} asked (leave --resolution/--pixel/--pixel-y out, or write a "
                                  "preset file of your printer)")
+        if orientation_text(spec) != orientation_text(want):  # (a mirror left out prints the part mirrored)
+            raise ParameterError(f"printer {preset.name}'s display is {orientation_text(want)}, not "
+                                 f"{orientation_text(spec)} as asked (leave --portrait/--landscape/--mirror-x/"
+                                 "--mirror-y out, or write a preset file of your printer)")

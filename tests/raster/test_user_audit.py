@@ -1,0 +1,119 @@
+"""What a user's audit of the resin workflow found (twenty-first session), through the command line as a user runs
+it: layers of several thicknesses turn every archive's per-layer switch on (the printer must follow each layer's
+height), an archive naming a printer refuses another orientation or mirror than its display's, and a mesh whose
+open chains leave layers unfilled is warned about (stderr, the report, the batch table)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from anycubic_zip_reader import read_anycubic_zip
+from ctb_reader import read_ctb
+from cxdlpv4_reader import read_cxdlpv4
+from goo_reader import read_goo
+from photon_reader import read_photon
+
+from gpuslice.batch.report import format_summary
+from gpuslice.cli import main
+
+#: suffix, a printer reading it, and the per-layer switch as the tests' reader finds it in the file
+SWITCHES = {
+    ".goo": ("elegoo-mars-4", lambda p: read_goo(p).header["advance_mode"]),
+    ".pm3n": ("anycubic-photon-mono-2", lambda p: read_photon(p).header["per_layer"]),
+    ".pm7": ("anycubic-photon-mono-m7", lambda p: read_anycubic_zip(p).resin["slicepara"]["use_indivi_layerpara"]),
+    ".ctb": ("elegoo-mars-3", lambda p: read_ctb(p).slicer["per_layer"]),
+    ".cxdlpv4": ("creality-halot-mage", lambda p: read_cxdlpv4(p).slicer["per_layer"]),
+}
+
+
+@pytest.fixture(scope="module")
+def box_stl(tmp_path_factory) -> Path:
+    """A 10 × 8 × 3 mm box, as an STL file."""
+    path = tmp_path_factory.mktemp("audit") / "box.stl"
+    trimesh.creation.box((10.0, 8.0, 3.0)).export(path)
+    return path
+
+
+@pytest.mark.parametrize("suffix", sorted(SWITCHES))
+def test_layers_of_several_thicknesses_turn_the_per_layer_switch_on(tmp_path, box_stl, capsys, suffix):
+    """A thicker first layer (or adaptive layers): the header's one layer height is wrong for some layers, so the
+    printer must read each layer's own; uniform layers leave the switch off (its default: some firmware freezes)."""
+    printer, switch = SWITCHES[suffix]
+    on, off = tmp_path / f"first{suffix}", tmp_path / f"uniform{suffix}"
+    base = ["raster", str(box_stl), "--printer", printer, "-t", "0.5", "-q", "--no-progress"]
+    assert main([*base, "--first-layer", "1.0", "-o", str(on)]) == 0
+    assert main([*base, "-o", str(off)]) == 0
+    assert bool(switch(on)) and not bool(switch(off))
+    assert main([*base, "--per-layer-settings", "-o", str(off)]) == 0  # asked for: on, whatever the layers
+    assert bool(switch(off))
+
+
+@pytest.mark.parametrize("flags", [["--portrait"], ["--no-mirror-x"], ["--mirror-y"]])
+@pytest.mark.parametrize("suffix", [".goo", ".ctb"])
+def test_an_archive_naming_a_printer_refuses_another_orientation_or_mirror(tmp_path, box_stl, capsys, flags,
+                                                                          suffix):
+    """Mars 4 and Mars 3 are landscape with the columns mirrored: an unmirrored or portrait image would print
+    mirrored or not at all, under the printer's own name."""
+    printer = SWITCHES[suffix][0]
+    out = tmp_path / f"x{suffix}"
+    code = main(["raster", str(box_stl), "--printer", printer, "-t", "0.5", "-q", *flags, "-o", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and not out.exists() and "\n" not in err
+    assert f"printer {printer}'s display is landscape, mirror x, not " in err
+    # the same flags for a PNG stack (no printer named) are the user's to set
+    assert main(["raster", str(box_stl), "--printer", printer, "-t", "0.5", "-q", *flags,
+                 "-o", str(tmp_path / "png") + "/"]) == 0
+
+
+def test_the_preset_orientation_given_again_is_accepted(tmp_path, box_stl):
+    out = tmp_path / "x.goo"
+    assert main(["raster", str(box_stl), "--printer", "elegoo-mars-4", "-t", "0.5", "-q", "--landscape",
+                 "--mirror-x", "--no-mirror-y", "-o", str(out)]) == 0
+    h = read_goo(out).header
+    assert (h["x_mirror"], h["y_mirror"]) == (1, 0)
+
+
+@pytest.fixture(scope="module")
+def open_box_stl(tmp_path_factory) -> Path:
+    """The box without its two +x facets: open edges round a hole in the wall, so every layer has one open chain
+    (and nothing the layer's polygons could fill)."""
+    m = trimesh.creation.box((10.0, 8.0, 3.0))
+    keep = ~np.isclose(m.triangles_center[:, 0], 5.0)
+    assert keep.sum() == 10
+    path = tmp_path_factory.mktemp("audit") / "open_box.stl"
+    trimesh.Trimesh(m.vertices, m.faces[keep], process=False).export(path)
+    return path
+
+
+def test_open_chains_are_warned_about_and_reported(tmp_path, open_box_stl, box_stl, capsys):
+    out, report = tmp_path / "o.goo", tmp_path / "o.json"
+    assert main(["raster", str(open_box_stl), "--printer", "elegoo-mars-4", "-t", "0.5", "-q", "-o", str(out),
+                 "--report", str(report)]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    warning = [line for line in err if line.startswith("gpuslice: warning: ")]
+    assert len(warning) == 1
+    assert "open_box.stl: 6 open chains in 6 layers (layers 0-5)" in warning[0] and "o.goo" in warning[0]
+    rep = json.loads(report.read_text())
+    assert rep["open_chains"] == 6 and rep["repairs"]["open_chains"] == 6
+    # a closed box: no warning, and the report says none
+    assert main(["raster", str(box_stl), "--printer", "elegoo-mars-4", "-t", "0.5", "-q", "-o", str(out),
+                 "--report", str(report)]) == 0
+    assert "warning" not in capsys.readouterr().err
+    assert json.loads(report.read_text())["open_chains"] == 0
+
+
+def test_the_batch_table_warns_of_open_chains():
+    base = {"status": "done", "facets": 10, "layers": 6, "timings_s": {"total": 0.1}}
+    report = {"models": [{**base, "model": "open.stl", "open_chains": 6}, {**base, "model": "closed.stl",
+                                                                          "open_chains": 0}],
+              "summary": {"models": 2, "done": 2, "skipped": 0, "failed": 0, "not_run": 0, "wall_s": 0.2,
+                          "models_per_s": 10.0, "mode": "local", "workers": 1, "workers_lost": 0, "retries": 0}}
+    lines = format_summary(report).splitlines()
+    row = {line.split()[0]: line for line in lines[1:3]}
+    assert row["open.stl"].endswith("warning: 6 open chains (the mesh is not closed there; resin layers leave them "
+                                    "unfilled)")
+    assert "warning" not in row["closed.stl"]
