@@ -1,7 +1,8 @@
 """Read mesh files into a raw triangle array (:class:`~gpuslice.io.rawmesh.RawMesh`), with strict validation.
 
 The slicer works on a triangle soup: an ``(F, 3, 3)`` float32 array holding the three corners of every facet in
-file order and file units (STL has no units; for 3D printing they are millimetres by convention). Files named
+file order and file units (STL, OBJ, PLY and OFF have no units; for 3D printing they are millimetres by convention),
+except a 3MF, whose model declares its unit (micron to meter): it is read in millimetres (:data:`UNITS_3MF_MM`). Files named
 ``.obj``, ``.ply``, ``.off`` or ``.3mf`` are read through :mod:`trimesh` (imported lazily); every other file is
 parsed as STL, binary or ASCII (:mod:`gpuslice.io.stl`). :func:`read_mesh_source` also reads a file's bytes sent
 elsewhere (a batch worker). Every problem a user can cause raises a :class:`~gpuslice.errors.MeshFileError` (or a
@@ -44,6 +45,8 @@ __all__ = [
 #: ``ZIP_RATIO_FLOOR`` (64 MiB) is always allowed. Checked first on the sizes the members declare
 #: (``ZipInfo.file_size``), then as a hard cap on the bytes actually inflated.
 ZIP_MAX_INFLATED = 1 << 30
+#: millimetres in each unit a 3MF model may declare (``<model unit="...">``, 3MF core specification 1.3, 3.4.1)
+UNITS_3MF_MM = {"micron": 0.001, "millimeter": 1.0, "centimeter": 10.0, "inch": 25.4, "foot": 304.8, "meter": 1000.0}
 ZIP_MAX_RATIO = 200
 ZIP_RATIO_FLOOR = 64 << 20
 _INFLATE_CHUNK = 1 << 20
@@ -210,6 +213,12 @@ def _read_with_trimesh(name: str, file_type: str, data: bytes | None = None) -> 
     triangles = triangles.reshape(-1, 3, 3)
     if len(triangles) == 0:
         raise EmptyMeshError(f"{name}: no facets ({file_type.upper()} file read by trimesh)")
+    if file_type == "3mf":  # the model's unit (3MF core spec: micron ... meter; millimeter when absent), read as mm
+        unit = getattr(mesh, "units", None) or "millimeter"
+        unit = {"millimeters": "millimeter"}.get(unit, unit)  # (trimesh's name when the model names no unit)
+        if unit not in UNITS_3MF_MM:
+            raise MeshFileError(f"{name}: unknown 3MF unit {unit!r} (the 3MF units are {', '.join(UNITS_3MF_MM)})")
+        triangles = triangles * UNITS_3MF_MM[unit]
     check_coordinates(triangles, name)
     # float64 as trimesh read them: the mesh is placed on the bed before its one rounding to float32
     # (mesh.mesh_from_triangles), as the same file loaded by trimesh and handed over would be

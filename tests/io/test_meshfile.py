@@ -628,3 +628,35 @@ def test_a_3mf_slice_stack_is_not_read_as_a_model(tmp_path: Path) -> None:
     plain = tmp_path / "plain.3mf"
     trimesh.creation.box([10, 10, 10]).export(plain)
     assert read_mesh_file(plain).triangles.shape == (12, 3, 3)
+
+
+def _3mf_in(path: Path, unit: str | None) -> Path:
+    """A 10 mm box as a 3MF whose model declares ``unit`` (None: no unit attribute, the spec's millimetres)."""
+    import io
+    import re
+    import zipfile
+
+    import trimesh
+
+    data = trimesh.creation.box([10, 10, 10]).export(file_type="3mf")
+    src = zipfile.ZipFile(io.BytesIO(data))
+    model = src.read("3D/3dmodel.model").decode()
+    assert 'unit="millimeter"' in model
+    model = re.sub(r' unit="millimeter"', "" if unit is None else f' unit="{unit}"', model, count=1)
+    with zipfile.ZipFile(path, "w") as out:
+        for name in src.namelist():
+            out.writestr(name, model if name == "3D/3dmodel.model" else src.read(name))
+    return path
+
+
+@pytest.mark.parametrize(("unit", "mm"), [("inch", 254.0), ("centimeter", 100.0), ("micron", 0.01),
+                                          ("meter", 10000.0), ("foot", 3048.0), ("millimeter", 10.0), (None, 10.0)])
+def test_a_3mf_is_read_in_the_unit_its_model_declares(tmp_path: Path, unit, mm) -> None:
+    """A 3MF in inches was read as millimetres (a 10 inch box sliced as 10 mm: silently 25.4 times too small)."""
+    tri = read_mesh_file(_3mf_in(tmp_path / "box.3mf", unit)).triangles
+    assert np.ptp(tri.reshape(-1, 3), axis=0) == pytest.approx([mm] * 3)
+
+
+def test_a_3mf_of_an_unknown_unit_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(MeshFileError, match=r"box\.3mf: unknown 3MF unit 'parsec' \(the 3MF units are micron, "):
+        read_mesh_file(_3mf_in(tmp_path / "box.3mf", "parsec"))
