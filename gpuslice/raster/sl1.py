@@ -61,10 +61,25 @@ def _fmt(v) -> str:
     return str(v)
 
 
+#: layers PrusaSlicer's estimate exposes for the initial exposure time before the fade starts
+SL1_INITIAL_LAYERS = 3
+
+
 def sl1_print_time(info: SL1Info, n_layers: int) -> float:
-    """config.ini's ``printTime`` (s): the first layer's exposure, the others', and one tilt per layer (PrusaSlicer's
-    model of a tilting SL1; no lift moves)."""
-    return info.initial_exposure_time + max(n_layers - 1, 0) * info.exposure_time + n_layers * info.tilt_time
+    """config.ini's ``printTime`` (s), as PrusaSlicer estimates a tilting SL1 (no lift moves): the first
+    :data:`SL1_INITIAL_LAYERS` layers at ``initial_exposure_time``, then ``faded_layers`` + 1 layers stepping down by
+    (initial − exposure) / (faded_layers + 1) each to ``exposure_time``, the rest at ``exposure_time``; and one tilt
+    per layer (``tilt_time``, the fast tilt)."""
+    n = max(int(n_layers), 0)
+    first = min(n, SL1_INITIAL_LAYERS)
+    init, exp = float(info.initial_exposure_time), float(info.exposure_time)
+    fade = 0
+    total = first * init
+    if init > exp:
+        fade = min(n - first, int(info.faded_layers) + 1)
+        step = (init - exp) / (int(info.faded_layers) + 1)
+        total += fade * init - step * fade * (fade + 1) / 2  # init − j·step for j = 1 … fade
+    return total + (n - first - fade) * exp + n * float(info.tilt_time)
 
 
 def tilt_print_time(settings, n_layers: int, tilt_s: float | None = None) -> float:
@@ -73,7 +88,7 @@ def tilt_print_time(settings, n_layers: int, tilt_s: float | None = None) -> flo
     (``ResinFormat.print_time``)."""
     tilt = SL1Info.tilt_time if tilt_s is None else tilt_s
     info = SL1Info(job_dir="", exposure_time=settings.exposure, initial_exposure_time=settings.bottom_exposure,
-                   tilt_time=tilt)
+                   faded_layers=settings.transition_layers, tilt_time=tilt)
     return sl1_print_time(info, n_layers)
 
 

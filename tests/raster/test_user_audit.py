@@ -117,3 +117,29 @@ def test_the_batch_table_warns_of_open_chains():
     assert row["open.stl"].endswith("warning: 6 open chains (the mesh is not closed there; resin layers leave them "
                                     "unfilled)")
     assert "warning" not in row["closed.stl"]
+
+
+def _prusaslicer_estimate(n: int, first: float, exp: float, fade: int, tilt: float) -> float:
+    """PrusaSlicer's SLA estimate, as its ``merge_slices_and_eval_stats`` walks the layers: layers 0-2 at the
+    initial exposure, then a fading time stepped down by (initial - exposure) / (fade + 1) while it is above the
+    exposure, then the exposure; one fast tilt per layer."""
+    step, t, total = (first - exp) / (fade + 1), first, 0.0
+    for i in range(n):
+        if i < 3:
+            total += first
+        elif t > exp + 1e-12:
+            t -= step
+            total += t
+        else:
+            total += exp
+    return total + n * tilt
+
+
+@pytest.mark.parametrize(("n", "first", "exp", "fade"), [(0, 35.0, 6.0, 10), (2, 35.0, 6.0, 10), (40, 35.0, 6.0, 10),
+                                                         (12, 35.0, 6.0, 10), (40, 6.0, 8.0, 5), (40, 20.0, 2.0, 0)])
+def test_the_sl1_estimate_counts_the_fade_layers(n, first, exp, fade):
+    """SL1's printTime left the fade out (every layer after the first at expTime): 145 s short on a small cube."""
+    from gpuslice.raster.sl1 import SL1Info, sl1_print_time
+
+    info = SL1Info(exposure_time=exp, initial_exposure_time=first, faded_layers=fade, tilt_time=5.0)
+    assert sl1_print_time(info, n) == pytest.approx(_prusaslicer_estimate(n, first, exp, fade, 5.0))

@@ -123,8 +123,9 @@ def test_sl1s_reads_back(tmp_path, torus):
     assert set(a.thumbnails.values()) == {(400, 400), (800, 480)}
     ref = _check_png_layers(a.read, a.layers, torus, SL1S)
     assert ref[5].shape == (2560, 1620)  # rows x cols: the SL1S firmware's 1620 x 2560 buffer
-    # the usual SL1 estimate with the SL1S's 2.5 s tilt: expTimeFirst + (n - 1) expTime + n tilt
-    assert float(c["printTime"]) == pytest.approx(22.5 + 9 * 2.5 + 10 * 2.5)
+    # PrusaSlicer's SL1 estimate with the SL1S's 2.5 s tilt: 3 layers at expTimeFirst, then numFade + 1 layers
+    # stepping down by (22.5 - 2.5) / 5 = 4 s to expTime (18.5, 14.5, 10.5, 6.5, 2.5), the other 2 at expTime
+    assert float(c["printTime"]) == pytest.approx(3 * 22.5 + (18.5 + 14.5 + 10.5 + 6.5 + 2.5) + 2 * 2.5 + 10 * 2.5)
     with zipfile.ZipFile(t.path) as z:
         assert {i.date_time for i in z.infolist()} == {WHEN.timetuple()[:6]}
 
