@@ -15,7 +15,7 @@ from ..mesh.mesh import Placement
 from ..options import option, options_of, parse_value
 from ..slicing.params import SliceParams
 
-__all__ = ["BatchOptions", "check_path", "raster_option_fields", "typed_raster_options"]
+__all__ = ["BatchOptions", "check_path", "raster_option_fields", "typed_raster_options", "same_options"]
 
 #: what ends the name of a model's check report, next to its output (``--check``)
 CHECK_SUFFIX = ".check.json"
@@ -188,3 +188,22 @@ class BatchOptions:
 
     def fingerprint(self) -> str:
         return hashlib.sha256(json.dumps(self.shaping(), sort_keys=True).encode()).hexdigest()[:16]
+
+
+def same_options(a: Any, b: Any) -> bool:
+    """Whether two manifests' ``options`` (:meth:`BatchOptions.shaping`) are the same, whatever order their
+    ``--raster-opt`` pairs were given in (each key's last value counts)."""
+    return _canonical(a) == _canonical(b)
+
+
+def _canonical(options: Any) -> Any:
+    """A manifest's ``options`` with its ``raster_options`` pairs as each key's last value, by key: two batches
+    whose --raster-opt were given in another order made the same outputs."""
+    if not isinstance(options, dict) or not isinstance(options.get("raster_options"), list):
+        return options
+    try:
+        pairs = sorted(dict((k, v) for k, v in options["raster_options"]).items())
+    except (TypeError, ValueError):  # (an unreadable manifest's: compared as it is)
+        return options
+    return {**options, "raster_options": [list(p) for p in pairs]}
+

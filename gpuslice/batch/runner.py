@@ -32,7 +32,7 @@ from ..errors import BatchError, one_line
 from ..io.atomic import atomic_write_tree
 from .discover import Model, discover
 from .journal import JOURNAL_NAME, forget_journal, read_journal, record_finished, record_written_since, unchanged
-from .options import BatchOptions, check_path
+from .options import BatchOptions, check_path, same_options
 from .report import checks_summary
 from .task import _cores, _worker_device, default_workers, init_worker, pocl_thread_env, run_model
 
@@ -61,6 +61,7 @@ def _mp_context():
 
 
 @dataclass
+
 class _Task:
     index: int
     attempt: int = 1
@@ -114,7 +115,9 @@ class BatchRunner:
                 have = json.loads(manifest.read_text())
             except (OSError, ValueError):
                 have = {}
-            if have.get("fingerprint") != want["fingerprint"]:
+            # (--raster-opt given in another order: the same options)
+            if have.get("fingerprint") != want["fingerprint"] and not same_options(have.get("options"),
+                                                                                   want["options"]):
                 if not self.force:
                     old = have.get("options", {})
                     diff = ", ".join(f"{k} {old.get(k)!r} -> {v!r}" for k, v in want["options"].items()

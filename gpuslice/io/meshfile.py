@@ -1,12 +1,12 @@
 """Read mesh files into a raw triangle array (:class:`~gpuslice.io.rawmesh.RawMesh`), with strict validation.
 
-The slicer works on a triangle soup: an ``(F, 3, 3)`` float32 array holding the three corners of every facet in
-file order and file units (STL, OBJ, PLY and OFF have no units; for 3D printing they are millimetres by convention),
-except a 3MF, whose model declares its unit (micron to meter): it is read in millimetres (:data:`UNITS_3MF_MM`). Files named
-``.obj``, ``.ply``, ``.off`` or ``.3mf`` are read through :mod:`trimesh` (imported lazily); every other file is
-parsed as STL, binary or ASCII (:mod:`gpuslice.io.stl`). :func:`read_mesh_source` also reads a file's bytes sent
-elsewhere (a batch worker). Every problem a user can cause raises a :class:`~gpuslice.errors.MeshFileError` (or a
-subclass) whose message is one line naming the file and the problem.
+The slicer works on a triangle soup: an ``(F, 3, 3)`` float32 array holding the three corners of every facet in file
+order and file units (STL, OBJ, PLY and OFF have no units; for 3D printing they are millimetres by convention),
+except a 3MF, whose model declares its unit (micron to meter): it is read in millimetres (:data:`UNITS_3MF_MM`).
+Files named ``.obj``, ``.ply``, ``.off`` or ``.3mf`` are read through :mod:`trimesh` (imported lazily); every other
+file is parsed as STL, binary or ASCII (:mod:`gpuslice.io.stl`). :func:`read_mesh_source` also reads a file's bytes
+sent elsewhere (a batch worker). Every problem a user can cause raises a :class:`~gpuslice.errors.MeshFileError` (or
+a subclass) whose message is one line naming the file and the problem.
 """
 
 from __future__ import annotations

@@ -634,3 +634,26 @@ def test_folder_outputs_inside_one_another_and_a_report_on_the_output_folder_are
     out = tmp_path / "out"
     assert main(["batch", str(tree), "-o", str(out), "-t", "5", "-j", "0", "-q", "--report", str(out)]) == 2
     assert "--report names the output folder" in capsys.readouterr().err and not out.exists()
+
+
+def test_raster_options_in_another_order_are_the_same_options(tmp_path):
+    """A folder made with --raster-opt exposure=2.5 --raster-opt printer=... was refused ("holds outputs made with
+    other options") when the same batch gave them the other way round; its manifest stays valid for both orders."""
+    from gpuslice.batch import run_batch
+
+    models = tmp_path / "m"
+    models.mkdir()
+    shapes.write_stl(shapes.box(), models / "cube.stl")
+    out = tmp_path / "out"
+    a = (("exposure", "2.5"), ("resolution", "200x200"), ("pixel", "0.1"))
+
+    def opts(pairs):
+        return BatchOptions(SliceParams(thickness=1.0), Placement(), raster="goo", raster_options=pairs)
+
+    assert opts(a).fingerprint() != opts(a[::-1]).fingerprint()  # (recorded as given: older folders stay valid)
+    first = run_batch([models], out, opts(a), workers=0)
+    assert first["summary"]["done"] == 1
+    again = run_batch([models], out, opts(a[::-1]), workers=0)
+    assert again["summary"]["skipped"] == 1 and again["summary"]["failed"] == 0
+    with pytest.raises(BatchError, match=r"holds outputs made with other options \(raster_options"):
+        run_batch([models], out, opts((("exposure", "3.0"), *a[1:])), workers=0)
