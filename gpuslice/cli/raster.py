@@ -89,9 +89,9 @@ class _Bar:
 def raster(model: str, output: str, fmt_name: str | None, progress: bool | None, report: str | None, check: bool,
            quiet: bool, **kw) -> None:
     """Slice MODEL and write its layers for a resin printer: the output's suffix picks the format (-o part.goo,
-    part.ctb, part.pwmx, part.sl1, part.sl1s, part.sl1_svg, part.nanodlp, or a PNG stack -o dir/; --format
-    overrides it; `gpuslice printers` lists the presets, --printer NAME sets the display, print settings and the
-    formats it reads).
+    part.ctb, part.pwmx, part.cxdlp, part.sl1, … -o's help below lists every suffix; a PNG stack: -o dir/;
+    --format overrides it; `gpuslice printers` lists the presets, --printer NAME sets the display, print settings
+    and the formats it reads).
 
     The model is centred on the display (--keep-xy keeps its XY); column j has its centre at x = (j + 0.5)*pixel
     and row 0 is the +y edge (landscape). Greys are pixel coverage with PrusaSlicer's gamma.

@@ -194,7 +194,7 @@ def resin_format_for(path: str | os.PathLike, name: str | None = None) -> ResinF
     """The resin output that ``path`` names: a registered suffix (any case), or a folder (``DIR/`` or an existing
     directory) for the folder output; :class:`ParameterError` naming ``path`` otherwise. ``name``: a registry name
     that overrides the suffix (``raster --format``): any path then, except that a one-file format refuses a path
-    naming a folder."""
+    naming a folder, and a suffix another format owns is refused (``--format goo -o part.ctb``)."""
     text = os.fspath(path)
     p = Path(text)
     names_folder = text.endswith(("/", "\\")) or p.is_dir()
@@ -204,6 +204,12 @@ def resin_format_for(path: str | os.PathLike, name: str | None = None) -> ResinF
             raise ParameterError(f"{text}: unknown resin format '{name}' (use {', '.join(RESIN_FORMATS)})")
         if names_folder and not fmt.folder:
             raise ParameterError(f"{text}: names a folder, but a {fmt.title} is one file (e.g. part{fmt.suffix})")
+        kind = p.suffix.lower()
+        owner = next((f for f in RESIN_FORMATS.values() if kind and kind in f.suffixes), None)
+        if owner is not None and owner is not fmt:  # (`--format goo -o part.ctb`: GOO bytes in a file named .ctb)
+            name_it = f"name it part{fmt.suffix}" if fmt.suffix else "name a folder DIR/"
+            raise ParameterError(f"{text}: a {kind} file is a {owner.title}, not the {fmt.title} --format {name} "
+                                 f"writes ({name_it}, or leave --format out)")
         return fmt
     kind = p.suffix.lower()
     if names_folder:

@@ -42,8 +42,8 @@ class SliceParams:
 
     thickness: float = option(0.1, "Layer thickness", unit="mm", flags=("-t", "--thickness"))
     first_layer: float | None = option(None, "First layer thickness (default: -t)", unit="mm")
-    z_mode: str = option("mid", "mid: cut at the middle of each layer, z=(i+0.5)h; paper: Z_i = i*h",
-                         choices=Z_MODES)
+    z_mode: str = option("mid", "mid: cut at the middle of each layer, z=(i+0.5)h; paper: at its top, z=(i+1)h "
+                         "(the paper's Z_i = i*h, counted from 1)", choices=Z_MODES)
     fill_rule: str = option("nonzero", "Which loops bound material", choices=FILL_RULES)
     max_gap: float = option(2.0, "Join open chain ends closer than this (0: never); chains left open are not filled",
                             unit="mm")

@@ -279,6 +279,11 @@ def test_format_overrides_the_suffix(tmp_path, monkeypatch):
     (["--format", "pwmx", "--printer", "elegoo-saturn-3-ultra", "-o", "{tmp}/x.dat"],
      "printer elegoo-saturn-3-ultra reads goo, ctb, not pwmx"),
     (["--format", "png", "-o", "{tmp}/notes.txt"], "notes.txt: exists and is not a directory"),
+    # a suffix that another format owns: GOO bytes in a file every program reads as a CTB
+    (["--format", "goo", "-o", "{tmp}/part.ctb"], "part.ctb: a .ctb file is a CTB file, not the GOO file --format goo "
+                                                  "writes (name it part.goo, or leave --format out)"),
+    (["--format", "png", "-o", "{tmp}/part.goo"], "part.goo: a .goo file is a GOO file, not the PNG stack --format "
+                                                  "png writes (name a folder DIR/, or leave --format out)"),
 ])
 def test_format_refusals_write_nothing(tmp_path, capsys, args, message):
     stl = _cube_stl(tmp_path)
