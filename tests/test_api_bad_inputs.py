@@ -448,3 +448,45 @@ def test_runs_and_adaptive_schedules_called_directly(res, cube):
             call()
         _one_line(exc, *words)
     assert len(cusp_schedule(cube).z) > 0
+
+
+@pytest.mark.parametrize(("call", "words"), [
+    (lambda m: gpuslice.roi_schedule(m, ladder=("a",)), ("roi_ladder", "'a'")),
+    (lambda m: gpuslice.roi_schedule(m, ladder=1.0), ("roi_ladder", "1.0")),
+    (lambda m: gpuslice.roi_schedule(m, threshold="x"), ("roi_threshold", "'x'")),
+    (lambda m: gpuslice.roi_schedule(m, quantile="x"), ("roi_quantile", "'x'")),
+    (lambda m: gpuslice.roi_schedule(m, max_windows=1.5), ("roi_windows", "whole number", "1.5")),
+    (lambda m: gpuslice.roi_schedule(m, min_layers="x"), ("roi_min_layers", "'x'")),
+    (lambda m: gpuslice.roi_schedule(m, min_layers=-5), ("roi_min_layers", ">= 1", "-5")),
+    (lambda m: gpuslice.adaptive_schedule(m, SliceParams(adaptive="roi")), ("gpuslice.roi_schedule", "slicer")),
+    (lambda m: gpuslice.cusp_schedule("part.stl"), ("cusp_schedule takes a gpuslice Mesh", "load_mesh", "str")),
+    (lambda m: gpuslice.roi_schedule("part.stl"), ("roi_schedule takes a gpuslice Mesh", "str")),
+    (lambda m: gpuslice.mesh_repairs("part.stl"), ("mesh_repairs takes a gpuslice Mesh", "str")),
+    (lambda m: gpuslice.cusp_schedule(m, resolution=1e-7), ("resolution must be at least", "1e-07")),
+])
+def test_adaptive_schedule_arguments(cube, call, words):
+    """A ValueError, TypeError, UFuncTypeError or AttributeError from inside, "'NoneType' object is not callable",
+    a MemoryError of 36 GiB (resolution 1e-7 mm), or a negative min_layers taken as it was."""
+    with pytest.raises(ParameterError) as exc:
+        call(cube)
+    _one_line(exc, *words)
+
+
+def test_a_max_height_above_the_model_does_not_loop_over_it(cube):
+    """max_height=1e6 mm made a million-bin loop (minutes, gigabytes: killed after 11 minutes on nefertiti); no
+    layer is taller than the model, so it is the same schedule as max_height = the model's height."""
+    a = gpuslice.cusp_schedule(cube, max_height=1e6, min_height=0.05, resolution=0.01)
+    b = gpuslice.cusp_schedule(cube, max_height=10.0, min_height=0.05, resolution=0.01)
+    assert np.array_equal(a.z, b.z) and np.array_equal(a.thickness, b.thickness) and a.z.size == 1
+
+
+def test_a_device_spec_string_is_taken_or_refused_whatever_the_size(cube):
+    """load_mesh(path, device="0:0") and cusp_schedule(mesh, device="0:0") raised AttributeError on large meshes
+    (a string has no .queue) and ignored the argument on small ones."""
+    from gpuslice.errors import DeviceError
+
+    for call in (lambda d: gpuslice.mesh_from_triangles(TRI, device=d),
+                 lambda d: gpuslice.cusp_schedule(cube, device=d)):
+        with pytest.raises(DeviceError, match=r"device '99:99' not found"):
+            call("99:99")
+    assert gpuslice.cusp_schedule(cube, device="0:0").z.size == gpuslice.cusp_schedule(cube).z.size

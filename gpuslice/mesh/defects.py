@@ -225,6 +225,11 @@ def mesh_repairs(mesh: Mesh) -> dict[str, int]:
     Flipped facets and inside-out shells need no rewrite of the mesh: loop orientation comes from nesting, so they
     are sliced as if oriented outward; these counts say how many there were.
     """
+    if not isinstance(mesh, Mesh):
+        from ..errors import ParameterError
+
+        raise ParameterError(f"mesh_repairs takes a gpuslice Mesh (gpuslice.load_mesh(source) first), got "
+                             f"{type(mesh).__name__}")
     if "mesh_repairs" not in mesh._cache:
         mesh._cache["mesh_repairs"] = outward_facets(mesh)[1]
     return dict(mesh._cache["mesh_repairs"])

@@ -256,12 +256,17 @@ def mesh_from_triangles(
     Corners are stored as float32: float32 values (an STL's) are welded bit for bit as given, then placed; finer
     values (float64, integers beyond 2^24) are placed in float64 first and rounded once (a model far above the bed
     loses nothing to the rounding of its own frame).
-    ``device`` (a :class:`gpuslice.device.Device`): weld and number edges with ``kernels/weld.cl`` (the same ids
-    as the numpy path) for meshes of more than :data:`DEVICE_WELD_MIN_FACETS` facets.
+    ``device`` (a :class:`gpuslice.device.Device`, or a spec :func:`~gpuslice.device.get_device` takes): weld and
+    number edges with ``kernels/weld.cl`` (the same ids as the numpy path) for meshes of more than
+    :data:`DEVICE_WELD_MIN_FACETS` facets.
     """
     tri = real_array(triangles, "triangles", name)
     if tri.ndim != 3 or tri.shape[1:] != (3, 3):
         raise ParameterError(f"{name}: triangles must have shape (F, 3, 3), got {tri.shape}")
+    if device is not None:  # (a Device, or a spec such as "0:0": checked whatever the mesh's size)
+        from ..device import get_device
+
+        device = get_device(device)
     if tri.shape[0] == 0:
         raise EmptyMeshError(f"{name}: no facets")
     _check_scale_fit(scale, fit)

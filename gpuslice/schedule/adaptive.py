@@ -61,6 +61,8 @@ __all__ = [
 ]
 
 ADAPTIVE_MODES = ("roi", "cusp", "area")
+#: the most bins of the error-bounded schedules: their width is at least the model's height / MAX_BINS
+MAX_BINS = 400_000
 
 #: relative safety on |n_z| so float32 rounding never lets t·|n_z| exceed the bound in float64
 _NZ_SAFETY = 1.0 + 1e-6
@@ -231,6 +233,13 @@ def _check_heights(min_height: float, max_height: float) -> None:
                              param=("max_height", "min_height"))
 
 
+def _need_mesh(mesh: Any, fn: str) -> None:
+    """A one-line :class:`ParameterError` when ``mesh`` is not a loaded :class:`Mesh` (a path, a Trimesh ...)."""
+    if not isinstance(mesh, Mesh):
+        raise ParameterError(f"{fn} takes a gpuslice Mesh (gpuslice.load_mesh(source) first), got "
+                             f"{type(mesh).__name__}")
+
+
 def cusp_schedule(
     mesh: Mesh,
     *,
@@ -251,12 +260,17 @@ def cusp_schedule(
         ``<= max_area``, mm²).
     min_height, max_height : clamp of every layer's thickness, mm (A and B).
     smooth : if > 0, the thickness changes by at most this many mm per mm of height.
-    resolution : the bin width δ, mm (default ``min_height / 10``, at least height / 400000); thicknesses are
-        multiples of δ except the last layer, which ends at the top.
+    resolution : the bin width δ, mm (default ``min_height / 10``; at least height / :data:`MAX_BINS`, given or
+        not); thicknesses are multiples of δ except the last layer, which ends at the top.
     device : an OpenCL :class:`~gpuslice.device.Device` for the per-facet work, or None for numpy.
     """
+    _need_mesh(mesh, "cusp_schedule")
     if mode not in ("cusp", "area"):
         raise ParameterError(f"unknown error-bounded mode '{mode}' (use cusp or area)")
+    if device is not None:  # (a Device, or a spec such as "0:0")
+        from ..device import get_device
+
+        device = get_device(device)
     for name, v in (("max_cusp", max_cusp), ("max_area", max_area), ("min_height", min_height),
                     ("max_height", max_height), ("smooth", smooth)):
         if not is_real(v):  # (text or a bool: named here, not a numpy TypeError below)
@@ -276,15 +290,19 @@ def cusp_schedule(
             "max_height_mm": max_height, "smooth": smooth}
     if height <= 0:
         return schedule_from_edges(np.zeros(0) if height == 0 else np.zeros(0), f"adaptive-{mode}", info)
-    delta = float(resolution) if resolution else max(min_height / 10, height / 400_000)
+    delta = float(resolution) if resolution else max(min_height / 10, height / MAX_BINS)
     if resolution is None and delta > min_height:  # the bins are at least height / 400000 wide
         raise ParameterError(f"min_height must be at least {delta:g} mm for a {height:g} mm tall model (its height "
                              f"/ 400000), got {min_height:g}", param="min_height")
     if not (delta > 0 and delta <= min_height):
         raise ParameterError(f"adaptive resolution must be in (0, min_height], got {resolution}", param="min_height")
-    n_min = max(1, int(np.ceil(min_height / delta - 1e-9)))  # (never under min_height: bins of height / 400000)
-    n_max = max(n_min, int(np.floor(max_height / delta + 1e-9)))
+    if height / delta > MAX_BINS + 1e-6:  # (the bins' arrays: 1e-7 mm bins of a 40 mm model would take 36 GiB)
+        raise ParameterError(f"resolution must be at least {height / MAX_BINS:g} mm for a {height:g} mm tall model "
+                             f"(its height / {MAX_BINS}), got {delta:g}", param="resolution")
     n_bins = int(np.ceil(height / delta - 1e-9))
+    n_min = max(1, int(np.ceil(min_height / delta - 1e-9)))  # (never under min_height: bins of height / 400000)
+    # (no layer is taller than the model: a max_height of 1e6 mm does not make a million-bin loop below)
+    n_max = max(n_min, min(int(np.floor(max_height / delta + 1e-9)), n_bins))
     edges = np.arange(n_bins + 1, dtype=np.float64) * delta
     edges[-1] = max(edges[-1], height)
     bin_nz = slab_max_nz(mesh, edges, device)
@@ -296,6 +314,8 @@ def cusp_schedule(
     for n in range(1, n_max + 1):
         np.minimum(run_min, limit[n - 1 : n - 1 + n_bins], out=run_min)
         ok &= n * delta <= run_min
+        if not ok.any():  # no layer can hold n bins anywhere: nor more
+            break
         allowed += ok
     if smooth > 0:
         t = allowed * delta
@@ -372,13 +392,28 @@ def roi_schedule(
     ``info["levels"]`` lists, per level, its thickness, the region(s) sliced, their points per layer and z, the
     threshold and the windows chosen (layer indices within the region and z ranges in mm).
     """
+    _need_mesh(mesh, "roi_schedule")
+    if not (isinstance(ladder, tuple | list | np.ndarray) and all(is_real(t) for t in ladder)):
+        raise ParameterError(f"roi_ladder must be positive thicknesses in mm, got {ladder!r}", param="roi_ladder")
     ladder = tuple(float(t) for t in ladder)
     if not ladder or not all(np.isfinite(t) and t > 0 for t in ladder):
         raise ParameterError(f"roi_ladder must be positive thicknesses in mm, got {ladder}", param="roi_ladder")
+    for name, v, whole, least in (("roi_quantile", quantile, False, None), ("roi_min_layers", min_layers, True, 1),
+                                  ("roi_windows", max_windows, True, 0)):
+        if not is_real(v) or (whole and float(v) != int(v)) or (least is not None and v < least):
+            kind = f"a whole number >= {least}" if whole else "a number"
+            raise ParameterError(f"{name} must be {kind}, got {v!r}", param=name)
+    if not callable(slicer):
+        raise ParameterError("roi_schedule needs slicer= (gpuslice.roi_schedule and slice_mesh(..., adaptive='roi') "
+                             "pass the slicer themselves)", param="slicer")
     if any(b >= a for a, b in zip(ladder[:-1], ladder[1:], strict=True)):
         raise ParameterError(f"roi_ladder must go from coarse to fine (decreasing), got {ladder}", param="roi_ladder")
     if threshold is not None:
-        thr = (threshold,) if np.isscalar(threshold) else tuple(threshold)
+        thr = (threshold,) if np.isscalar(threshold) else tuple(threshold) if isinstance(
+            threshold, tuple | list | np.ndarray) else (threshold,)
+        if not all(is_real(v) for v in thr):
+            raise ParameterError(f"roi_threshold must be points per layer >= 0, got {threshold!r}",
+                                 param="roi_threshold")
         if len(thr) == 1:
             thr = thr * max(len(ladder) - 1, 1)
         if len(thr) != max(len(ladder) - 1, 1):
@@ -439,6 +474,9 @@ def adaptive_schedule(mesh: Mesh, params, device=None, *, slicer: Callable[[Sche
         raise ParameterError(f"params must be a SliceParams (its adaptive fields), got {type(params).__name__}")
     mode = params.adaptive
     if mode == "roi":
+        if slicer is None:
+            raise ParameterError("adaptive 'roi' slices the mesh as it goes: call gpuslice.roi_schedule(mesh, ...) or "
+                                 "slice_mesh(mesh, adaptive='roi'), which pass the slicer", param="adaptive")
         return roi_schedule(mesh, params.roi_ladder, threshold=params.roi_threshold, quantile=params.roi_quantile,
                             max_windows=params.roi_windows, slicer=slicer)
     if mode in ("cusp", "area"):
