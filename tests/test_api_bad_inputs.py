@@ -277,8 +277,11 @@ def _saved(res, tmp_path, **change) -> str:
 
 
 @pytest.mark.parametrize("change, words", [
-    ({"points": np.zeros((5, 3), np.float32)}, ["points must be (P, 2) floats"]),       # was shapely's ValueError
-    ({"points": np.array([["a", "b"]])}, ["points must be (P, 2) floats"]),              # was ValueError
+    ({"points": np.zeros((5, 3), np.float32)}, ["points must be (P, 2) float32"]),      # was shapely's ValueError
+    ({"points": np.array([["a", "b"]])}, ["points must be (P, 2) float32"]),             # was ValueError
+    ({"points": lambda p: p.astype(np.float64)}, ["points must be (P, 2) float32", "float64"]),  # kept float64
+    ({"z": lambda z: z[::-1].copy()}, ["z must be strictly increasing"]),                 # silently loaded
+    ({"loop_layer": lambda la: la[::-1].copy()}, ["loop_layer disagrees with layer_offsets"]),  # polygons moved
     ({"loop_offsets": lambda o: o * 100}, ["loop_offsets must rise from 0 to"]),           # shapely's ValueError
     ({"layer_offsets": lambda o: o[:2]}, ["layer_offsets holds 2 values, expected 5"]),    # IndexError
     ({"z": lambda z: z[:2]}, ["layer_offsets holds 5 values, expected 3"]),                # silently 2 layers
@@ -302,10 +305,12 @@ def test_loading_what_is_no_npz_names_the_file(res, tmp_path):
     (tmp_path / "empty.npz").write_bytes(b"")
     res.save(tmp_path / "ok.npz")
     (tmp_path / "cut.npz").write_bytes((tmp_path / "ok.npz").read_bytes()[:1000])
-    for name in ("plain.npy", "empty.npz", "cut.npz"):
+    (tmp_path / "json.npz").write_text('{"a": 1}')  # (numpy's advice was to load it with allow_pickle)
+    for name in ("plain.npy", "empty.npz", "cut.npz", "json.npz"):
         with pytest.raises(MeshFileError) as exc:
             SliceResult.load(tmp_path / name)
         _one_line(exc, name, "not a gpuslice result")
+        assert "pickle" not in str(exc.value)
     with pytest.raises(ParameterError):
         SliceResult.load(None)
     back = SliceResult.load(tmp_path / "ok.npz")  # a good one still loads, every array equal
@@ -348,6 +353,8 @@ def test_raster_arguments_of_the_wrong_kind(res, cube, call, words):
     ({"options": {"trap_grid": 1}}, ["options must be a CheckOptions"]), ({"bounds": (0, 0, 1)}, ["bounds must be"]),
     ({"backend": "bogus"}, ["unknown checks backend 'bogus'"]),                              # silently OpenCL
     ({"workers": "a"}, ["workers must be a whole number"]), ({"workers": 0}, ["workers must be"]),
+    # a reversed box: "resolution must be two positive integers NXxNY, got (-46, -46)" named an argument not given
+    ({"bounds": (10, 10, 0, 0)}, ["bounds must be (xmin, ymin, xmax, ymax) with xmin <= xmax", "(10, 10, 0, 0)"]),
 ])
 def test_run_checks_arguments(res, kw, words):
     with pytest.raises(ParameterError) as exc:

@@ -133,6 +133,9 @@ def check_raster_args(result, spec, layers=None, bounds=None) -> None:
         if b.shape != (4,) or not np.isfinite(b).all():
             raise ParameterError(f"bounds must be four finite numbers (xmin, ymin, xmax, ymax) in mm, got {bounds!r}",
                                  param="bounds")
+        if not (b[0] <= b[2] and b[1] <= b[3]):  # (a reversed box made a display of negative size, named wrongly)
+            raise ParameterError(f"bounds must be (xmin, ymin, xmax, ymax) with xmin <= xmax and ymin <= ymax, got "
+                                 f"{bounds!r}", param="bounds")
 
 
 def layer_edges(result: SliceResult, spec: RasterSpec, bounds=None, layers: Sequence[int] | None = None,

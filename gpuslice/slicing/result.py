@@ -269,6 +269,10 @@ class SliceResult:
             raise ParameterError(f"path must be a file path, got {type(path).__name__}")
         p = Path(path)
         try:
+            with open(p, "rb") as f:  # (numpy reads any other bytes as a pickle and suggests allow_pickle)
+                head = f.read(6)
+            if not head.startswith((b"PK\x03\x04", b"PK\x05\x06", b"\x93NUMPY")):
+                raise ValueError("not an .npz archive (no zip header)")
             data = np.load(p, allow_pickle=False)
             if not isinstance(data, np.lib.npyio.NpzFile):  # a .npy file
                 raise ValueError("a single .npy array, not an .npz archive")
@@ -294,8 +298,8 @@ def _layout_problem(arrays: dict[str, np.ndarray], repairs: dict[str, np.ndarray
     lengths, offsets' ends and order, index ranges, finite z/thickness/area. Passes over the per-loop and per-layer
     arrays only, never the points."""
     pts = arrays["points"]
-    if pts.ndim != 2 or pts.shape[1] != 2 or pts.dtype.kind != "f":
-        return f"points must be (P, 2) floats, got shape {pts.shape} dtype {pts.dtype}"
+    if pts.ndim != 2 or pts.shape[1] != 2 or pts.dtype != np.float32:
+        return f"points must be (P, 2) float32, got shape {pts.shape} dtype {pts.dtype}"
     for name, kind in _KINDS.items():
         a = arrays[name]
         if a.ndim != 1 or a.dtype.kind not in kind:
@@ -316,8 +320,13 @@ def _layout_problem(arrays: dict[str, np.ndarray], repairs: dict[str, np.ndarray
     lay, par = arrays["loop_layer"], arrays["loop_parent"]
     if n_loops and (lay.min() < 0 or lay.max() >= n_layers or par.min() < -1 or par.max() >= n_loops):
         return "loop_layer or loop_parent out of range"
+    lo = arrays["layer_offsets"]
+    if n_loops and np.any(lay != np.repeat(np.arange(n_layers), np.diff(lo))):
+        return "loop_layer disagrees with layer_offsets (a loop listed under another layer than its own)"
     if not all(np.isfinite(arrays[k]).all() for k in ("z", "thickness", "area")):
         return "z, thickness or area not finite"
+    if np.any(np.diff(arrays["z"]) <= 0):
+        return "z must be strictly increasing"
     if not isinstance(meta, dict):
         return f"meta_json must hold an object, got {type(meta).__name__}"
     return None
