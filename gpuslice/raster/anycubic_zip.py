@@ -123,11 +123,13 @@ def refuse_settings(path, name: str, options, settings, spec=None) -> None:
     """The registry's settings check (:meth:`gpuslice.raster.outputs.ResinFormat.check_settings`), before any work:
     where the archive carries the suffix's machine name (no preset, or one without a ``machine``), the display
     ``spec`` must be that machine's; the slow retract is the first lift stage (the module docstring), so a
-    ``retract_height2`` other than ``lift_height`` (or 0) is refused rather than changed."""
-    from .photon_machines import refuse_display, refuse_slow_retract
+    ``retract_height2`` other than ``lift_height`` (or 0) is refused rather than changed; it has no light-intensity
+    field, so a PWM other than 255 is refused."""
+    from .photon_machines import refuse_display, refuse_light_pwm, refuse_slow_retract
 
     machine = ZIP_MACHINES[name]
     refuse_display(path, name, machine.name, machine.resolution, machine.display, options, spec)
+    refuse_light_pwm(path, options, settings, "an Anycubic zip archive")
     refuse_slow_retract(path, settings, "an Anycubic zip archive")
 
 

@@ -91,6 +91,7 @@ def refuse_settings(path, name: str, options, settings, spec=None) -> None:
     ``lift_height`` (or 0) is refused rather than changed (the module docstring's stage mapping)."""
     machine, version = machine_version(name, options)
     refuse_display(path, name, machine.name, machine.resolution, machine.display, options, spec)
+    refuse_light_pwm(path, options, settings, "a Photon Workshop file")
     version = machine.version if version is None else version
     wait_s(settings, Path(os.fspath(path)))
     if version < 516:
@@ -116,6 +117,16 @@ def refuse_display(path, suffix: str, machine: str, resolution: tuple[int, int],
         raise ParameterError(f"{path}: a .{suffix} file is for the {machine}, whose display is {display_text(want)}, "
                              f"not the {display_text(spec)} asked (give its --printer preset, or --resolution and "
                              "--pixel/--pixel-y of that display)")
+
+
+def refuse_light_pwm(path, options, settings, what: str) -> None:
+    """Anycubic's files have no light-intensity field: ``--light-pwm`` or ``--bottom-light-pwm`` given (beyond the
+    preset's) is refused, not dropped."""
+    from .settings import changed_settings
+
+    pwm = changed_settings(settings, ("light_pwm",), base=options.settings() if options is not None else None)
+    if pwm:
+        raise ParameterError(f"{path}: {what} stores no light intensity (PWM): {', '.join(pwm)} cannot be written")
 
 
 def refuse_slow_retract(path, settings, what: str) -> None:

@@ -42,7 +42,8 @@ from ..errors import ParameterError
 from ..options import option, shown
 
 __all__ = ["PrintSettings", "layer_table", "layer_times", "print_time_s", "resin_ml", "header_layer_height",
-           "per_layer_mode", "transition_step", "format_duration", "LAYER_COLUMNS"]
+           "per_layer_mode", "changed_settings", "MOTION_REST_LIGHT", "transition_step", "format_duration",
+           "LAYER_COLUMNS"]
 
 #: settings with a bottom-layer twin ``bottom_<name>`` (None: the normal value)
 BOTTOM_TWINS = ("lift_height", "lift_speed", "lift_height2", "lift_speed2", "retract_speed", "retract_height2",
@@ -266,6 +267,27 @@ def layer_times(settings: PrintSettings, n_layers: int) -> np.ndarray:
 def print_time_s(settings: PrintSettings, n_layers: int) -> float:
     """Estimated print time of ``n_layers`` layers in s: the sum of :func:`layer_times`."""
     return float(layer_times(settings, n_layers).sum())
+
+
+#: the settings of the lift and retract moves, the rests and the light intensity (each with its bottom twin)
+MOTION_REST_LIGHT = ("lift_height", "lift_speed", "lift_height2", "lift_speed2", "retract_speed", "retract_height2",
+                     "retract_speed2", "wait_before_cure", "wait_after_cure", "wait_after_lift", "light_pwm")
+
+
+def changed_settings(settings: PrintSettings, names: tuple[str, ...], base: PrintSettings | None = None) -> list[str]:
+    """The settings among ``names`` (and their ``bottom_`` twins) that differ from ``base`` (default: the
+    defaults; a format passes the preset's, so that only what the user gave counts), as flags with their values
+    (``"--lift-height 3"``): for a format to refuse what it cannot store rather than drop it."""
+    default = base if base is not None else PrintSettings()
+    out = []
+    for name in names:
+        for key in (name, f"bottom_{name}"):
+            if not hasattr(settings, key):
+                continue
+            v = getattr(settings, key)
+            if v is not None and v != getattr(default, key):
+                out.append(f"--{key.replace('_', '-')} {shown(v)}")
+    return out
 
 
 def per_layer_mode(settings: PrintSettings, thickness_mm: np.ndarray) -> bool:

@@ -94,11 +94,21 @@ def tilt_print_time(settings, n_layers: int, tilt_s: float | None = None) -> flo
 
 def refuse_settings(path, name: str, options, settings, spec=None) -> None:
     """The SL1 family's settings check (:meth:`gpuslice.raster.outputs.ResinFormat.check_settings`): config.ini has
-    no count of bottom layers, so ``bottom_layers`` other than 1 is refused rather than dropped."""
+    no count of bottom layers, so ``bottom_layers`` other than 1 is refused rather than dropped, and no lift,
+    retract, rest or light-intensity setting (the printer tilts its vat and keeps its own), so any of those given
+    beyond the preset's (:func:`~gpuslice.raster.settings.changed_settings`) is refused too."""
+    from .settings import MOTION_REST_LIGHT, changed_settings
+
     if settings.bottom_layers != 1:
         raise ParameterError(f"{path}: an SL1 archive has one bottom layer (expTimeFirst), then "
                              f"--transition-layers fade layers; --bottom-layers {settings.bottom_layers} cannot be "
                              "written")
+    unstored = changed_settings(settings, (*MOTION_REST_LIGHT, "per_layer_settings"),
+                                base=options.settings() if options is not None else None)
+    if unstored:
+        raise ParameterError(f"{path}: an SL1 archive stores no lift, retract, rest, light-intensity or per-layer "
+                             f"settings (the printer tilts its vat): {', '.join(unstored)} cannot be written (leave "
+                             "them out)")
 
 
 def sl1_values(target) -> dict[str, object]:

@@ -167,7 +167,7 @@ def test_absurdly_thin_resin_layers_are_refused_up_front(cube, tmp_path, capsys,
 
 
 @pytest.mark.parametrize("args, words", [
-    (["--adaptive", "roi", "--roi-windows", "-1"], ["--roi-windows must be >= 0"]),
+    (["--adaptive", "roi", "--roi-windows", "-1"], ["--roi-windows must be a whole number >= 0"]),
     (["--adaptive", "roi", "--roi-threshold", "nan"], ["--roi-threshold must be points per layer >= 0"]),
     (["--adaptive", "roi", "--roi-threshold", "-5"], ["--roi-threshold must be points per layer >= 0"]),
     (["--adaptive", "roi", "--roi-ladder", "1,1e-9"], ["--roi-ladder", "more than 5e7 layers"]),

@@ -143,3 +143,25 @@ def test_the_sl1_estimate_counts_the_fade_layers(n, first, exp, fade):
 
     info = SL1Info(exposure_time=exp, initial_exposure_time=first, faded_layers=fade, tilt_time=5.0)
     assert sl1_print_time(info, n) == pytest.approx(_prusaslicer_estimate(n, first, exp, fade, 5.0))
+
+
+@pytest.mark.parametrize(("printer", "suffix", "flags", "words"), [
+    ("prusa-sl1", ".sl1", ["--lift-height", "3", "--wait-before-cure", "3"],
+     ("an SL1 archive stores no lift, retract, rest", "--lift-height 3", "--wait-before-cure 3")),
+    ("prusa-sl1", ".sl1", ["--light-pwm", "100"], ("an SL1 archive", "--light-pwm 100")),
+    ("prusa-sl1s", ".sl1s", ["--retract-speed", "300"], ("an SL1 archive", "--retract-speed 300")),
+    ("anycubic-photon-mono-x", ".pwmx", ["--light-pwm", "100"], ("a Photon Workshop file stores no light intensity",
+                                                                 "--light-pwm 100")),
+    ("anycubic-photon-mono-m7", ".pm7", ["--bottom-light-pwm", "90"], ("an Anycubic zip archive stores no light",
+                                                                       "--bottom-light-pwm 90")),
+])
+def test_settings_a_format_cannot_store_are_refused_not_dropped(tmp_path, box_stl, capsys, printer, suffix, flags,
+                                                                 words):
+    """SL1 wrote --lift-height 3 --wait-before-cure 3 --light-pwm 100 nowhere, with exit 0; Photon Workshop and the
+    M7 zip dropped --light-pwm. Refused before any work, nothing written; without them the file is written."""
+    out = tmp_path / f"x{suffix}"
+    base = ["raster", str(box_stl), "--printer", printer, "-t", "0.5", "-q", "--no-progress", "-o", str(out)]
+    assert main([*base, *flags]) == 2 and not out.exists()
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and all(w in err for w in words), err
+    assert main(base) == 0 and out.exists()

@@ -35,6 +35,10 @@ SMALL = RasterSpec(resolution=(900, 900), pixel=0.05)  # 45 x 45 mm
 #: PrusaSlicer's SL1S display (PrusaResearchSLA.ini): PNGs 1620 x 2560
 SL1S = RasterSpec(resolution=(2560, 1620), pixel=0.05, portrait=True, mirror_x=True)
 WHEN = dt.datetime(2023, 11, 14, 22, 13, 20)
+#: the shared settings' lifts, rests and PWM back at their defaults, for the SL1 family
+SL1_UNSTORED = {k: getattr(PrintSettings(), k) for k in ("lift_height", "wait_after_lift", "wait_before_cure",
+                                                          "light_pwm", "bottom_lift_height", "bottom_wait_before_cure",
+                                                          "bottom_wait_after_cure", "bottom_wait_after_lift")}
 SETTINGS = PrintSettings(bottom_layers=3, bottom_exposure=22.5, exposure=2.5, transition_layers=4, lift_height=6.0,
                          wait_after_lift=1.5, wait_before_cure=0.5, light_pwm=204, bottom_lift_height=7.0,
                          bottom_wait_before_cure=2.0, bottom_wait_after_cure=1.0, bottom_wait_after_lift=3.0)
@@ -73,8 +77,9 @@ def nefertiti(shared_meshes):
 
 def _target(tmp_path, name, result, spec, printer=None, **kw):
     opts = ResinOptions(printer=printer, workers=2)
-    # the SL1 family holds one bottom layer (expTimeFirst): the others take the shared settings' three
-    settings = replace(SETTINGS, bottom_layers=1) if ".sl1" in name else SETTINGS
+    # the SL1 family holds one bottom layer (expTimeFirst) and no lift, rest or light setting (it refuses them): the
+    # others take the shared settings' three bottom layers, lifts, rests and PWM
+    settings = replace(SETTINGS, bottom_layers=1, **SL1_UNSTORED) if ".sl1" in name else SETTINGS
     return ResinTarget(tmp_path / name, spec, opts, result, "part", now=WHEN, settings=settings, **kw)
 
 
