@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
 
         bounds = result_bounds(res)
         z, th = z_sample_planes(res, k)
-        src = slice_mesh(mesh, thickness=0.05, backend="opencl", z=z[: 512 * k], layer_thickness=th[: 512 * k])
+        src = slice_mesh(mesh, backend="opencl", z=z[: 512 * k], layer_thickness=th[: 512 * k])
         print(f"--z-samples {k}: the first 512 layers, {src.n_layers} sub-planes")
     n = src.n_layers // k
     kern = RunsKernel.of(dev)

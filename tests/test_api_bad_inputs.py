@@ -215,8 +215,9 @@ def test_slice_params_keep_valid_values():
 
 def test_numpy_numbers_as_options_can_be_saved(cube, tmp_path):
     """np.float32/np.int64 options went into the report as they were: ``save()`` then failed in ``json.dumps``."""
-    r = gpuslice.slice_mesh(cube, thickness=np.float32(2.5), roi_windows=np.int64(2), roi_ladder=(np.float32(1),),
-                            backend="numpy")
+    # (as SliceParams: roi options given as keywords to uniform layers are refused, as they would be ignored)
+    r = gpuslice.slice_mesh(cube, SliceParams(thickness=np.float32(2.5), roi_windows=np.int64(2),
+                                              roi_ladder=(np.float32(1),), backend="numpy"))
     r.save(tmp_path / "r.npz")
     assert SliceResult.load(tmp_path / "r.npz").meta["params"]["thickness"] == 2.5
     np.testing.assert_array_equal(r.z, gpuslice.slice_mesh(cube, thickness=2.5, backend="numpy").z)
@@ -497,3 +498,23 @@ def test_a_device_spec_string_is_taken_or_refused_whatever_the_size(cube):
         with pytest.raises(DeviceError, match=r"device '99:99' not found"):
             call("99:99")
     assert gpuslice.cusp_schedule(cube, device="0:0").z.size == gpuslice.cusp_schedule(cube).z.size
+
+
+@pytest.mark.parametrize(("kw", "words"), [
+    ({"z": [1.0, 2.0], "thickness": 0.5}, ("thickness shapes the layers, which z= gives already",)),
+    ({"z": [1.0, 2.0], "adaptive": "cusp"}, ("adaptive shapes the layers, which z= gives already",)),
+    ({"adaptive": "cusp", "thickness": 0.3}, ("thickness shapes uniform layers, not adaptive 'cusp' ones",)),
+    ({"max_cusp": 0.3}, ("max_cusp shapes adaptive 'cusp' layers", "add adaptive='cusp'")),
+    ({"adaptive": "area", "roi_ladder": (1.0, 0.5)}, ("roi_ladder shapes adaptive 'roi' layers",)),
+])
+def test_slice_mesh_refuses_an_option_its_layers_would_ignore(cube, kw, words):
+    """Each was dropped without a word (the command line refuses the same flags)."""
+    with pytest.raises(ParameterError) as exc:
+        gpuslice.slice_mesh(cube, backend="numpy", **kw)
+    _one_line(exc, *words)
+
+
+def test_slice_mesh_takes_the_options_of_its_layers(cube):
+    assert gpuslice.slice_mesh(cube, backend="numpy", thickness=2.5).n_layers == 4
+    assert gpuslice.slice_mesh(cube, backend="numpy", z=[1.0, 2.0], layer_thickness=0.5).n_layers == 2
+    assert gpuslice.slice_mesh(cube, backend="numpy", adaptive="cusp", max_cusp=0.1).n_layers > 0

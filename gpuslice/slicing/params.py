@@ -44,7 +44,8 @@ class SliceParams:
     first_layer: float | None = option(None, "First layer thickness (default: -t)", unit="mm")
     z_mode: str = option("mid", "mid: cut at the middle of each layer, z=(i+0.5)h; paper: at its top, z=(i+1)h "
                          "(the paper's Z_i = i*h, counted from 1)", choices=Z_MODES)
-    fill_rule: str = option("nonzero", "Which loops bound material", choices=FILL_RULES)
+    fill_rule: str = option("nonzero", "Which loops bound material (positive: only where the mesh's winding is "
+                            "positive, so an inside-out shell is empty)", choices=FILL_RULES)
     max_gap: float = option(2.0, "Join open chain ends closer than this (0: never); chains left open are not filled",
                             unit="mm")
     backend: str = option("opencl", "The OpenCL kernels, or their numpy reference twins", choices=BACKENDS)

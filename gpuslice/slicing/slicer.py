@@ -140,6 +140,7 @@ def slice_mesh(
     if layer_thickness is not None and (z is None or schedule is not None):
         raise ParameterError("layer_thickness goes with explicit z planes (slice_mesh(mesh, z=..., layer_thickness="
                              "...)); uniform layers take thickness=")
+    _refuse_ignored(overrides, params, z, schedule)
     params = SliceParams(**{**asdict(params or SliceParams()), **overrides})
     timings: dict[str, float] = {}
     device = None
@@ -247,6 +248,25 @@ def slice_mesh(
         }
     )
     return result
+
+
+def _refuse_ignored(overrides: dict, params: SliceParams | None, z, schedule) -> None:
+    """A one-line :class:`ParameterError` for a keyword that the layers asked for would ignore, as the command line
+    refuses its flag: a schedule option with explicit ``z`` or ``schedule`` (the planes are given), ``thickness``
+    with an adaptive mode, ``max_cusp`` without ``adaptive="cusp"`` (:attr:`SliceParams.FOR_MODES`)."""
+    shaping = set(SliceParams.FOR_MODES) | {"adaptive", "first_layer", "z_mode"}
+    if z is not None or schedule is not None:
+        given = sorted(k for k in overrides if k in shaping)
+        if given:
+            planes = "schedule=" if schedule is not None else "z="
+            raise ParameterError(f"{given[0]} shapes the layers, which {planes} gives already: leave it out",
+                                 param=given[0])
+        return
+    mode = overrides.get("adaptive", params.adaptive if params is not None else None)
+    for name, modes in SliceParams(adaptive=mode).not_for_mode(sorted(overrides)):
+        kind = "uniform" if modes == (None,) else f"adaptive {' or '.join(map(repr, modes))}"
+        raise ParameterError(f"{name} shapes {kind} layers" + (f", not adaptive {mode!r} ones" if mode else
+                                                             f"; add adaptive={modes[0]!r}"), param=name)
 
 
 def _segment_exact(parts, result: SliceResult, n_layers: int) -> np.ndarray:
