@@ -518,3 +518,17 @@ def test_slice_mesh_takes_the_options_of_its_layers(cube):
     assert gpuslice.slice_mesh(cube, backend="numpy", thickness=2.5).n_layers == 4
     assert gpuslice.slice_mesh(cube, backend="numpy", z=[1.0, 2.0], layer_thickness=0.5).n_layers == 2
     assert gpuslice.slice_mesh(cube, backend="numpy", adaptive="cusp", max_cusp=0.1).n_layers > 0
+
+
+@pytest.mark.parametrize(("kw", "bottom"), [
+    ({"z": [1.0, 2.0, 3.0], "layer_thickness": 0.1}, [0.95, 1.95, 2.95]),  # were [0, 0.1, 0.2]: far from the planes
+    ({"z": [-1.0, 5.0]}, [-4.0, 2.0]),                                      # were [0, 6]: neither plane in its slab
+    ({"z": [1.0, 2.0, 4.0]}, [0.0, 1.5, 3.0]),                               # tiling from the bed: kept
+    ({"thickness": 2.5}, [0.0, 2.5, 5.0, 7.5]),
+])
+def test_each_layer_slab_holds_its_plane(cube, kw, bottom):
+    """The exports (3MF ztop, CLI $$LAYER, SVG, GeoJSON) state each layer's slab from ``bottom``: explicit planes got
+    slabs tiled from the bed whatever the planes, so a plane at z = 2 mm was written as the layer at 0.1-0.2 mm."""
+    r = gpuslice.slice_mesh(cube, backend="numpy", **kw)
+    np.testing.assert_allclose(r.bottom, bottom)
+    assert np.all(r.bottom <= r.z + 1e-12) and np.all(r.z <= r.bottom + r.thickness + 1e-12)

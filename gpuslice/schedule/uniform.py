@@ -21,7 +21,7 @@ import numpy as np
 from ..errors import ParameterError
 from ..options import is_real, shown
 
-__all__ = ["Schedule", "uniform", "from_z"]
+__all__ = ["Schedule", "uniform", "from_z", "slab_bottoms"]
 
 
 
@@ -68,13 +68,30 @@ class Schedule:
 
     @property
     def bottom(self) -> np.ndarray:
-        """(L,) float64: the bottom of each layer's slab, mm."""
-        return np.concatenate(([0.0], np.cumsum(self.thickness)[:-1]))
+        """(L,) float64: the bottom of each layer's slab, mm (:func:`slab_bottoms`)."""
+        return slab_bottoms(self.z, self.thickness)
 
     @property
     def top(self) -> np.ndarray:
         """(L,) float64: the top of each layer's slab, mm."""
-        return np.cumsum(self.thickness)
+        return self.bottom + self.thickness
+
+
+def slab_bottoms(z: np.ndarray, thickness: np.ndarray) -> np.ndarray:
+    """(L,) float64: the bottom of each layer's slab, mm. The layers tile the part from the bed up (bottom_i =
+    t_0 + … + t_(i−1)) wherever each plane then lies in its own slab, as in every uniform and adaptive schedule;
+    explicit planes that do not (``z=[1, 2, 3]`` with 0.1 mm layers, a plane below the bed) each get a slab centred
+    on it (z_i − t_i / 2), the one placement their planes and thicknesses give, so that exports state where each
+    layer really is."""
+    z = np.asarray(z, np.float64)
+    t = np.asarray(thickness, np.float64)
+    if z.size == 0:
+        return np.zeros(0)
+    tiled = np.concatenate(([0.0], np.cumsum(t)[:-1]))
+    eps = 1e-9 * max(1.0, float(np.max(np.abs(z))))
+    if np.all(z >= tiled - eps) and np.all(z <= tiled + t + eps):
+        return tiled
+    return z - t / 2
 
 
 def uniform(

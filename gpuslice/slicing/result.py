@@ -173,8 +173,11 @@ class SliceResult:
 
     @property
     def bottom(self) -> np.ndarray:
-        """(L,) float64: the bottom of each layer's slab, mm (layers tile the object from the bed up)."""
-        return np.concatenate(([0.0], np.cumsum(self.thickness)[:-1])) if self.n_layers else np.zeros(0)
+        """(L,) float64: the bottom of each layer's slab, mm (layers tile the object from the bed up, unless explicit
+        planes lie outside such slabs: :func:`gpuslice.schedule.uniform.slab_bottoms`)."""
+        from ..schedule.uniform import slab_bottoms
+
+        return slab_bottoms(self.z, self.thickness) if self.n_layers else np.zeros(0)
 
     @property
     def points_per_layer(self) -> np.ndarray:
