@@ -61,7 +61,7 @@ from .coverage import Tile
 from .layers import RunLayer, pixel_runs, run_groups
 from .photon import _stages, encode_pw0_batch, encode_pw0_runs
 from .png import encode_all
-from .settings import header_layer_height, layer_table, per_layer_mode, print_time_s, resin_ml
+from .settings import header_layer_height, layer_table, per_layer_mode, print_time_s, ramp_layers, resin_ml
 
 __all__ = ["ZIP_MACHINES", "ZipMachine", "refuse_settings", "write_anycubic_zip", "write_target", "PREVIEWS",
            "SCENE_MAGIC", "VOLUMES_MAGIC"]
@@ -164,7 +164,7 @@ def _resin(s, layer_height: float, aa: int, density: float, per_layer: bool) -> 
                                          for t, x, y in PENETRATION]},
         "slice_extpara": {
             "version": "3", "multi_state_used": int(two_b or two_n),
-            "transition_layercount": int(s.transition_layers), "transition_type": 0,
+            "transition_layercount": ramp_layers(s), "transition_type": 0,
             "multi_state_paras": {"bott_0": _stage(*bottom[:3]), "bott_1": _stage(*bottom[3:]),
                                   "normal_0": _stage(*normal[:3]), "normal_1": _stage(*normal[3:])},
             "exposure_compensate": 0, "intelli_mode": 0, "max_acceleration": 2.0,

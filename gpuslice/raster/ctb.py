@@ -71,7 +71,15 @@ from .coverage import Tile
 from .layers import RunLayer, batch_image_segments, batch_pixel_runs, pixel_runs, run_groups
 from .png import encode_all
 from .run_encoder import RunImageEncoder
-from .settings import PrintSettings, header_layer_height, layer_table, per_layer_mode, print_time_s, resin_ml
+from .settings import (
+    PrintSettings,
+    header_layer_height,
+    layer_table,
+    per_layer_mode,
+    print_time_s,
+    ramp_layers,
+    resin_ml,
+)
 from .sl1 import _Thumb
 from .spec import RasterSpec
 
@@ -418,7 +426,7 @@ def _params_block(settings: PrintSettings, info: CtbInfo, version: int, machine:
         two * b["lift_height2"], two * b["lift_speed2"], two * m["lift_height2"], two * m["lift_speed2"],
         two * m["retract_height2"], two * m["retract_speed2"], two * m["wait_after_lift"], at["machine"],
         len(machine), aa_flag, 0, per_layer, _timestamp_minutes(now), info.anti_alias, SOFTWARE_VERSION[version],
-        two * m["wait_before_cure"], two * m["wait_after_lift"], s.transition_layers, at.get("params_v4", 0), 0, 0)
+        two * m["wait_before_cure"], two * m["wait_after_lift"], ramp_layers(s), at.get("params_v4", 0), 0, 0)
     out = params + slicer + machine
     if version >= 4:
         v4 = PARAMS_V4.pack(b["retract_speed"], b["retract_speed2"], 0, 4.0, 0, 4.0, m["wait_before_cure"],

@@ -62,7 +62,7 @@ from .ctb import _ex_columns, _timestamp_minutes, rgb15_rle, rle7, rle7_runs
 from .cxdlp import _model_code, largest_regions
 from .layers import RunLayer, batch_pixel_runs, pixel_runs, run_groups
 from .png import encode_all
-from .settings import header_layer_height, layer_table, per_layer_mode, print_time_s, resin_ml
+from .settings import header_layer_height, layer_table, per_layer_mode, print_time_s, ramp_layers, resin_ml
 
 __all__ = ["MAGIC", "PREVIEWS", "VERSION", "refuse_settings", "write_cxdlpv4", "write_target"]
 
@@ -209,7 +209,7 @@ def _settings_blocks(s, ml: float, anti_alias: int, now, bottom_layers: int, per
     slicer = SLICER.pack(b["lift_height2"], b["lift_speed2"], m["lift_height2"], m["lift_speed2"], m["retract_height2"],
                          m["retract_speed2"], m["wait_after_lift"], int(per_layer),
                          _timestamp_minutes(now), anti_alias, 0, m["wait_before_cure"], m["wait_after_cure"],
-                         s.exposure, s.bottom_exposure, m["wait_after_lift"], s.transition_layers, 0, 0)
+                         s.exposure, s.bottom_exposure, m["wait_after_lift"], ramp_layers(s), 0, 0)
     return params + slicer
 
 

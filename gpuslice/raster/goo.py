@@ -56,7 +56,7 @@ from .coverage import Tile
 from .layers import RunLayer, batch_image_segments, batch_pixel_runs, image_segments, pixel_runs, run_groups
 from .png import encode_all
 from .run_encoder import RunImageEncoder
-from .settings import header_layer_height, layer_table, per_layer_mode, print_time_s, resin_ml
+from .settings import header_layer_height, layer_table, per_layer_mode, print_time_s, ramp_layers, resin_ml
 
 __all__ = ["HEADER_SIZE", "LAYER_DEF", "MAGIC", "ENDING", "PREVIEWS", "MAX_RUN", "encode_runs", "encode_batch",
            "GooEncoder", "encode_segments", "header_bytes", "layer_definitions", "rgb565", "write_goo", "write_target"]
@@ -257,7 +257,7 @@ def header_bytes(target, previews: tuple[bytes, bytes], *, machine_z: float) -> 
         0.0, b"",  # price, currency
         HEADER_SIZE,  # where the first layer starts
         1,  # grey-scale level: greys 0x00-0xFF
-        min(s.transition_layers, 0xFFFF),
+        min(ramp_layers(s), 0xFFFF),
     )
     small, big = previews
     out = b"".join((head, small, DELIMITER, big, DELIMITER, tail))

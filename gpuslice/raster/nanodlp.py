@@ -56,7 +56,7 @@ from .coverage import Tile
 from .layers import RunLayer, encode_png, pixel_runs, run_groups
 from .png import PngEncoder, encode_all
 from .png_runs import png_encoders, png_group
-from .settings import PrintSettings, print_time_s, resin_ml
+from .settings import PrintSettings, print_time_s, ramp_layers, resin_ml
 from .sl1 import _member, _Thumb, _write_deflated, _zip_time, check_one_layer_height
 from .spec import RasterSpec
 
@@ -160,7 +160,7 @@ def write_nanodlp(
             "Arch": "", "Profile": False}
     profile = {"ResinID": 0, "ProfileID": 0, "Title": title or "gpuslice", "Desc": "", "Depth": um(depth),
                "SupportDepth": um(first), "CureTime": s.exposure, "SupportCureTime": s.bottom_exposure,
-               "SupportLayerNumber": s.bottom_layers, "TransitionalLayer": s.transition_layers,
+               "SupportLayerNumber": s.bottom_layers, "TransitionalLayer": ramp_layers(s),
                "WaitHeight": s.lift_height + s.lift_height2,  # (one lift: the total, as CTB v3 and Photon fold it)
                "SupportWaitHeight": bot["lift_height"] + bot["lift_height2"],
                "TopWait": s.wait_after_lift, "SupportTopWait": bot["wait_after_lift"], **waits, "Updated": stamp,

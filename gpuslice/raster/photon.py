@@ -70,7 +70,7 @@ from .layers import HeightMap, RunLayer, batch_image_segments, batch_pixel_runs,
 from .photon_machines import MACHINES, VERSIONS, Machine, machine_version, refuse_settings, wait_s
 from .png import encode_all
 from .run_encoder import RunImageEncoder
-from .settings import header_layer_height, layer_table, per_layer_mode, print_time_s, resin_ml
+from .settings import header_layer_height, layer_table, per_layer_mode, print_time_s, ramp_layers, resin_ml
 
 __all__ = ["MACHINES", "VERSIONS", "Machine", "refuse_settings", "PhotonEncoder", "encode_pw0", "encode_pw0_batch",
            "encode_pw0_runs", "quantise", "write_photon", "write_target"]
@@ -287,7 +287,7 @@ def _tables(target, machine: Machine, version: int, name: str, machine_z: float,
                        s.bottom_exposure, min(s.bottom_layers, n), s.lift_height + s.lift_height2, s.lift_speed / 60,
                        s.retract_speed / 60, volume, aa, cols, rows, volume * s.resin_density, 0.0, 0x24,
                        int(per_layer_mode(s, th)), round(print_time_s(s, n)),
-                       min(s.transition_layers, max(n - s.bottom_layers, 0)), 0)
+                       min(ramp_layers(s), max(n - s.bottom_layers, 0)), 0)
     if version >= 516:
         head += struct.pack("<I", int(two_b or two_n))
     if version >= 517:

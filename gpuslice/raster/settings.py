@@ -42,7 +42,8 @@ from ..errors import ParameterError
 from ..options import option, shown
 
 __all__ = ["PrintSettings", "layer_table", "layer_times", "print_time_s", "resin_ml", "header_layer_height",
-           "per_layer_mode", "changed_settings", "MOTION_REST_LIGHT", "transition_step", "format_duration",
+           "per_layer_mode", "changed_settings", "MOTION_REST_LIGHT", "transition_step", "ramp_layers",
+           "format_duration",
            "LAYER_COLUMNS"]
 
 #: settings with a bottom-layer twin ``bottom_<name>`` (None: the normal value)
@@ -227,6 +228,13 @@ def transition_step(settings: PrintSettings) -> float:
         return 0.0
     step = (s.bottom_exposure - s.exposure) / (s.transition_layers + 1)
     return math.floor(step * 100.0 + 0.5) / 100.0  # to 0.01 s, halves away from zero (as UVtools)
+
+
+def ramp_layers(settings: PrintSettings) -> int:
+    """The transition layers an archive's header states: ``transition_layers`` where they ramp the exposure down
+    (:func:`transition_step` > 0), else 0, as the per-layer table has no ramp then (a bottom exposure at or below
+    the normal one: the header said 10 transition layers that no layer had)."""
+    return int(settings.transition_layers) if transition_step(settings) > 0 else 0
 
 
 def layer_table(settings: PrintSettings, n_layers: int) -> dict[str, np.ndarray]:

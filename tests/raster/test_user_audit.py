@@ -165,3 +165,25 @@ def test_settings_a_format_cannot_store_are_refused_not_dropped(tmp_path, box_st
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and all(w in err for w in words), err
     assert main(base) == 0 and out.exists()
+
+
+RAMPS = {
+    ".goo": lambda p: read_goo(p).header["transition_layers"],
+    ".ctb": lambda p: read_ctb(p).slicer["transition_layers"],
+    ".pm3n": lambda p: read_photon(p).header["transition_layers"],
+    ".pm7": lambda p: read_anycubic_zip(p).resin["slice_extpara"]["transition_layercount"],
+    ".cxdlpv4": lambda p: read_cxdlpv4(p).slicer["transition_layers"],
+}
+
+
+@pytest.mark.parametrize("suffix", sorted(RAMPS))
+def test_the_header_states_a_ramp_only_where_the_layers_have_one(tmp_path, box_stl, suffix):
+    """--bottom-exposure 2 --exposure 10 --transition-layers 5: no layer ramps (the exposure steps only down), yet
+    the header said 5 transition layers, which a firmware computing its own ramp would follow."""
+    printer, read = SWITCHES[suffix][0], RAMPS[suffix]
+    base = ["raster", str(box_stl), "--printer", printer, "-t", "0.25", "-q", "--no-progress", "--exposure", "10",
+            "--transition-layers", "5"]
+    up, down = tmp_path / f"up{suffix}", tmp_path / f"down{suffix}"
+    assert main([*base, "--bottom-exposure", "2", "-o", str(up)]) == 0
+    assert main([*base, "--bottom-exposure", "30", "-o", str(down)]) == 0
+    assert (read(up), read(down)) == (0, 5)
