@@ -59,8 +59,13 @@ def check_points_fit(xy: np.ndarray, spec: RasterSpec, bounds, name: str = "mode
     if lo[0] < -eps or lo[1] < -eps or hi[0] > cols + eps or hi[1] > rows + eps:
         bx, by = spec.bed_mm
         w, h = (float(v) for v in np.subtract(*point_bounds(xy)[::-1]))
+        where = ""
+        if getattr(spec, "keep_xy", False):  # (its own XY: say where it is, and where the display is)
+            where = (f": --keep-xy keeps its own x {x0:.2f} to {x1:.2f} and y {y0:.2f} to {y1:.2f} mm, and the display "
+                     f"spans x 0 to {bx:.2f} and y 0 to {by:.2f} mm (move the model, or leave --keep-xy out to centre "
+                     "it)")
         raise ParameterError(f"{name}: the model ({w:.2f} x {h:.2f} mm) does not fit on the display "
-                             f"({bx:.2f} x {by:.2f} mm) at this placement")
+                             f"({bx:.2f} x {by:.2f} mm) at this placement{where}")
 
 
 def check_fits(result: SliceResult, spec: RasterSpec, bounds=None, name: str = "model",

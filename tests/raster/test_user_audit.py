@@ -187,3 +187,14 @@ def test_the_header_states_a_ramp_only_where_the_layers_have_one(tmp_path, box_s
     assert main([*base, "--bottom-exposure", "2", "-o", str(up)]) == 0
     assert main([*base, "--bottom-exposure", "30", "-o", str(down)]) == 0
     assert (read(up), read(down)) == (0, 5)
+
+
+def test_keep_xy_says_where_the_model_and_the_display_are(tmp_path, box_stl, capsys):
+    """The box centred on its origin with --keep-xy: "does not fit on the display (143.43 x 89.60 mm)" for a 10 mm
+    part left the user to guess that it hangs off the display's x = 0 edge."""
+    out = tmp_path / "k.ctb"
+    assert main(["raster", str(box_stl), "--keep-xy", "--printer", "elegoo-mars-3", "-t", "0.5", "-q",
+                 "-o", str(out)]) == 2 and not out.exists()
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "--keep-xy keeps its own x -5.00 to 5.00 and y -4.00 to 4.00 mm" in err
+    assert "the display spans x 0 to 143.43 and y 0 to 89.60 mm" in err
