@@ -328,6 +328,8 @@ def test_loading_what_is_no_npz_names_the_file(res, tmp_path):
     ({"layers": [[0, 1]]}, ["whole layer indices"]),
     ({"bounds": (0, 0, 1)}, ["bounds must be four finite numbers"]),                         # ValueError: unpack
     ({"bounds": (np.nan, 0, 1, 1)}, ["bounds must be four finite numbers"]),                 # garbage, warnings
+    ({"layers": [0, -1]}, ["layer index -1 out of range 0..3", "no negative"]),              # named no value
+    ({"layers": [7]}, ["layer index 7 out of range 0..3"]),
 ])
 def test_masks_arguments(res, kw, words):
     with pytest.raises(ParameterError) as exc:

@@ -154,7 +154,9 @@ def layer_edges(result: SliceResult, spec: RasterSpec, bounds=None, layers: Sequ
     n_layers = result.n_layers
     sel = np.arange(n_layers) if layers is None else np.asarray(layers, dtype=np.int64)
     if sel.size and (sel.min() < 0 or sel.max() >= n_layers):
-        raise ParameterError(f"layer index out of range 0..{n_layers - 1}")
+        bad = int(sel[(sel < 0) | (sel >= n_layers)][0])
+        raise ParameterError(f"layer index {bad} out of range 0..{n_layers - 1} (layers count from 0; no negative "
+                             "indices here)", param="layers")
     lo_off = result.loop_offsets
     # loops of the selected layers, closed ones only
     loop_start = result.layer_offsets[sel]

@@ -71,8 +71,9 @@ _ARRAYS = (
 class LayerView:
     """One layer of a :class:`SliceResult`, as views into the result's arrays (no copies).
 
-    ``loops`` are the loop indices of the layer; ``loop(i)`` returns the (n, 2) float32 points of the i-th loop of
-    this layer, in mm.
+    ``index``: the layer's number (from 0); ``z``: its cutting plane, mm above the bed; ``thickness``: mm; ``area``:
+    its filled area, mm². ``loops`` are the loop indices of the layer; ``loop(i)`` returns the (n, 2) float32 points
+    of the i-th loop of this layer, in mm.
     """
 
     index: int
