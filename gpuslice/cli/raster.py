@@ -142,6 +142,8 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
         t_print = fmt.print_time_s(settings, n)
         estimate = {"print_time_s": round(t_print, 3), "resin_ml": round(ml, 4),
                     "resin_g": round(ml * settings.resin_density, 4)}
+        # the layer images' bytes whatever the format (its stats name them png_bytes, svg_bytes ... as they are)
+        size = stats.get("png_bytes", stats.get("svg_bytes", 0.0))
         if report is not None:
             write_report({"layers": n, "raster_backend": stats["raster_backend"], "output": output,
                           "timings_s": timings,
@@ -149,12 +151,12 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
                           "display": {"resolution": list(spec.resolution), "pixel": [spec.px, spec.py],
                                       "portrait": spec.portrait, "mirror_x": spec.mirror_x, "mirror_y": spec.mirror_y},
                           "repairs": done.result.meta["repairs"], "open_chains": done.result.meta["open_chains"],
+                          "image_bytes": size,
                           **estimate},
                          report)
     if not quiet:
         pitch = f"{spec.px:g}" if spec.py == spec.px else f"{spec.px:g} x {spec.py:g}"
         drawn = f"raster {stats['raster_backend']}" + (f" ({stats['gl_renderer']})" if "gl_renderer" in stats else "")
-        size = stats.get("png_bytes", stats.get("svg_bytes", 0.0))  # (SL1_SVG: its SVG layers)
         click.echo(f"{Path(model).name}: {n} layers of {spec.png_size[0]}x{spec.png_size[1]} px ({pitch} mm), "
                    f"{drawn}, {size / 1e6:.1f} MB of layer images, "
                    f"{timings['total']:.2f} s; print about {format_duration(estimate['print_time_s'])} (h:mm), "

@@ -99,6 +99,8 @@ def test_open_chains_are_warned_about_and_reported(tmp_path, open_box_stl, box_s
     assert "open_box.stl: 6 open chains in 6 layers (layers 0-5)" in warning[0] and "o.goo" in warning[0]
     rep = json.loads(report.read_text())
     assert rep["open_chains"] == 6 and rep["repairs"]["open_chains"] == 6
+    # the layer images' size under one name whatever the format (a GOO's were png_bytes only)
+    assert rep["image_bytes"] == rep["png_bytes"] > 0
     # a closed box: no warning, and the report says none
     assert main(["raster", str(box_stl), "--printer", "elegoo-mars-4", "-t", "0.5", "-q", "-o", str(out),
                  "--report", str(report)]) == 0
