@@ -25,6 +25,7 @@ from .options import (
     slicing_options,
     slicing_values,
     values,
+    warn,
     warn_open_chains,
     with_options,
 )
@@ -70,6 +71,19 @@ class _Bar:
             self.bar.stop()
 
 
+def _generic_exposure(options: ResinOptions, kw: dict) -> str | None:
+    """The warning for a printer preset without the maker's exposures and no exposure flag, or None: the generic
+    defaults (PrusaSlicer's SL1 material, made for its RGB display) are several times what a mono LCD needs, and
+    one bottom layer may not hold; said rather than let a print overcure."""
+    preset = options.preset
+    if preset is None or "exposure" in preset.settings or kw.get("exposure") is not None:
+        return None
+    d = PrintSettings()
+    return (f"printer {preset.name}'s preset holds no exposures: {d.exposure:g} s, and {d.bottom_layers} bottom layer "
+            f"at {d.bottom_exposure:g} s, are generic defaults (PrusaSlicer's SL1), far more than a mono LCD needs; "
+            "give your resin's --exposure, --bottom-exposure and --bottom-layers")
+
+
 @click.command()
 @click.argument("model", type=click.Path(dir_okay=True, path_type=str))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=str),
@@ -113,6 +127,7 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
     check_resin_layers(params)
     options = build(ResinOptions, kw)
     spec = options.spec(**values(RasterSpec, kw))
+    generic = _generic_exposure(options, kw)  # (before values() takes the flags out of kw)
     settings = options.settings(**values(PrintSettings, kw))
     job = Job(source=model, placement=placement, params=params, mesh_check=False,
               resin=ResinOutput(output, fmt.name, spec, options, settings),
@@ -135,6 +150,8 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
         timings = {**done.timings, "total": time.perf_counter() - t_start}
         stats, n = done.stats, done.result.n_layers
         warn_open_chains(model, done.result, output)
+        if generic:  # (once the job is done: a refused one keeps its one line)
+            warn(generic)
         ml = resin_ml(done.result.area, done.result.thickness)
         # the format's own estimate where it keeps one (SL1: exposures and tilts), else the settings' (lifts, waits):
         # the one the checks state too (ResinFormat.print_time_s)

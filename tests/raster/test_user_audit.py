@@ -92,7 +92,7 @@ def open_box_stl(tmp_path_factory) -> Path:
 def test_open_chains_are_warned_about_and_reported(tmp_path, open_box_stl, box_stl, capsys):
     out, report = tmp_path / "o.goo", tmp_path / "o.json"
     assert main(["raster", str(open_box_stl), "--printer", "elegoo-mars-4", "-t", "0.5", "-q", "-o", str(out),
-                 "--report", str(report)]) == 0
+                 "--exposure", "2.5", "--report", str(report)]) == 0
     err = capsys.readouterr().err.strip().splitlines()
     warning = [line for line in err if line.startswith("gpuslice: warning: ")]
     assert len(warning) == 1
@@ -103,7 +103,7 @@ def test_open_chains_are_warned_about_and_reported(tmp_path, open_box_stl, box_s
     assert rep["image_bytes"] == rep["png_bytes"] > 0
     # a closed box: no warning, and the report says none
     assert main(["raster", str(box_stl), "--printer", "elegoo-mars-4", "-t", "0.5", "-q", "-o", str(out),
-                 "--report", str(report)]) == 0
+                 "--exposure", "2.5", "--report", str(report)]) == 0
     assert "warning" not in capsys.readouterr().err
     assert json.loads(report.read_text())["open_chains"] == 0
 
@@ -200,3 +200,17 @@ def test_keep_xy_says_where_the_model_and_the_display_are(tmp_path, box_stl, cap
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "--keep-xy keeps its own x -5.00 to 5.00 and y -4.00 to 4.00 mm" in err
     assert "the display spans x 0 to 143.43 and y 0 to 89.60 mm" in err
+
+
+def test_a_preset_without_exposures_warns_of_the_generic_ones(tmp_path, box_stl, capsys):
+    """Elegoo's presets carry no exposures: 10 s a layer and one 15 s bottom layer (PrusaSlicer's SL1 material) went
+    into a Mars 4 file without a word; a mono LCD needs a fraction of that."""
+    base = ["raster", str(box_stl), "-t", "0.5", "-q", "--no-progress"]
+    assert main([*base, "--printer", "elegoo-mars-4", "-o", str(tmp_path / "a.goo")]) == 0
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("gpuslice: warning: printer elegoo-mars-4's preset holds no exposures: 10 s, and 1 bottom "
+                          "layer at 15 s, are generic defaults") and "\n" not in err
+    for extra in (["--printer", "elegoo-mars-4", "--exposure", "2.5"], ["--printer", "prusa-sl1"], []):
+        suffix = ".sl1" if "prusa-sl1" in extra else ".goo"
+        assert main([*base, *extra, "-o", str(tmp_path / f"b{suffix}")]) == 0
+        assert "warning" not in capsys.readouterr().err
