@@ -19,7 +19,7 @@ from ..options import OptionInfo, options_of
 __all__ = ["click_options", "with_options", "build", "values", "flag_for", "cli_message", "fail", "EXIT_USAGE",
            "option_classes", "slicing_options", "slicing_values", "refuse_model_as_output", "RESIN_DEFAULTS",
            "check_output_file", "check_distinct_outputs", "check_resin_layers", "MIN_RESIN_LAYER", "warn",
-           "warn_open_chains"]
+           "open_chains_warning"]
 
 EXIT_USAGE = 2
 
@@ -43,18 +43,19 @@ def warn(message: str) -> None:
     click.echo(f"gpuslice: warning: {message}", err=True)
 
 
-def warn_open_chains(model: str, result, output: str) -> None:
-    """Warn when ``result`` has open chains (a mesh not closed where they are): an archive or mask leaves what they
-    outline unfilled, so those layers print blank or partly blank, which nothing else would say (``slice`` reports
-    them in its summary; ``check`` lists them as not checked)."""
+def open_chains_warning(model: str, result, output: str) -> str | None:
+    """The warning (for :func:`warn`) when ``result`` has open chains (a mesh not closed where they are), else None:
+    an archive or mask leaves what they outline unfilled, so those layers print blank or partly blank, which nothing
+    else would say (``slice`` reports them in its summary; ``check`` lists them as not checked)."""
     import numpy as np
 
     per_layer = result.open_chains_per_layer
     layers = np.flatnonzero(per_layer)
-    if layers.size:
-        span = f"layer {layers[0]}" if layers.size == 1 else f"layers {layers[0]}-{layers[-1]}"
-        warn(f"{model}: {int(per_layer.sum())} open chains in {layers.size} layers ({span}): the mesh is not closed "
-             f"there, and {output} leaves what they outline unfilled (repair the mesh; `gpuslice check` lists them)")
+    if not layers.size:
+        return None
+    span = f"layer {layers[0]}" if layers.size == 1 else f"layers {layers[0]}-{layers[-1]}"
+    return (f"{model}: {int(per_layer.sum())} open chains in {layers.size} layers ({span}): the mesh is not closed "
+            f"there, and {output} leaves what they outline unfilled (repair the mesh; `gpuslice check` lists them)")
 
 
 def refuse_model_as_output(model: str, *outputs: str | None) -> None:

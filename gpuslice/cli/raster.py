@@ -21,12 +21,12 @@ from .options import (
     check_resin_layers,
     click_options,
     fail,
+    open_chains_warning,
     refuse_model_as_output,
     slicing_options,
     slicing_values,
     values,
     warn,
-    warn_open_chains,
     with_options,
 )
 
@@ -69,6 +69,11 @@ class _Bar:
     def stop(self) -> None:
         if self.bar is not None:
             self.bar.stop()
+
+
+#: the archives written without a preset for no machine in particular, which a printer's firmware may refuse (the
+#: Photon Workshop suffixes name their machine; .cxdlp, .cxdlpv4, .jxs and .sl1s need a preset)
+MACHINE_FORMATS = ("goo", "prz", "ctb", "sl1")
 
 
 def _generic_exposure(options: ResinOptions, kw: dict) -> str | None:
@@ -149,9 +154,13 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
             bar.stop()
         timings = {**done.timings, "total": time.perf_counter() - t_start}
         stats, n = done.stats, done.result.n_layers
-        warn_open_chains(model, done.result, output)
-        if generic:  # (once the job is done: a refused one keeps its one line)
-            warn(generic)
+        # (said once the output is in place: a refused or failed job keeps its one line)
+        notes = [note for note in (open_chains_warning(model, done.result, output), generic) if note]
+        if options.preset is None and fmt.name in MACHINE_FORMATS:
+            notes.append(f"{output} names no printer (no --printer) and holds a generic {spec.png_size[0]}x"
+                         f"{spec.png_size[1]} display of {spec.px:g} mm pixels, {settings.bottom_layers} bottom layers "
+                         f"at {settings.bottom_exposure:g} s and {settings.exposure:g} s layers; a printer checks its "
+                         "machine and display: give its --printer (gpuslice printers)")
         ml = resin_ml(done.result.area, done.result.thickness)
         # the format's own estimate where it keeps one (SL1: exposures and tilts), else the settings' (lifts, waits):
         # the one the checks state too (ResinFormat.print_time_s)
@@ -171,6 +180,8 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
                           "image_bytes": size,
                           **estimate},
                          report)
+    for note in notes:
+        warn(note)
     if not quiet:
         pitch = f"{spec.px:g}" if spec.py == spec.px else f"{spec.px:g} x {spec.py:g}"
         drawn = f"raster {stats['raster_backend']}" + (f" ({stats['gl_renderer']})" if "gl_renderer" in stats else "")

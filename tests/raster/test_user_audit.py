@@ -210,7 +210,20 @@ def test_a_preset_without_exposures_warns_of_the_generic_ones(tmp_path, box_stl,
     err = capsys.readouterr().err.strip()
     assert err.startswith("gpuslice: warning: printer elegoo-mars-4's preset holds no exposures: 10 s, and 1 bottom "
                           "layer at 15 s, are generic defaults") and "\n" not in err
-    for extra in (["--printer", "elegoo-mars-4", "--exposure", "2.5"], ["--printer", "prusa-sl1"], []):
+    for extra in (["--printer", "elegoo-mars-4", "--exposure", "2.5"], ["--printer", "prusa-sl1"]):
         suffix = ".sl1" if "prusa-sl1" in extra else ".goo"
         assert main([*base, *extra, "-o", str(tmp_path / f"b{suffix}")]) == 0
+        assert "warning" not in capsys.readouterr().err
+
+
+def test_an_archive_without_a_printer_says_it_names_none(tmp_path, box_stl, capsys):
+    """`raster part.stl -o part.goo` wrote a GOO for a generic 3840x2400 display with an empty machine name, without a
+    word; a PNG stack or a Photon Workshop file (its suffix names the machine) is not warned about."""
+    base = ["raster", str(box_stl), "-t", "0.5", "-q", "--no-progress"]
+    assert main([*base, "-o", str(tmp_path / "a.goo")]) == 0
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("gpuslice: warning: ") and "\n" not in err
+    assert "a.goo names no printer (no --printer) and holds a generic 3840x2400 display of 0.05 mm pixels" in err
+    for out in (tmp_path / "stack", tmp_path / "b.pwmx"):
+        assert main([*base, "-o", f"{out}/" if out.suffix == "" else str(out)]) == 0
         assert "warning" not in capsys.readouterr().err
