@@ -526,6 +526,7 @@ def test_slice_mesh_takes_the_options_of_its_layers(cube):
     ({"z": [1.0, 2.0, 3.0], "layer_thickness": 0.1}, [0.95, 1.95, 2.95]),  # were [0, 0.1, 0.2]: far from the planes
     ({"z": [-1.0, 5.0]}, [-4.0, 2.0]),                                      # were [0, 6]: neither plane in its slab
     ({"z": [1.0, 2.0, 4.0]}, [0.0, 1.5, 3.0]),                               # tiling from the bed: kept
+    ({"z": [-1.0, 1.0, 10.0]}, [-2.0, 0.0, 5.5]),                            # from_z's own slabs, from below the bed
     ({"thickness": 2.5}, [0.0, 2.5, 5.0, 7.5]),
 ])
 def test_each_layer_slab_holds_its_plane(cube, kw, bottom):

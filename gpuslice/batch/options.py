@@ -208,4 +208,3 @@ def _canonical(options: Any) -> Any:
     except (TypeError, ValueError):  # (an unreadable manifest's: compared as it is)
         return options
     return {**options, "raster_options": [list(p) for p in pairs]}
-

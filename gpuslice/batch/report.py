@@ -31,7 +31,7 @@ def _note(r: dict[str, Any]) -> str:
     if r.get("error"):
         return r["error"]
     n = r.get("open_chains") or 0
-    return f"warning: {n} open chains (the mesh is not closed there; resin layers leave them unfilled)" if n else ""
+    return f"warning: {n} open chains (the mesh is not closed there; a resin layer leaves them unfilled)" if n else ""
 
 
 def format_summary(report: dict[str, Any], max_rows: int = 40) -> str:

@@ -61,7 +61,6 @@ def _mp_context():
 
 
 @dataclass
-
 class _Task:
     index: int
     attempt: int = 1

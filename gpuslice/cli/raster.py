@@ -76,17 +76,16 @@ class _Bar:
 MACHINE_FORMATS = ("goo", "prz", "ctb", "sl1")
 
 
-def _generic_exposure(options: ResinOptions, kw: dict) -> str | None:
-    """The warning for a printer preset without the maker's exposures and no exposure flag, or None: the generic
-    defaults (PrusaSlicer's SL1 material, made for its RGB display) are several times what a mono LCD needs, and
-    one bottom layer may not hold; said rather than let a print overcure."""
+def _generic_exposure(options: ResinOptions, kw: dict, fmt, output: str) -> str | None:
+    """The warning for an archive of a printer preset without the maker's exposures and no ``--exposure``, or None:
+    the generic default (PrusaSlicer's SL1 material, made for its RGB display) is several times what a mono LCD
+    needs; said rather than let a print overcure. A PNG stack stores no exposures: not warned."""
     preset = options.preset
-    if preset is None or "exposure" in preset.settings or kw.get("exposure") is not None:
+    if preset is None or fmt.folder or "exposure" in preset.settings or kw.get("exposure") is not None:
         return None
-    d = PrintSettings()
-    return (f"printer {preset.name}'s preset holds no exposures: {d.exposure:g} s, and {d.bottom_layers} bottom layer "
-            f"at {d.bottom_exposure:g} s, are generic defaults (PrusaSlicer's SL1), far more than a mono LCD needs; "
-            "give your resin's --exposure, --bottom-exposure and --bottom-layers")
+    return (f"{output}: printer {preset.name}'s preset holds no exposures, so its layers get the generic "
+            f"{PrintSettings().exposure:g} s (PrusaSlicer's SL1), far more than a mono LCD needs; give your resin's "
+            "--exposure (and --bottom-exposure, --bottom-layers)")
 
 
 @click.command()
@@ -94,7 +93,8 @@ def _generic_exposure(options: ResinOptions, kw: dict) -> str | None:
 @click.option("-o", "--output", required=True, type=click.Path(path_type=str),
               help=f"Where to write: {_outputs_help()}.")
 @click.option("--format", "fmt_name", type=click.Choice(resin_format_names()), default=None,
-              help="The output format, whatever -o's suffix (default: -o's suffix picks it; `png`: a PNG stack).")
+              help="The output format, for an -o whose suffix names none (default: -o's suffix picks it; `png`: a PNG "
+                   "stack; a suffix another format owns is refused).")
 @with_options(slicing_options(overrides=RESIN_DEFAULTS))
 @with_options(click_options(ResinOptions, only=("printer",)))
 @with_options(click_options(RasterSpec, defaults=False, preset=True))  # None unless given: they override the preset
@@ -132,7 +132,7 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
     check_resin_layers(params)
     options = build(ResinOptions, kw)
     spec = options.spec(**values(RasterSpec, kw))
-    generic = _generic_exposure(options, kw)  # (before values() takes the flags out of kw)
+    generic = _generic_exposure(options, kw, fmt, output)  # (before values() takes the flags out of kw)
     settings = options.settings(**values(PrintSettings, kw))
     job = Job(source=model, placement=placement, params=params, mesh_check=False,
               resin=ResinOutput(output, fmt.name, spec, options, settings),
@@ -158,9 +158,9 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
         notes = [note for note in (open_chains_warning(model, done.result, output), generic) if note]
         if options.preset is None and fmt.name in MACHINE_FORMATS:
             notes.append(f"{output} names no printer (no --printer) and holds a generic {spec.png_size[0]}x"
-                         f"{spec.png_size[1]} display of {spec.px:g} mm pixels, {settings.bottom_layers} bottom layers "
-                         f"at {settings.bottom_exposure:g} s and {settings.exposure:g} s layers; a printer checks its "
-                         "machine and display: give its --printer (gpuslice printers)")
+                         f"{spec.png_size[1]} display of {spec.px:g} mm pixels, bottom layers "
+                         f"({settings.bottom_layers}) at {settings.bottom_exposure:g} s and {settings.exposure:g} s "
+                         "layers; a printer checks its machine and display: give its --printer (gpuslice printers)")
         ml = resin_ml(done.result.area, done.result.thickness)
         # the format's own estimate where it keeps one (SL1: exposures and tilts), else the settings' (lifts, waits):
         # the one the checks state too (ResinFormat.print_time_s)

@@ -206,7 +206,8 @@ def resin_format_for(path: str | os.PathLike, name: str | None = None) -> ResinF
             raise ParameterError(f"{text}: names a folder, but a {fmt.title} is one file (e.g. part{fmt.suffix})")
         kind = p.suffix.lower()
         owner = next((f for f in RESIN_FORMATS.values() if kind and kind in f.suffixes), None)
-        if owner is not None and owner is not fmt:  # (`--format goo -o part.ctb`: GOO bytes in a file named .ctb)
+        # (`--format goo -o part.ctb`: GOO bytes in a file named .ctb; `-o out.goo/` names a folder, not a file)
+        if owner is not None and owner is not fmt and not (names_folder and fmt.folder):
             name_it = f"name it part{fmt.suffix}" if fmt.suffix else "name a folder DIR/"
             raise ParameterError(f"{text}: a {kind} file is a {owner.title}, not the {fmt.title} --format {name} "
                                  f"writes ({name_it}, or leave --format out)")

@@ -3,7 +3,8 @@
 A :class:`Schedule` is two float64 arrays of equal length: ``z``, the height of each layer's cutting plane in mm
 above the bed (the mesh's lowest point is at z = 0), and ``thickness``, each layer's thickness in mm. Layers tile the
 object from the bed up: layer i spans ``[bottom[i], bottom[i] + thickness[i]]`` with ``bottom`` the running sum of
-the earlier thicknesses. The slicer only looks at ``z``; ``thickness`` is carried through to the result (areas times
+the earlier thicknesses (explicit planes that such slabs would not hold get their own: :func:`slab_bottoms`). The
+slicer only looks at ``z``; ``thickness`` is carried through to the result (areas times
 thicknesses give volumes, exports write layer tops).
 
 Uniform schedules (:func:`uniform`) follow Slic3r and CuraEngine: the plane of layer i is the middle of its slab,
@@ -79,7 +80,8 @@ class Schedule:
 
 def slab_bottoms(z: np.ndarray, thickness: np.ndarray) -> np.ndarray:
     """(L,) float64: the bottom of each layer's slab, mm. The layers tile the part from the bed up (bottom_i =
-    t_0 + … + t_(i−1)) wherever each plane then lies in its own slab, as in every uniform and adaptive schedule;
+    t_0 + … + t_(i−1)) wherever each plane then lies in its own slab, as in every uniform and adaptive schedule (or
+    from half the first layer below its plane, as :func:`from_z` tiles planes that start at or below the bed);
     explicit planes that do not (``z=[1, 2, 3]`` with 0.1 mm layers, a plane below the bed) each get a slab centred
     on it (z_i − t_i / 2), the one placement their planes and thicknesses give, so that exports state where each
     layer really is."""
@@ -87,10 +89,12 @@ def slab_bottoms(z: np.ndarray, thickness: np.ndarray) -> np.ndarray:
     t = np.asarray(thickness, np.float64)
     if z.size == 0:
         return np.zeros(0)
-    tiled = np.concatenate(([0.0], np.cumsum(t)[:-1]))
     eps = 1e-9 * max(1.0, float(np.max(np.abs(z))))
-    if np.all(z >= tiled - eps) and np.all(z <= tiled + t + eps):
-        return tiled
+    # from the bed, else from below the first plane (from_z's own slabs of a plane at or below the bed)
+    for base in (0.0, float(z[0] - t[0] / 2)):
+        tiled = base + np.concatenate(([0.0], np.cumsum(t)[:-1]))
+        if np.all(z >= tiled - eps) and np.all(z <= tiled + t + eps):
+            return tiled
     return z - t / 2
 
 

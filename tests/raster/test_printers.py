@@ -343,3 +343,12 @@ def test_a_preset_that_is_not_a_regular_file_is_refused_at_once(tmp_path):
     big.write_bytes(b" " * (PRESET_MAX_BYTES + 1))
     with pytest.raises(ParameterError, match="is not one"):
         load_printer_file(big)
+
+
+
+def test_format_png_takes_a_folder_named_like_an_archive(tmp_path):
+    """`--format png -o out.goo/` names a folder (the trailing slash), as `-o out.goo/` alone does: not refused."""
+    from gpuslice.raster.outputs import resin_format_for
+
+    assert resin_format_for(f"{tmp_path}/out.goo/", "png").name == "png"
+    assert resin_format_for(f"{tmp_path}/out.goo/").name == "png"

@@ -116,7 +116,7 @@ def test_the_batch_table_warns_of_open_chains():
                           "models_per_s": 10.0, "mode": "local", "workers": 1, "workers_lost": 0, "retries": 0}}
     lines = format_summary(report).splitlines()
     row = {line.split()[0]: line for line in lines[1:3]}
-    assert row["open.stl"].endswith("warning: 6 open chains (the mesh is not closed there; resin layers leave them "
+    assert row["open.stl"].endswith("warning: 6 open chains (the mesh is not closed there; a resin layer leaves them "
                                     "unfilled)")
     assert "warning" not in row["closed.stl"]
 
@@ -208,11 +208,12 @@ def test_a_preset_without_exposures_warns_of_the_generic_ones(tmp_path, box_stl,
     base = ["raster", str(box_stl), "-t", "0.5", "-q", "--no-progress"]
     assert main([*base, "--printer", "elegoo-mars-4", "-o", str(tmp_path / "a.goo")]) == 0
     err = capsys.readouterr().err.strip()
-    assert err.startswith("gpuslice: warning: printer elegoo-mars-4's preset holds no exposures: 10 s, and 1 bottom "
-                          "layer at 15 s, are generic defaults") and "\n" not in err
-    for extra in (["--printer", "elegoo-mars-4", "--exposure", "2.5"], ["--printer", "prusa-sl1"]):
-        suffix = ".sl1" if "prusa-sl1" in extra else ".goo"
-        assert main([*base, *extra, "-o", str(tmp_path / f"b{suffix}")]) == 0
+    assert err.startswith("gpuslice: warning: ") and "\n" not in err
+    assert "a.goo: printer elegoo-mars-4's preset holds no exposures, so its layers get the generic 10 s" in err
+    for extra, out in ((["--printer", "elegoo-mars-4", "--exposure", "2.5"], "b.goo"),
+                       (["--printer", "prusa-sl1"], "b.sl1"),
+                       (["--printer", "elegoo-mars-4"], "stack/")):  # (a PNG stack stores no exposures)
+        assert main([*base, *extra, "-o", str(tmp_path / out) + ("/" if out.endswith("/") else "")]) == 0
         assert "warning" not in capsys.readouterr().err
 
 
