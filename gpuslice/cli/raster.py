@@ -76,6 +76,22 @@ class _Bar:
 MACHINE_FORMATS = ("goo", "prz", "ctb", "sl1")
 
 
+def _turned(options: ResinOptions, fmt, spec: RasterSpec, output: str) -> str | None:
+    """Without ``--printer``, a file whose suffix names its machine (Photon Workshop's, the M7 zip's) is checked for
+    that machine's display size only: the warning when its orientation or mirror is not the one of the preset
+    natively writing that suffix (the Photon Mono X mirrors x: an unmirrored file prints mirrored), else None."""
+    from ..raster.printers import PRINTERS
+    from ..raster.spec import orientation_text
+
+    if options.preset is not None or fmt.folder or fmt.name in MACHINE_FORMATS:
+        return None
+    match = next((p for p in PRINTERS.values() if p.native_format == fmt.name), None)
+    if match is None or match.orientation == orientation_text(spec):
+        return None
+    return (f"{output} is written {orientation_text(spec)}, but the {match.title}'s display, which its suffix "
+            f"names, is {match.orientation}: it prints mirrored or turned; give --printer {match.name}")
+
+
 def _generic_exposure(options: ResinOptions, kw: dict, fmt, output: str) -> str | None:
     """The warning for an archive of a printer preset without the maker's exposures and no ``--exposure``, or None:
     the generic default (PrusaSlicer's SL1 material, made for its RGB display) is several times what a mono LCD
@@ -156,6 +172,9 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
         stats, n = done.stats, done.result.n_layers
         # (said once the output is in place: a refused or failed job keeps its one line)
         notes = [note for note in (open_chains_warning(model, done.result, output), generic) if note]
+        turned = _turned(options, fmt, spec, output)
+        if turned:
+            notes.append(turned)
         if options.preset is None and fmt.name in MACHINE_FORMATS:
             notes.append(f"{output} names no printer (no --printer) and holds a generic {spec.png_size[0]}x"
                          f"{spec.png_size[1]} display of {spec.px:g} mm pixels, bottom layers "

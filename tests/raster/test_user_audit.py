@@ -225,6 +225,16 @@ def test_an_archive_without_a_printer_says_it_names_none(tmp_path, box_stl, caps
     err = capsys.readouterr().err.strip()
     assert err.startswith("gpuslice: warning: ") and "\n" not in err
     assert "a.goo names no printer (no --printer) and holds a generic 3840x2400 display of 0.05 mm pixels" in err
-    for out in (tmp_path / "stack", tmp_path / "b.pwmx"):
-        assert main([*base, "-o", f"{out}/" if out.suffix == "" else str(out)]) == 0
+    for out in (tmp_path / "stack", tmp_path / "b.pwmx"):  # (the Photon Mono X mirrors x)
+        assert main([*base, "--mirror-x", "-o", f"{out}/" if out.suffix == "" else str(out)]) == 0
         assert "warning" not in capsys.readouterr().err
+
+
+def test_a_photon_file_without_a_printer_says_when_its_machine_mirrors(tmp_path, box_stl, capsys):
+    """Without --printer a .pwmx (the Photon Mono X, whose display mirrors x) was written unmirrored without a word:
+    the part prints mirrored. The preset that writes the suffix natively says how its display is."""
+    assert main(["raster", str(box_stl), "-t", "0.5", "-q", "-o", str(tmp_path / "a.pwmx")]) == 0
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("gpuslice: warning: ") and "\n" not in err
+    assert ("a.pwmx is written landscape, but the Anycubic Photon Mono X's display, which its suffix names, is "
+            "landscape, mirror x" in err and "--printer anycubic-photon-mono-x" in err)
