@@ -43,8 +43,7 @@ from ..options import option, shown
 
 __all__ = ["PrintSettings", "layer_table", "layer_times", "print_time_s", "resin_ml", "header_layer_height",
            "per_layer_mode", "changed_settings", "MOTION_REST_LIGHT", "transition_step", "ramp_layers",
-           "format_duration",
-           "LAYER_COLUMNS"]
+           "format_duration", "LAYER_COLUMNS"]
 
 #: settings with a bottom-layer twin ``bottom_<name>`` (None: the normal value)
 BOTTOM_TWINS = ("lift_height", "lift_speed", "lift_height2", "lift_speed2", "retract_speed", "retract_height2",
