@@ -34,8 +34,9 @@ are refused), the normal lift (its total over both stages) at the first stage's 
 repeats each layer's exposure (with the transition ramp), lift total, first-stage speed and thickness; the
 per-layer-settings flag is ``per_layer_settings`` (off by default: UVtools reports M5s firmware that never ends the
 first layer when it is on), and on whenever the layers' thicknesses vary (the printer must then follow LAYERDEF's
-heights: :func:`~gpuslice.raster.settings.per_layer_mode`). From 516, two-stage motion goes to EXTRA, for the bottom and
-the normal layers, with the advanced mode on: stage 1 = (``lift_height``, ``lift_speed``, the slow retract speed
+heights: :func:`~gpuslice.raster.settings.per_layer_mode`; on the M5s, :data:`PER_LAYER_HANGS`, such layers are refused
+unless ``per_layer_settings`` asks for the switch). From 516, two-stage motion goes to EXTRA, for the bottom and the
+normal layers, with the advanced mode on: stage 1 = (``lift_height``, ``lift_speed``, the slow retract speed
 ``retract_speed2``, or ``retract_speed`` when ``retract_height2`` is 0), stage 2 = (``lift_height2``, ``lift_speed2``,
 ``retract_speed``), placed as UVtools places them; the format stores no retract heights (the retract stages follow the
 lift stages' heights). One-stage motion is written as Photon Workshop writes it in basic mode: stage 1 = (lift, lift
@@ -420,6 +421,11 @@ def write_photon(layers: Iterable[Tile | RunLayer], target, *, machine: Machine,
             "machine": name or machine.name, "antialiasing": aa}
 
 
+#: the machines whose firmware hangs with the per-layer settings on (UVtools reports the M5s never ending the first
+#: layer): layers of several thicknesses, which need them, are refused unless asked for
+PER_LAYER_HANGS = ("pm5s",)
+
+
 def write_target(layers: Iterable[Tile | RunLayer], target) -> dict[str, Any]:
     """The registry's writer (:mod:`gpuslice.raster.outputs`): the format's name (``target.format``, the registry's
     name of each suffix), else the suffix of ``target.path``, picks the machine (:data:`MACHINES`); a printer preset
@@ -429,6 +435,11 @@ def write_target(layers: Iterable[Tile | RunLayer], target) -> dict[str, Any]:
     if suffix not in MACHINES:
         raise ParameterError(f"{path}: not a Photon Workshop suffix (use .{', .'.join(MACHINES)})")
     refuse_settings(path, suffix, target.options, target.settings)  # (the display: checked by the job, up front)
+    th = np.asarray(target.result.thickness, np.float64)
+    if suffix in PER_LAYER_HANGS and not target.settings.per_layer_settings and per_layer_mode(target.settings, th):
+        raise ParameterError(f"{path}: layers of several thicknesses need the per-layer settings on, and the "
+                             f"{MACHINES[suffix].name}'s firmware never ends the first layer with them on (UVtools): "
+                             "slice it with one layer thickness, or give --per-layer-settings to write them anyway")
     machine, version = machine_version(suffix, target.options)
     preset = target.options.preset
     name = machine_z = None

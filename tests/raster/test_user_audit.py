@@ -238,3 +238,17 @@ def test_a_photon_file_without_a_printer_says_when_its_machine_mirrors(tmp_path,
     assert err.startswith("gpuslice: warning: ") and "\n" not in err
     assert ("a.pwmx is written landscape, but the Anycubic Photon Mono X's display, which its suffix names, is "
             "landscape, mirror x" in err and "--printer anycubic-photon-mono-x" in err)
+
+
+def test_the_m5s_takes_layers_of_several_thicknesses_only_when_per_layer_is_asked(tmp_path, box_stl, capsys):
+    """A thicker first layer turns the per-layer switch on, and the M5s firmware never ends the first layer with it on
+    (UVtools): refused, naming the file, unless --per-layer-settings asks for it; one thickness writes as before."""
+    base = ["raster", str(box_stl), "--printer", "anycubic-photon-mono-m5s", "-t", "0.5", "-q", "--no-progress",
+            "--exposure", "2.5"]
+    out = tmp_path / "x.pm5s"
+    assert main([*base, "--first-layer", "1.0", "-o", str(out)]) == 2 and not out.exists()
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "x.pm5s: layers of several thicknesses need the per-layer settings on" in err
+    assert main([*base, "--first-layer", "1.0", "--per-layer-settings", "-o", str(out)]) == 0
+    assert read_photon(out).header["per_layer"] == 1
+    assert main([*base, "-o", str(out)]) == 0 and read_photon(out).header["per_layer"] == 0
