@@ -535,3 +535,22 @@ def test_each_layer_slab_holds_its_plane(cube, kw, bottom):
     r = gpuslice.slice_mesh(cube, backend="numpy", **kw)
     np.testing.assert_allclose(r.bottom, bottom)
     assert np.all(r.bottom <= r.z + 1e-12) and np.all(r.z <= r.bottom + r.thickness + 1e-12)
+
+
+def test_small_api_edges_from_the_audit(cube, res):
+    """z beyond float32 leaked numpy's overflow RuntimeWarning; an (F, 3, 3) array was refused without pointing to
+    mesh_from_triangles; np.array(0.5) was no thickness; to_shapely(open_chains="yes") was taken as True."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ParameterError) as exc:
+            gpuslice.slice_mesh(cube, z=[1.0, 1e40], backend="numpy")
+        _one_line(exc, "cutting planes must lie within 1e18 mm of the bed", "1e+40")
+    with pytest.raises(ParameterError) as exc:
+        gpuslice.slice_mesh(TRI, thickness=2.5, backend="numpy")
+    _one_line(exc, "gpuslice.mesh_from_triangles")
+    a = gpuslice.slice_mesh(cube, thickness=np.array(2.5), backend="numpy")
+    assert np.array_equal(a.z, res.z) and a.meta["params"]["thickness"] == 2.5
+    for call in (lambda: res.to_shapely(open_chains="yes"), lambda: res.layer(0).to_shapely(open_chains=1)):
+        with pytest.raises(ParameterError) as exc:
+            call()
+        _one_line(exc, "open_chains must be True or False")

@@ -137,7 +137,10 @@ def read_source(source: Any, name: str | None = None) -> SourceTriangles:
     if hasattr(source, "vertices") and hasattr(source, "faces"):
         label = name or f"<{type(source).__name__}>"
         return SourceTriangles(_arrays(source.vertices, source.faces, label), None, label, "arrays")
+    hint = ""
+    if getattr(source, "shape", ())[-2:] == (3, 3):  # (an (F, 3, 3) array of corners: its own constructor)
+        hint = "; an (F, 3, 3) array of triangle corners goes to gpuslice.mesh_from_triangles"
     raise ParameterError(
         f"cannot load a mesh from a {type(source).__name__}: give a path, bytes, a binary file object, a "
-        "trimesh.Trimesh or Scene, a gpuslice Mesh or (vertices, faces) arrays"
+        f"trimesh.Trimesh or Scene, a gpuslice Mesh or (vertices, faces) arrays{hint}"
     )

@@ -66,6 +66,13 @@ class DeviceSegments:
 def _planes32(z: np.ndarray, name: str | None = None) -> np.ndarray:
     """The cutting planes as the kernels cut them (float32), refused where two coincide (``name``: the model's, for
     the message)."""
+    z = np.asarray(z)
+    if z.size and not (np.abs(z) <= 1e18).all():  # (beyond float32 they overflow the cast: inf planes, a warning)
+        from ..errors import ParameterError
+
+        where = f"{name}: " if name else ""
+        raise ParameterError(f"{where}cutting planes must lie within 1e18 mm of the bed, got z up to "
+                             f"{float(np.max(np.abs(z))):.3g} mm")
     zs = np.ascontiguousarray(z, dtype=np.float32)
     if zs.size > 1 and not np.all(np.diff(zs) > 0):
         from ..errors import ParameterError

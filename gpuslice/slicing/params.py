@@ -86,6 +86,8 @@ class SliceParams:
         for name in ("thickness", "first_layer", "max_gap", "max_cusp", "max_area", "min_height", "max_height",
                      "smooth", "roi_quantile", "max_segments_per_batch", "roi_windows"):
             v = getattr(self, name)
+            if getattr(v, "ndim", None) == 0 and getattr(getattr(v, "dtype", None), "kind", "") in ("i", "u", "f"):
+                v = v.item()  # (a 0-d array, np.array(0.5): one number)
             if not (is_real(v) or (v is None and name == "first_layer")):
                 raise ParameterError(f"{name} must be a number, got {v!r}", param=name)
             object.__setattr__(self, name, python_number(v))
