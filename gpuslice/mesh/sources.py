@@ -138,7 +138,8 @@ def read_source(source: Any, name: str | None = None) -> SourceTriangles:
         label = name or f"<{type(source).__name__}>"
         return SourceTriangles(_arrays(source.vertices, source.faces, label), None, label, "arrays")
     hint = ""
-    if getattr(source, "shape", ())[-2:] == (3, 3):  # (an (F, 3, 3) array of corners: its own constructor)
+    shape = getattr(source, "shape", None)
+    if isinstance(shape, tuple) and shape[-2:] == (3, 3):  # (an (F, 3, 3) array of corners: its own constructor)
         hint = "; an (F, 3, 3) array of triangle corners goes to gpuslice.mesh_from_triangles"
     raise ParameterError(
         f"cannot load a mesh from a {type(source).__name__}: give a path, bytes, a binary file object, a "
