@@ -152,6 +152,15 @@ class PrintSettings:
                 if g[height] > 0 and g[speed] <= 0:
                     raise ParameterError(f"{prefix}{speed} must be > 0 mm/min when {prefix}{height} is set",
                                          param=(prefix + speed, prefix + height))
+                # (a speed given for a stage that moves nothing: dropped unsaid; a bottom speed inherited is not given,
+                # and a normal one the bottom layers' own second stage inherits is used)
+                given = getattr(self, prefix + speed) is not None
+                if not prefix and getattr(self, "bottom_" + speed) is None and self.group(True)[height] > 0:
+                    given = False
+                if given and g[speed] > 0 and g[height] <= 0:
+                    raise ParameterError(f"{prefix}{speed} {g[speed]:g} mm/min is the speed of a second stage, which "
+                                         f"moves nothing without {prefix}{height}", param=(prefix + speed,
+                                                                                           prefix + height))
             lift = g["lift_height"] + g["lift_height2"]
             if g["retract_height2"] > lift + 1e-9:
                 raise ParameterError(

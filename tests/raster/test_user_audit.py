@@ -252,3 +252,19 @@ def test_the_m5s_takes_layers_of_several_thicknesses_only_when_per_layer_is_aske
     assert main([*base, "--first-layer", "1.0", "--per-layer-settings", "-o", str(out)]) == 0
     assert read_photon(out).header["per_layer"] == 1
     assert main([*base, "-o", str(out)]) == 0 and read_photon(out).header["per_layer"] == 0
+
+
+def test_a_second_stage_speed_without_its_height_is_refused():
+    """--lift-speed2 300 without --lift-height2 (or --retract-speed2 without --retract-height2) was dropped without a
+    word; a bottom speed inherited from the normal one, or a normal one the bottom layers' own stage uses, is fine."""
+    from gpuslice.errors import ParameterError
+    from gpuslice.raster import PrintSettings
+
+    for kw, words in (({"lift_speed2": 300.0}, "lift_speed2 300 mm/min"),
+                      ({"retract_speed2": 30.0}, "retract_speed2 30 mm/min"),
+                      ({"lift_height2": 2.0, "lift_speed2": 200.0, "bottom_lift_height2": 0.0,
+                        "bottom_lift_speed2": 100.0}, "bottom_lift_speed2 100 mm/min")):
+        with pytest.raises(ParameterError, match=words):
+            PrintSettings(**kw)
+    PrintSettings(lift_height2=0.5, lift_speed2=120.0, bottom_lift_height2=0.0)  # (the bottom inherits, unused)
+    PrintSettings(lift_speed2=120.0, bottom_lift_height2=2.0)  # (the bottom layers' stage at --lift-speed2)
