@@ -278,8 +278,9 @@ def test_settings_a_file_cannot_store_are_refused_before_any_work(tmp_path, caps
     with pytest.raises(ParameterError, match="a CTB v3 file has one lift"):
         ResinOutput("x.ctb", "ctb", opts.spec(), opts, opts.settings(lift_height2=4.0, lift_speed2=180.0))
     assert main([*base, "--printer", "elegoo-mars-3", "-q", "-o", str(tmp_path / "c.ctb")]) == 0  # CTB v4: two
+    # (the preset's bottom layers lift 8 mm, UVtools' value: their first stage is given 3 mm too)
     assert main([*base, "--printer", "anycubic-photon-mono-x", "--retract-height2", "3", "--retract-speed2", "50",
-                 "-q", "-o", str(tmp_path / "d.pwmx")]) == 0
+                 "--bottom-lift-height", "3", "-q", "-o", str(tmp_path / "d.pwmx")]) == 0
 
 
 def test_registry_names_every_machine():
