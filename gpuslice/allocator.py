@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["on_glibc", "one_malloc_arena", "one_arena", "trim_heap", "user_tuned_malloc"]
+__all__ = ["on_glibc", "one_malloc_arena", "resin_arena", "one_arena", "trim_heap", "user_tuned_malloc"]
 
 #: set by :func:`one_malloc_arena`
 _ONE_ARENA = False
@@ -46,6 +46,12 @@ def one_malloc_arena() -> bool:
     except (OSError, AttributeError):  # no mallopt after all
         return False
     return _ONE_ARENA
+
+
+def resin_arena() -> bool:
+    """:func:`one_malloc_arena` for a process that writes resin layers (``gpuslice raster``, a batch's resin workers),
+    unless the user tunes malloc (:func:`user_tuned_malloc`); whether it was done."""
+    return not user_tuned_malloc() and one_malloc_arena()
 
 
 def one_arena() -> bool:

@@ -39,6 +39,14 @@ def is_real(v: object) -> bool:
     return isinstance(v, numbers.Real) and not isinstance(v, bool)
 
 
+def check_flag(v: object, name: str) -> bool:
+    """``v`` as a bool when it is True or False (a Python or numpy bool), else a one-line :class:`ParameterError`
+    naming ``name`` (``"no"`` or 1 would otherwise read as a choice)."""
+    if not (isinstance(v, bool) or type(v).__name__ == "bool_"):
+        raise ParameterError(f"{name} must be True or False, got {v!r}", param=name)
+    return bool(v)
+
+
 def python_number(v: object) -> object:
     """``v``, a numpy number as the same Python number (reports' JSON and archive headers take those), else as is."""
     return v.item() if is_real(v) and hasattr(v, "item") else v

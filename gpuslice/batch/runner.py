@@ -114,9 +114,8 @@ class BatchRunner:
                 have = json.loads(manifest.read_text())
             except (OSError, ValueError):
                 have = {}
-            # (--raster-opt given in another order: the same options)
-            if have.get("fingerprint") != want["fingerprint"] and not same_options(have.get("options"),
-                                                                                   want["options"]):
+            same = have.get("fingerprint") == want["fingerprint"] or same_options(have.get("options"), want["options"])
+            if not same:  # (--raster-opt given in another order are the same options)
                 if not self.force:
                     old = have.get("options", {})
                     diff = ", ".join(f"{k} {old.get(k)!r} -> {v!r}" for k, v in want["options"].items()

@@ -84,10 +84,9 @@ def init_worker(env: dict[str, str] | None = None, device: str | None = None, ba
     """
     os.environ.update(env or {})
     if one_arena:  # (before the device's threads start)
-        from ..allocator import one_malloc_arena, user_tuned_malloc
+        from ..allocator import resin_arena
 
-        if not user_tuned_malloc():
-            one_malloc_arena()
+        resin_arena()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     t = time.perf_counter()

@@ -146,10 +146,9 @@ def entry() -> None:
         os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     sys.unraisablehook = _unraisable
     if _command(sys.argv[1:]) == "raster":  # slicing, then the layers on other threads: what one frees, the next uses
-        from ..allocator import one_malloc_arena, user_tuned_malloc
+        from ..allocator import resin_arena
 
-        if not user_tuned_malloc():
-            one_malloc_arena()
+        resin_arena()
     exit_now(main())
 
 

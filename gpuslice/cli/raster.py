@@ -92,6 +92,17 @@ def _turned(options: ResinOptions, fmt, spec: RasterSpec, output: str) -> str | 
             f"names, is {match.orientation}: it prints mirrored or turned; give --printer {match.name}")
 
 
+def _no_printer(options: ResinOptions, fmt, spec: RasterSpec, settings: PrintSettings, output: str) -> str | None:
+    """The warning for a GOO, PRZ, CTB or SL1 written without ``--printer`` (:data:`MACHINE_FORMATS`): it names no
+    machine and holds a generic display, which a printer's firmware may refuse; else None."""
+    if options.preset is not None or fmt.name not in MACHINE_FORMATS:
+        return None
+    return (f"{output} names no printer (no --printer) and holds a generic {spec.png_size[0]}x{spec.png_size[1]} "
+            f"display of {spec.px:g} mm pixels, bottom layers ({settings.bottom_layers}) at "
+            f"{settings.bottom_exposure:g} s and {settings.exposure:g} s layers; a printer checks its machine and "
+            "display: give its --printer (gpuslice printers)")
+
+
 def _generic_exposure(options: ResinOptions, kw: dict, fmt, output: str) -> str | None:
     """The warning for an archive of a printer preset without the maker's exposures and no ``--exposure``, or None:
     the generic default (PrusaSlicer's SL1 material, made for its RGB display) is several times what a mono LCD
@@ -171,15 +182,9 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
         timings = {**done.timings, "total": time.perf_counter() - t_start}
         stats, n = done.stats, done.result.n_layers
         # (said once the output is in place: a refused or failed job keeps its one line)
-        notes = [note for note in (open_chains_warning(model, done.result, output), generic) if note]
-        turned = _turned(options, fmt, spec, output)
-        if turned:
-            notes.append(turned)
-        if options.preset is None and fmt.name in MACHINE_FORMATS:
-            notes.append(f"{output} names no printer (no --printer) and holds a generic {spec.png_size[0]}x"
-                         f"{spec.png_size[1]} display of {spec.px:g} mm pixels, bottom layers "
-                         f"({settings.bottom_layers}) at {settings.bottom_exposure:g} s and {settings.exposure:g} s "
-                         "layers; a printer checks its machine and display: give its --printer (gpuslice printers)")
+        notes = [note for note in (open_chains_warning(model, done.result, output), generic,
+                                   _turned(options, fmt, spec, output),
+                                   _no_printer(options, fmt, spec, settings, output)) if note]
         ml = resin_ml(done.result.area, done.result.thickness)
         # the format's own estimate where it keeps one (SL1: exposures and tilts), else the settings' (lifts, waits):
         # the one the checks state too (ResinFormat.print_time_s)

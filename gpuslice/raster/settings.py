@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ParameterError
-from ..options import option, shown
+from ..options import check_flag, option, shown
 
 __all__ = ["PrintSettings", "layer_table", "layer_times", "print_time_s", "resin_ml", "header_layer_height",
            "per_layer_mode", "changed_settings", "MOTION_REST_LIGHT", "transition_step", "ramp_layers",
@@ -143,9 +143,7 @@ class PrintSettings:
             v = getattr(self, name)
             if not (_is_int(v) and 1 <= v <= 255):
                 raise ParameterError(f"{name} must be a whole number from 1 to 255, got {shown(v)}", param=name)
-        if not isinstance(self.per_layer_settings, bool | np.bool_):  # 'no' would read as True
-            raise ParameterError(f"per_layer_settings must be True or False, got {self.per_layer_settings!r}",
-                                 param="per_layer_settings")
+        check_flag(self.per_layer_settings, "per_layer_settings")
         for prefix in ("", "bottom_"):  # contradictions, for the normal and for the bottom layers
             g = self.group(prefix == "bottom_")
             for height, speed in (("lift_height2", "lift_speed2"), ("retract_height2", "retract_speed2")):

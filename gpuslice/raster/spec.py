@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..errors import ParameterError
-from ..options import is_real, option, parse_resolution, python_number
+from ..options import check_flag, is_real, option, parse_resolution, python_number
 from .printers import PRINTERS, Printer, find_printer
 from .settings import PrintSettings
 
@@ -71,10 +71,7 @@ class RasterSpec:
         if not (is_real(self.gamma) and math.isfinite(self.gamma) and self.gamma >= 0):
             raise ParameterError(f"gamma must be a number >= 0, got {self.gamma!r}", param="gamma")
         for name in ("mirror_x", "mirror_y", "portrait", "keep_xy"):
-            v = getattr(self, name)
-            if not isinstance(v, bool | np.bool_):  # ("no" would be taken as true)
-                raise ParameterError(f"{name} must be True or False, got {v!r}", param=name)
-            object.__setattr__(self, name, bool(v))
+            object.__setattr__(self, name, check_flag(getattr(self, name), name))
 
     @property
     def nx(self) -> int:

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import MeshFileError, ParameterError
+from ..options import check_flag
 
 __all__ = ["SliceResult", "LayerView", "LayerIndexError"]
 
@@ -119,7 +120,7 @@ class LayerView:
         """
         from .geometry import open_chains_shapely, polygons_shapely
 
-        _flag(open_chains, "open_chains")
+        check_flag(open_chains, "open_chains")
         polys = polygons_shapely(self.result, self.index, self.index + 1)[0]
         if open_chains:
             return polys, open_chains_shapely(self.result, self.index, self.index + 1)[0]
@@ -222,7 +223,7 @@ class SliceResult:
         """
         from .geometry import polygons_shapely
 
-        _flag(open_chains, "open_chains")
+        check_flag(open_chains, "open_chains")
         polys = polygons_shapely(self).tolist()
         return (polys, self.open_chains_shapely()) if open_chains else polys
 
@@ -297,12 +298,6 @@ class SliceResult:
 #: the dtype kinds of the 1-D arrays of the layout (numpy's ``dtype.kind``)
 _KINDS = {"loop_offsets": "iu", "layer_offsets": "iu", "loop_layer": "iu", "loop_is_hole": "b", "loop_parent": "iu",
           "loop_closed": "b", "z": "fiu", "thickness": "fiu", "area": "fiu"}  # (an empty layer's area may be 0 int)
-
-
-def _flag(v: Any, name: str) -> None:
-    """A one-line :class:`ParameterError` when ``v`` is not True or False (``"no"`` would read as True)."""
-    if not isinstance(v, bool | np.bool_):
-        raise ParameterError(f"{name} must be True or False, got {v!r}", param=name)
 
 
 def _layout_problem(arrays: dict[str, np.ndarray], repairs: dict[str, np.ndarray], meta: Any) -> str | None:
