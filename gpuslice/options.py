@@ -42,7 +42,7 @@ def is_real(v: object) -> bool:
 def check_flag(v: object, name: str) -> bool:
     """``v`` as a bool when it is True or False (a Python or numpy bool), else a one-line :class:`ParameterError`
     naming ``name`` (``"no"`` or 1 would otherwise read as a choice)."""
-    if not (isinstance(v, bool) or type(v).__name__ == "bool_"):
+    if not (isinstance(v, bool) or (type(v).__module__ == "numpy" and type(v).__name__ in ("bool", "bool_"))):
         raise ParameterError(f"{name} must be True or False, got {v!r}", param=name)
     return bool(v)
 
