@@ -1,8 +1,9 @@
 """Batch execution: :class:`BatchRunner` hands one task per model (:func:`gpuslice.batch.task.run_model`) to this
 process (``workers=0``), to local worker processes (one OpenCL context and one kernel build per worker; a failed
-model is retried once on another worker; a worker that dies is replaced and its unfinished models re-run) or to a
-Dask ``distributed.Client`` (the scheduler re-runs a lost worker's tasks itself; failed models are retried once on
-another worker), and collects their records into the batch report (:meth:`BatchRunner.report`).
+model is retried once on another worker, unless its file or options are at fault: a ``MeshFileError`` or
+``ParameterError`` fails anywhere; a worker that dies is replaced and its unfinished models re-run) or to a Dask
+``distributed.Client`` (the scheduler re-runs a lost worker's tasks itself; failed models are retried as locally),
+and collects their records into the batch report (:meth:`BatchRunner.report`).
 
 Skipping: a model whose output exists is skipped (``force`` redoes it); outputs are only ever renamed into place
 complete, so existing means complete (with ``--check``, its check report must exist too: a contour file is written
@@ -194,7 +195,8 @@ class BatchRunner:
         rec["worker"] = worker
         if rec.get("worker_init_s"):
             self.info["worker_init_s"].append(rec["worker_init_s"])
-        if rec["status"] == "failed" and task.attempt == 1:
+        final = rec.pop("deterministic", False)  # the file or the options at fault: the same on any worker
+        if rec["status"] == "failed" and task.attempt == 1 and not final:
             self.info["retries"] += 1
             return _Task(task.index, 2, task.lost, worker if n_workers > 1 else None, [rec["error"]], [worker])
         self._finish(task.index, rec, task)

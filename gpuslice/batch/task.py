@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ..errors import BatchError, GpusliceError, one_line
+from ..errors import BatchError, GpusliceError, MeshFileError, ParameterError, one_line
 from .discover import Model
 from .options import BatchOptions, check_path
 
@@ -205,6 +205,8 @@ def run_model(model: Model, opts: BatchOptions, out_root: str | None, data: byte
         _remove_written(mine, started_ns)
         msg = one_line(exc)
         rec["error"] = msg if model.src in msg or model.rel in msg else f"{model.src}: {msg}"
+        # the file or the options are at fault: another worker would fail the same way, so no retry
+        rec["deterministic"] = isinstance(exc, (MeshFileError, ParameterError))
     except BaseException:  # stopped (Ctrl-C, SIGTERM): none of its files, or all
         _remove_written(mine, started_ns)
         raise
