@@ -229,7 +229,10 @@ class CavityFinder:
                                          a[keep], b[keep]))
 
     def _describe(self, h, n, layer, row, a, b) -> dict[str, np.ndarray]:
-        """Per hole: layer, cells, bbox (u0, v0, u1, v1 in cells) and the cell nearest its centroid."""
+        """Per hole: layer, cells, bbox (u0, v0, u1, v1 in cells) and a cell well inside it: the middle cell of the
+        longest run of the hole's row nearest its centroid (the centroid itself may lie in a solid the hole
+        surrounds, such as a loose ball in a hollow sphere; the middle of a run is as far as the row allows from
+        the solid on either side)."""
         length = (b - a).astype(np.float64)
         cells = np.bincount(h, length, minlength=n)
         cu = np.bincount(h, length * (a + b) / 2.0, minlength=n) / cells
@@ -243,10 +246,9 @@ class CavityFinder:
         np.minimum.at(bbox[:, 1], h, row)
         np.maximum.at(bbox[:, 2], h, b)
         np.maximum.at(bbox[:, 3], h, row + 1)
-        # a cell of the hole nearest its centroid: the nearest of each gap, then the nearest gap
-        u = np.clip(np.floor(cu[h]), a, b - 1) + 0.5
-        d2 = (u - cu[h]) ** 2 + (row + 0.5 - cv[h]) ** 2
-        order = np.lexsort((d2, h))
+        # the row nearest the centroid's, its longest run (then the one nearest the centroid), that run's middle cell
+        u = np.floor((a + b) / 2.0) + 0.5
+        order = np.lexsort((np.abs(u - cu[h]), -length, np.abs(row + 0.5 - cv[h]), h))
         first = order[np.r_[True, h[order][1:] != h[order][:-1]]]
         rep = np.zeros((n, 2))
         rep[h[first], 0], rep[h[first], 1] = u[first], row[first] + 0.5

@@ -133,9 +133,9 @@ class CheckReport:
     def view_data(self) -> dict[str, list]:
         """What the viewer marks: ``islands`` rows [layer, x, y, area, xmin, ymin, xmax, ymax] and ``cavities`` rows
         [kind, layer_min, layer_max, x, y, z, volume, max_area, xmin, ymin, xmax, ymax] (kind: 0 trap, 1 suction
-        cup), numbers rounded to 1e-4."""
+        cup), numbers rounded to 1e-4 (a value that rounds to zero is 0, never -0)."""
         isl, cav = self.islands, self.cavities
-        r = lambda v: round(float(v), 4)  # noqa: E731
+        r = lambda v: round(float(v), 4) + 0.0  # noqa: E731  (-0.0 + 0.0 is 0.0)
         islands = [[int(isl.layer[k]), r(isl.x[k]), r(isl.y[k]), r(isl.area[k]), *map(r, isl.bbox[k])]
                    for k in range(isl.layer.size)]
         cavities = [[int(cav.kind[k]), int(cav.layer_min[k]), int(cav.layer_max[k]), r(cav.x[k]), r(cav.y[k]),

@@ -114,8 +114,8 @@ def _with_flags(exc: ParameterError) -> ParameterError:
 @click.option("-q", "--quiet", is_flag=True, help="No table on stdout.")
 def check(model: str, json_path: str | None, quiet: bool, **kw) -> None:
     """Slice MODEL and check it before printing: islands (contour-exact; pixel-exact on the printer's grid with
-    --printer), unsupported area per layer, resin traps and suction cups, the largest cross-section, print time and
-    resin. Exits 0 even when it finds defects."""
+    --printer), unsupported area per layer, resin traps and suction cups, the largest cross-section, print time (with
+    --printer: as the printer's own archive states it) and resin. Exits 0 even when it finds defects."""
     from ..pipeline import CheckOutput, Job, run_job
 
     refuse_model_as_output(model, json_path)

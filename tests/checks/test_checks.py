@@ -327,6 +327,18 @@ def test_hollow_sphere_is_a_trap_of_the_cavity_volume():
     assert cups.sum() == 1 and cav.volume[cups][0] == pytest.approx(v)
 
 
+def test_the_point_of_a_trap_around_a_loose_ball_lies_well_inside_the_empty_space():
+    """A loose ball (r 4) at the centre of the hollow sphere's cavity (r 8): the cavity's centroid lies in the
+    ball, so the point given must not be the empty cell nearest it (on the ball's surface, as an audit found) but
+    one with room around it."""
+    res = _slice(_cat(hollow_sphere(), trimesh.creation.icosphere(4, 4.0)))  # (the ball at the cavity's centre)
+    cav = _check(res).cavities
+    k = np.flatnonzero(cav.kind == TRAP)
+    assert k.size == 1
+    d = float(np.hypot(np.hypot(cav.x[k[0]], cav.y[k[0]]), cav.z[k[0]] - 10.0))
+    assert 4.0 + 1.0 < d < 8.0 - 1.0, d  # at least 1 mm from the ball and from the shell
+
+
 def test_drained_sphere_is_no_trap():
     res = _slice(drained_sphere())
     cav = _check(res).cavities
@@ -676,6 +688,15 @@ def test_view_check_marks_the_page(sphere_stl, tmp_path):
     assert main(["view", str(sphere_stl), "-t", "0.5", "--check", "-o", str(page), "-q"]) == 0
     data = read_view_data(page)["checks"]
     assert [row[0] for row in data["cavities"]] == [TRAP, SUCTION_CUP] and data["islands"] == []
+
+
+def test_view_data_never_writes_minus_zero():
+    """A centroid of -5e-9 mm (a symmetric island's) rounds to 0, not to -0.0 as an audit saw in the page."""
+    report = _check(_slice(floating_box()))
+    assert report.islands.layer.size == 1
+    report.islands.x[0], report.islands.y[0] = -5e-9, -0.0
+    row = report.view_data()["islands"][0]
+    assert row[1] == 0.0 and math.copysign(1.0, row[1]) == 1.0 and math.copysign(1.0, row[2]) == 1.0
 
 
 def test_view_check_takes_the_printer(sphere_stl, tmp_path, capsys):
