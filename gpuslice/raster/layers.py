@@ -19,8 +19,8 @@ from .coverage import Tile
 from .png import PngEncoder
 from .runs import Runs
 
-__all__ = ["RunLayer", "HeightMap", "iter_run_layers", "encode_png", "sample", "pixel_runs", "image_segments",
-           "batch_pixel_runs", "batch_image_segments", "run_groups"]
+__all__ = ["RunLayer", "HeightMap", "top_view", "iter_run_layers", "encode_png", "sample", "pixel_runs",
+           "image_segments", "batch_pixel_runs", "batch_image_segments", "run_groups"]
 
 
 @dataclass(frozen=True)
@@ -214,6 +214,19 @@ class HeightMap:
         owner, cols = expand_ranges(first, end - first)
         level = (1 + (254 * (runs.layers.astype(np.int64) + shift)) // self.n).astype(np.uint8)
         np.maximum.at(self._img.reshape(-1), (group % rows)[owner] * width + cols, level[group // rows][owner])
+
+
+def top_view(img: np.ndarray, spec) -> np.ndarray:
+    """``img``, an image in the display's frame (a :class:`HeightMap`'s, rows and columns of ``spec``'s PNG), as the
+    part is seen from above: columns along +x, rows down along -y, whatever the display's orientation and mirrors
+    (a preview shows the part as the user placed it; the layers themselves are mirrored for the printer's optics).
+    A cell then spans ``spec.px`` along a row and ``spec.py`` down a column, in any orientation. A view, no copy."""
+    if spec.portrait:  # the PNG's columns run along y, its rows along x (u = (h - Y)/py, v = (w - X)/px)
+        img = img.T
+        flip_rows, flip_cols = spec.mirror_x, not spec.mirror_y
+    else:  # u = X/px, v = (h - Y)/py
+        flip_rows, flip_cols = spec.mirror_y, spec.mirror_x
+    return img[::-1 if flip_rows else 1, ::-1 if flip_cols else 1]
 
 
 def pixel_runs(item: Tile | RunLayer, cols: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -67,7 +67,7 @@ import numpy as np
 from ..errors import ParameterError
 from ..io.atomic import WRITE_BUFFER, atomic_path
 from .coverage import Tile
-from .layers import HeightMap, RunLayer, batch_image_segments, batch_pixel_runs, pixel_runs, run_groups
+from .layers import HeightMap, RunLayer, batch_image_segments, batch_pixel_runs, pixel_runs, run_groups, top_view
 from .photon_machines import MACHINES, VERSIONS, Machine, machine_version, refuse_settings, wait_s
 from .png import encode_all
 from .run_encoder import RunImageEncoder
@@ -199,21 +199,23 @@ def _pitch(spec) -> tuple[float, float]:
 
 
 class _TopView(HeightMap):
-    """The part seen from above for the previews: per sampled pixel the highest layer covering it."""
+    """The part seen from above for the previews: per sampled pixel the highest layer covering it, not mirrored as
+    the layers are (:func:`~gpuslice.raster.layers.top_view`)."""
 
     def __init__(self, spec, n_layers: int) -> None:
         rows, cols = spec.shape
         super().__init__(spec.shape, n_layers, max(1, min(rows, cols) // 512))
-        self.pitch = _pitch(spec)
+        self.spec, self.pitch = spec, (spec.px, spec.py)  # (a top view's cell: along its rows, down its columns)
 
     def rgb565(self, size: tuple[int, int]) -> bytes:
         """The view fitted into ``size`` (width, height) with its true aspect, as RGB565 little endian."""
         w, h = size
-        ys, xs = np.nonzero(self.img)
+        img = top_view(self.img, self.spec)
+        ys, xs = np.nonzero(img)
         out = np.empty((h, w, 3), np.float32)
         out[:] = BACKGROUND
         if ys.size:
-            src = self.img[ys.min() : ys.max() + 1, xs.min() : xs.max() + 1]
+            src = img[ys.min() : ys.max() + 1, xs.min() : xs.max() + 1]
             sw, sh = src.shape[1] * self.pitch[0], src.shape[0] * self.pitch[1]  # mm / step
             scale = 0.9 * min(w / sw, h / sh)
             dw, dh = max(1, min(w, round(sw * scale))), max(1, min(h, round(sh * scale)))

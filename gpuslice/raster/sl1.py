@@ -23,7 +23,7 @@ import numpy as np
 from ..errors import ParameterError
 from ..io.atomic import WRITE_BUFFER, atomic_path
 from .coverage import Tile
-from .layers import HeightMap, RunLayer, encode_png, run_groups
+from .layers import HeightMap, RunLayer, encode_png, run_groups, top_view
 from .png import PngEncoder, encode_all
 from .png_runs import png_encoders, png_group
 from .settings import header_layer_height
@@ -204,15 +204,16 @@ def read_sl1_config(path: str | os.PathLike) -> tuple[dict[str, str], dict[str, 
 class _Thumb(HeightMap):
     """Top view of the part for the thumbnails: a height map (:class:`~gpuslice.raster.layers.HeightMap`: the
     highest layer covering each spot, shaded from dark at the bed to bright at the top) on every ``step``-th pixel
-    of the display."""
+    of the display, shown as seen from above (:func:`~gpuslice.raster.layers.top_view`: not mirrored or turned as
+    the display's layers are)."""
 
     def __init__(self, spec: RasterSpec, n_layers: int, step: int | None = None) -> None:
         # every 4th pixel up to 4K displays; coarser above, so the map stays about 960 samples wide (the largest
         # thumbnail is 800 wide) and sampling costs the same on any display (a 12K display at 4 took 4 s)
         super().__init__(spec.shape, n_layers, step if step is not None else max(4, -(-max(spec.shape) // 960)))
-        # a row's height over a column's width (non-square pixels, e.g. a 12K Saturn's 0.019 x 0.024 mm): the
-        # thumbnails stretch the rows by it so that the part keeps its shape
-        self.aspect = spec.px / spec.py if spec.portrait else spec.py / spec.px
+        # a row's height over a column's width in the top view (non-square pixels, e.g. a 12K Saturn's 0.019 x
+        # 0.024 mm): the thumbnails stretch the rows by it so that the part keeps its shape
+        self.spec, self.aspect = spec, spec.py / spec.px
 
     def png(self, size: tuple[int, int]) -> bytes:
         """The top view fitted into ``size`` (width, height) pixels, as a PNG file's bytes (:meth:`image`)."""
@@ -226,7 +227,7 @@ class _Thumb(HeightMap):
         the PNG-based ones :meth:`png`)."""
         from PIL import Image
 
-        src = self.img
+        src = top_view(self.img, self.spec)
         if src.shape[0] and abs(self.aspect - 1.0) > 1e-9:  # nearest rows: the map at square cells
             h = src.shape[0]
             rows = max(1, round(h * self.aspect))
