@@ -7,7 +7,8 @@ whose cusp is t·|n_z| high. Horizontal facets (zmax = zmin) make no staircase a
   ``max_cusp_mm`` is its maximum over the layers.
 * ``mean_cusp_mm`` = the surface-area-weighted mean of t·|n_z| over the non-horizontal facets, each facet's t
   being the mean layer thickness over its z range (exact for a piecewise-constant thickness; above the last slab the
-  last thickness is assumed). It is the average staircase height a user would see on the surface.
+  last thickness is assumed, below the first the first). It is the average staircase height a user would see on the
+  surface.
 
 **Volume deviation**: the stacked layers (each layer's polygons extruded over its slab) against the mesh, measured
 against a fine uniform reference slice (default thickness: a fifth of the schedule's thinnest layer, at least
@@ -34,9 +35,20 @@ __all__ = ["schedule_edges", "cusp_heights", "mean_cusp", "cusp_summary", "layer
 
 
 def schedule_edges(schedule: Schedule | SliceResult) -> np.ndarray:
-    """(L + 1,) float64 slab edges of a schedule (or a result): bottoms, then the last top, mm."""
+    """(L + 1,) float64 slab edges of a schedule (or a result): bottoms, then the last top, mm. The slabs are where
+    the exports put them (``bottom``: from the bed for every uniform and adaptive schedule; explicit planes may start
+    higher); slabs with gaps or overlaps between them (explicit planes, each slab centred on its plane) have no such
+    edges, and their quality is refused (:class:`ParameterError`)."""
+    from ..errors import ParameterError
+
     t = np.asarray(schedule.thickness, dtype=np.float64)
-    return np.concatenate(([0.0], np.cumsum(t)))
+    base = float(np.asarray(schedule.bottom, np.float64)[0]) if t.size else 0.0
+    edges = base + np.concatenate(([0.0], np.cumsum(t)))
+    if t.size and not np.allclose(edges[:-1], schedule.bottom, rtol=0.0,
+                                  atol=1e-9 * max(1.0, float(np.max(np.abs(edges))))):
+        raise ParameterError("schedule quality: the layers' slabs do not stack (explicit planes, each slab centred "
+                             "on its plane, with gaps or overlaps between them): no cusp or volume figures")
+    return edges
 
 
 def cusp_heights(mesh: Mesh, schedule: Schedule | SliceResult, device=None) -> np.ndarray:
@@ -73,8 +85,10 @@ def mean_cusp(mesh: Mesh, schedule: Schedule | SliceResult, slopes=None, device=
     # F(z) = integral of the thickness t(z) from 0: piecewise linear, slope t_l inside layer l
     edges = schedule_edges(schedule)
     big = max(float(mesh.height), float(edges[-1])) + 1.0
-    knots = np.concatenate(([-1.0], edges, [big]))
-    f = np.concatenate(([-t[0]], [0.0], np.cumsum(t * t), [np.sum(t * t) + t[-1] * (big - edges[-1])]))
+    low = min(0.0, float(edges[0])) - 1.0
+    knots = np.concatenate(([low], edges, [big]))
+    f = np.concatenate(([-t[0] * (edges[0] - low)], [0.0], np.cumsum(t * t),
+                        [np.sum(t * t) + t[-1] * (big - edges[-1])]))
     lo, hi = zmin[slanted].astype(np.float64), zmax[slanted].astype(np.float64)
     tbar = (np.interp(hi, knots, f) - np.interp(lo, knots, f)) / (hi - lo)
     total = float(np.sum(area))

@@ -28,11 +28,27 @@ _common = [
 ]
 
 
+def _refuse_unused(settings) -> None:
+    """A one-line error for an adaptive option given on the command line that no setting of the run uses
+    (``--max-cusp`` without ``--adaptive cusp``), as ``slice`` refuses it: its value would only sit in the output."""
+    from click.core import ParameterSource
+
+    ctx = click.get_current_context()
+    modes = {s.overrides.get("adaptive") for s in settings}
+    for name, for_modes in SliceParams.FOR_MODES.items():
+        if name in _SHARED and ctx.get_parameter_source(name) not in (None, ParameterSource.DEFAULT) and \
+                not modes & set(for_modes):
+            need = " or ".join(f"--adaptive {m}" for m in for_modes)
+            fail(f"--{name.replace('_', '-')} shapes {' or '.join(for_modes)} layers, which no setting of this run "
+                 f"makes: add {need}, or leave it out")
+
+
 def _setup(model, thicknesses, modes, kw):
     from ..bench.runner import parse_settings
     from ..pipeline import Job, load_job_mesh, prepare_device
 
     settings = parse_settings(thicknesses, modes)
+    _refuse_unused(settings)
     params = SliceParams(**values(SliceParams, kw))
     job = Job(source=model, placement=build(Placement, kw), params=params)
     load_times: dict[str, float] = {}
@@ -124,6 +140,8 @@ def bench(model, thicknesses, modes, repeat, no_quality, ref_thickness, as_json,
         fail(f"--repeat must be >= 1, got {repeat}")
     if ref_thickness is not None and not ref_thickness > 0:  # (0 would silently mean the default)
         fail(f"--ref-thickness must be a positive number of mm, got {ref_thickness}")
+    if ref_thickness is not None and no_quality:
+        fail("--ref-thickness is the volume deviation's reference, which --no-quality skips: leave one out")
     if plots_dir is not None:
         _make_dir(plots_dir, create=False)
     settings, params, mesh, load_times = _setup(model, thicknesses, modes, kw)

@@ -3,7 +3,9 @@
 
 Every schedule returned here is a :class:`~gpuslice.schedule.Schedule` (built with :func:`~gpuslice.schedule.from_z`)
 whose layers tile ``[0, height]`` of the mesh contiguously, from the bed up: layer i spans ``[e_i, e_{i+1}]`` with
-``e_0 = 0`` and the last edge exactly at the mesh's top (so the last layer may be thinner than the rest). Each layer
+``e_0 = 0`` and the last edge exactly at the mesh's top (so the last layer may be thinner than the rest, but never
+thinner than :data:`SLIVER_MM` unless the step asked for is: such a sliver joins the layer below, which grows by less
+than a micrometre; no printer moves in finer steps). Each layer
 is cut at the middle of its slab, ``z_i = (e_i + e_{i+1}) / 2`` (the project's convention, as Slic3r and CuraEngine).
 The schedule also carries ``info`` (a JSON-able dict: the mode, its parameters, and for ``roi`` the windows chosen
 at each level) and is accepted by :func:`~gpuslice.slicer.slice_mesh` as ``schedule=``.
@@ -64,6 +66,9 @@ ADAPTIVE_MODES = ("roi", "cusp", "area")
 #: the most bins of the error-bounded schedules: their width is at least the model's height / MAX_BINS
 MAX_BINS = 400_000
 
+#: a last layer thinner than this (and than the finest step asked for) joins the layer below, mm: no printer's Z axis
+#: moves in finer steps (the resin commands' thinnest layer, ``cli.options.MIN_RESIN_LAYER``)
+SLIVER_MM = 0.001
 #: relative safety on |n_z| so float32 rounding never lets t·|n_z| exceed the bound in float64
 _NZ_SAFETY = 1.0 + 1e-6
 
@@ -334,8 +339,11 @@ def cusp_schedule(
     bins = np.asarray(starts, dtype=np.int64)
     layer_edges = bins * delta
     layer_edges[-1] = height
-    if layer_edges.size > 2 and layer_edges[-1] - layer_edges[-2] < 1e-6 * max(delta, 1.0):
-        layer_edges = np.delete(layer_edges, -2)  # a sliver under the top joins the layer below
+    joined = _join_sliver(layer_edges, min_height)
+    if joined.size < layer_edges.size:  # the last layer took the sliver above it: beyond its bound when it had none
+        bins = np.delete(bins, -2)
+        violated[bins[-2]] |= n_bins - bins[-2] > allowed[bins[-2]]
+    layer_edges = joined
     info["resolution_mm"] = delta
     info["bound_violations"] = int(violated[bins[:-1][bins[:-1] < n_bins]].sum())
     return schedule_from_edges(layer_edges, f"adaptive-{mode}", info)
@@ -344,12 +352,19 @@ def cusp_schedule(
 # ---- the paper's region-of-interest ladder --------------------------------------------------------------------
 
 
+def _join_sliver(edges: np.ndarray, step: float) -> np.ndarray:
+    """``edges`` with a last slab thinner than both :data:`SLIVER_MM` and ``step`` (mm) joined to the one below."""
+    if edges.size > 2 and edges[-1] - edges[-2] < min(SLIVER_MM, step):
+        return np.delete(edges, -2)
+    return edges
+
+
 def _tile(a: float, b: float, t: float) -> np.ndarray:
-    """Edges of slabs of thickness t tiling [a, b] (the last one may be thinner)."""
+    """Edges of slabs of thickness t tiling [a, b] (the last one may be thinner, not a sliver: :func:`_join_sliver`)."""
     n = max(1, int(np.ceil((b - a) / t - 1e-9)))
     e = a + np.arange(n + 1, dtype=np.float64) * t
     e[-1] = b
-    return e
+    return _join_sliver(e, t)
 
 
 def _windows(signal: np.ndarray, threshold: float, min_layers: int, max_windows: int) -> list[tuple[int, int]]:

@@ -84,7 +84,8 @@ def slab_bottoms(z: np.ndarray, thickness: np.ndarray) -> np.ndarray:
     from half the first layer below its plane, as :func:`from_z` tiles planes that start at or below the bed);
     explicit planes that do not (``z=[1, 2, 3]`` with 0.1 mm layers, a plane below the bed) each get a slab centred
     on it (z_i − t_i / 2), the one placement their planes and thicknesses give, so that exports state where each
-    layer really is."""
+    layer really is. A plane on its slab's bottom edge is not in that slab: a section is the limit from below (the
+    on-plane rule), the layer under it (``from_z`` planes from 0 tiled from the bed left layer 0 empty)."""
     z = np.asarray(z, np.float64)
     t = np.asarray(thickness, np.float64)
     if z.size == 0:
@@ -93,7 +94,7 @@ def slab_bottoms(z: np.ndarray, thickness: np.ndarray) -> np.ndarray:
     # from the bed, else from below the first plane (from_z's own slabs of a plane at or below the bed)
     for base in (0.0, float(z[0] - t[0] / 2)):
         tiled = base + np.concatenate(([0.0], np.cumsum(t)[:-1]))
-        if np.all(z >= tiled - eps) and np.all(z <= tiled + t + eps):
+        if np.all(z > tiled + eps) and np.all(z <= tiled + t + eps):
             return tiled
     return z - t / 2
 

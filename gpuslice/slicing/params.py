@@ -34,7 +34,8 @@ class SliceParams:
         (:mod:`gpuslice.schedule.adaptive`).
     max_cusp : cusp mode: the largest cusp height t·|n_z|, mm. max_area : area mode: the largest staircase error
         area per unit length, mm². min_height, max_height : cusp/area modes: thickness clamp, mm. smooth : cusp/area
-        modes: the thickness changes by at most this many mm per mm of height (0: no smoothing).
+        modes: the thickness changes by at most this many mm per mm of height, give or take one bin of the grid
+        the layer tops lie on (``min_height / 10``) (0: no smoothing).
     roi_ladder : roi mode: thicknesses, coarse to fine, mm. roi_threshold : roi mode: points per layer (one value,
         or one per refinement step); None: the ``roi_quantile`` of each level's signal. roi_windows : windows kept per
         level (0: all).
@@ -58,7 +59,8 @@ class SliceParams:
     max_area: float = option(0.0025, "area: largest staircase error area per mm of surface", unit="mm^2")
     min_height: float = option(0.05, "cusp/area: thinnest layer", unit="mm")
     max_height: float = option(0.3, "cusp/area: thickest layer", unit="mm")
-    smooth: float = option(0.0, "cusp/area: thickness may change by at most this many mm per mm of height (0: off)")
+    smooth: float = option(0.0, "cusp/area: thickness may change by at most this many mm per mm of height, to "
+                                "within min-height/10 (the grid of layer tops; 0: off)")
     roi_ladder: tuple[float, ...] = option((1.0, 0.5, 0.1), "roi: thicknesses, coarse to fine", unit="mm",
                                            parse=parse_floats)
     roi_threshold: tuple[float, ...] | None = option(

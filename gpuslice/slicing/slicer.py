@@ -102,7 +102,7 @@ def slice_mesh(
         a placed ``Mesh`` without them).
     z : optional explicit cutting planes, mm above the bed, strictly increasing; ``layer_thickness`` gives their
         thicknesses (an array or one number; default: from the midpoints between planes).
-    schedule : optional :class:`~gpuslice.schedule.Schedule` (takes precedence over ``z``).
+    schedule : optional :class:`~gpuslice.schedule.Schedule` (not with ``z``: either gives the planes).
     points_sink : optional; takes each batch's points as soon as they are nested (``append((n, 2) float32)``),
         and gives all of them back at the end (``array()``: the result's ``points``), so that the slicer does not
         hold them: :class:`gpuslice.formats.npz.NpzStream` writes them to an ``.npz`` while the next batch is cut.
@@ -252,9 +252,12 @@ def slice_mesh(
 
 def _refuse_ignored(overrides: dict, params: SliceParams | None, z, schedule) -> None:
     """A one-line :class:`ParameterError` for a keyword that the layers asked for would ignore, as the command line
-    refuses its flag: a schedule option with explicit ``z`` or ``schedule`` (the planes are given), ``thickness``
-    with an adaptive mode, ``max_cusp`` without ``adaptive="cusp"`` (:attr:`SliceParams.FOR_MODES`)."""
+    refuses its flag: a schedule option (or ``z`` itself) with explicit ``z`` or ``schedule`` (the planes are
+    given), ``thickness`` with an adaptive mode, ``max_cusp`` without ``adaptive="cusp"``
+    (:attr:`SliceParams.FOR_MODES`)."""
     shaping = set(SliceParams.FOR_MODES) | {"adaptive", "first_layer", "z_mode"}
+    if z is not None and schedule is not None:
+        raise ParameterError("z= gives planes of its own, which schedule= gives already: leave one out", param="z")
     if z is not None or schedule is not None:
         given = sorted(k for k in overrides if k in shaping)
         if given:

@@ -84,6 +84,25 @@ def test_volume_deviation_of_a_sphere_matches_the_staircase_formula(sphere, sphe
     assert same["volume_deviation_mm3"] == pytest.approx(0.0, abs=1e-6)
 
 
+def test_quality_of_explicit_planes_scores_their_own_slabs(sphere):
+    """Explicit planes over a band of the sphere (z 5.25 .. 14.75, 0.5 mm) are the same layers as the uniform
+    schedule's there: the same cusp heights (an audit found them scored as slabs stacked from the bed, [0, 10]);
+    planes whose slabs neither stack nor tile (z 1, 2, 3 at 0.1 mm) get no figures, not wrong ones."""
+    full = slice_mesh(sphere, thickness=0.5, backend="numpy")
+    band = slice_mesh(sphere, z=full.z[10:30], layer_thickness=0.5, backend="numpy")
+    assert band.bottom[0] == pytest.approx(5.0)
+    np.testing.assert_allclose(cusp_heights(sphere, band), cusp_heights(sphere, full)[10:30], rtol=1e-12)
+    assert mean_cusp(sphere, band) == pytest.approx(mean_cusp(sphere, full), rel=0.05)
+    ref = slice_mesh(sphere, thickness=0.05, backend="numpy")
+    vd = volume_deviation(band, ref)["volume_deviation_mm3"]
+    outside = float(np.dot(ref.area, ref.thickness) - np.dot(ref.area[100:300], ref.thickness[100:300]))
+    assert outside < vd < outside * 1.2  # the sphere outside the band, plus the band's staircase
+    equator = slice_mesh(sphere, z=np.array([R]), layer_thickness=0.1, backend="numpy")
+    assert cusp_heights(sphere, equator)[0] < 0.02  # |n_z| is small at the equator (was 0.0999: the pole's slab)
+    with pytest.raises(ParameterError, match="do not stack"):
+        cusp_heights(sphere, slice_mesh(sphere, z=np.array([1.0, 2.0, 3.0]), layer_thickness=0.1, backend="numpy"))
+
+
 def test_volume_deviation_counts_missing_and_shifted_material():
     cube = mesh_from_triangles(box((0, 0, 0), (10, 10, 10)))
     ref = slice_mesh(cube, thickness=0.05, backend="numpy")
@@ -181,14 +200,18 @@ def test_cli_bench_table_json_csv(sphere_stl, capsys):
     data = json.loads(capsys.readouterr().out)
     assert [r["setting"] for r in data["rows"]] == ["0.5 mm", "1 mm", "adaptive roi"]
     assert data["load_s"] > 0 and data["facets"] == 5120
-    assert main([*args, "--csv", "--no-quality"]) == 0
+    assert main([*args[:-2], "--csv", "--no-quality"]) == 0  # (no --ref-thickness without the volume deviation)
     rows = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))
     assert [r["setting"] for r in rows] == ["0.5 mm", "1 mm", "adaptive roi"]
     assert int(rows[0]["layers"]) == 80
 
 
 @pytest.mark.parametrize("args", [["-t", "0"], ["--adaptive", "x"], ["--repeat", "0"], ["--json", "--csv"],
-                                  ["--plots", "/nonexistent/dir"]])
+                                  ["--plots", "/nonexistent/dir"],
+                                  # options no setting uses (an audit: accepted, then only recorded in the JSON)
+                                  ["--max-cusp", "0.1"], ["--min-height", "0.1", "--adaptive", "roi"],
+                                  ["--roi-windows", "2", "--adaptive", "cusp"],
+                                  ["--no-quality", "--ref-thickness", "0.1"]])
 def test_cli_bench_bad_options(sphere_stl, capsys, args):
     assert main(["bench", str(sphere_stl), "-t", "1", *args]) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -230,6 +253,16 @@ def test_bench_plots(sphere_stl, tmp_path, capsys):
         _check_png(tmp_path / f"{stem}.png")
         _check_svg(tmp_path / f"{stem}.svg")
     assert not [n for n in names if n.startswith(".")]  # no temporaries left
+
+
+def test_options_of_the_modes_benched_are_taken(sphere_stl, capsys, tmp_path):
+    """The same options with their modes benched run (the refusal is only for options no setting uses)."""
+    args = ["bench", str(sphere_stl), "-t", "1", "--repeat", "1", "--no-quality", "--json"]
+    assert main([*args, "--adaptive", "area", "--min-height", "0.2", "--max-height", "0.5"]) == 0
+    row = json.loads(capsys.readouterr().out)["rows"][1]
+    assert row["setting"] == "adaptive area" and row["thickness_max_mm"] <= 0.5 + 1e-9 and row["layers"] > 0
+    assert main(["plot", str(sphere_stl), "-t", "1", "--roi-windows", "2", "-o", str(tmp_path / "p")]) == 2
+    assert "--roi-windows shapes roi layers" in capsys.readouterr().err and not (tmp_path / "p").exists()
 
 
 def test_plot_command(sphere_stl, tmp_path, capsys):

@@ -204,6 +204,27 @@ def test_layers_of_a_tall_model_are_never_under_min_height():
     assert sched.info["bound_violations"] > 0  # the clamp is what set them
 
 
+def test_no_last_layer_is_a_sliver_under_a_micrometre():
+    """An audit found a cusp schedule at --min-height 0.001 ending with a 0.0006 mm layer (a 20 mm icosphere), and an
+    roi schedule of the same sphere 20.0003 mm tall with a 0.0003 mm one, in resin archives that refuse layers under
+    1 µm: such a sliver joins the layer below (at most 1 µm thicker), and the bound is still kept or the excess
+    counted; a step asked for finer than that keeps its layers."""
+    import trimesh
+
+    ico = trimesh.creation.icosphere(subdivisions=4, radius=10.0)
+    m = mesh_from_arrays(np.asarray(ico.vertices, np.float32), np.asarray(ico.faces))
+    c = cusp_schedule(m, max_cusp=C, min_height=0.001, max_height=B)
+    big = mesh_from_arrays(np.asarray(ico.vertices * 1.000015, np.float32), np.asarray(ico.faces))
+    r = roi_schedule(big, (1.0, 0.5, 0.1))
+    for mesh, sched in ((m, c), (big, r)):
+        assert sched.thickness.min() >= 0.001 - 1e-12, (sched.info["mode"], sched.thickness[-3:])
+        assert sched.top[-1] == pytest.approx(mesh.height, abs=1e-9)
+    with np.errstate(divide="ignore"):
+        assert _worst(m, c, lambda nz: C / nz) <= 1.0 + 1e-9 or c.info["bound_violations"] > 0
+    fine = cusp_schedule(m, max_cusp=C, min_height=0.0002, max_height=B, resolution=0.0001)
+    assert fine.thickness[:-1].min() >= 0.0002 - 1e-12 and fine.top[-1] == pytest.approx(m.height, abs=1e-9)
+
+
 @pytest.mark.parametrize("kw", [{"max_cusp": 0}, {"min_height": 0}, {"min_height": 0.3, "max_height": 0.1},
                                 {"smooth": -1}, {"mode": "nope"}])
 def test_bad_parameters_raise(sphere, kw):

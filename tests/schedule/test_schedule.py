@@ -45,6 +45,29 @@ def test_custom_z_thicknesses():
     np.testing.assert_allclose(s.thickness, [0.1, 0.1])
 
 
+def test_planes_from_the_bed_up_keep_from_z_slabs():
+    """``from_z`` gives a plane at the bed the slab around it ([-0.25, 0.25] for planes 0.5 mm apart); the exports'
+    slabs (``bottom``) tiled such planes from the bed instead, each plane on its slab's bottom edge, where a section
+    (the limit from below) belongs to the layer under it: layer 0 came out empty and every slab shifted."""
+    from gpuslice import mesh_from_triangles, slice_mesh
+    from gpuslice.mesh.shapes import box
+
+    s = from_z(np.arange(0.0, 6.0, 0.5))
+    np.testing.assert_allclose(s.bottom, np.arange(0.0, 6.0, 0.5) - 0.25)
+    r = slice_mesh(mesh_from_triangles(box((0, 0, 0), (10, 10, 6))), schedule=s, backend="numpy")
+    np.testing.assert_allclose(r.bottom, s.bottom)
+    # planes inside their slabs from the bed up still tile from it (paper planes on their slabs' tops)
+    np.testing.assert_allclose(from_z([0.5, 1.0, 1.5], 0.5).bottom, [0.0, 0.5, 1.0])
+
+
+def test_schedule_and_z_together_are_refused():
+    from gpuslice import mesh_from_triangles, slice_mesh
+    from gpuslice.mesh.shapes import box
+
+    with pytest.raises(ParameterError, match="z= gives planes"):
+        slice_mesh(mesh_from_triangles(box()), schedule=uniform(20.0, 0.1), z=np.array([1.0]), backend="numpy")
+
+
 @pytest.mark.parametrize("z, t", [([0.2, 0.1], None), ([0.1, 0.1], None), ([0.1, np.nan], None), ([0.1], [-1.0])])
 def test_bad_schedules_raise(z, t):
     with pytest.raises(ParameterError):
