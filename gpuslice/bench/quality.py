@@ -27,7 +27,7 @@ import numpy as np
 from ..mesh.mesh import Mesh
 from ..ragged import expand_ranges
 from ..schedule.adaptive import facet_slopes, slab_max_nz
-from ..schedule.uniform import Schedule
+from ..schedule.uniform import Schedule, slab_bottoms
 from ..slicing.result import SliceResult
 
 __all__ = ["schedule_edges", "cusp_heights", "mean_cusp", "cusp_summary", "layer_geometries", "volume_deviation",
@@ -42,10 +42,9 @@ def schedule_edges(schedule: Schedule | SliceResult) -> np.ndarray:
     from ..errors import ParameterError
 
     t = np.asarray(schedule.thickness, dtype=np.float64)
-    base = float(np.asarray(schedule.bottom, np.float64)[0]) if t.size else 0.0
-    edges = base + np.concatenate(([0.0], np.cumsum(t)))
-    if t.size and not np.allclose(edges[:-1], schedule.bottom, rtol=0.0,
-                                  atol=1e-9 * max(1.0, float(np.max(np.abs(edges))))):
+    bottom = slab_bottoms(schedule.z, t) if t.size else np.zeros(0)  # (as the schedule's and the result's bottom)
+    edges = (float(bottom[0]) if t.size else 0.0) + np.concatenate(([0.0], np.cumsum(t)))
+    if t.size and not np.allclose(edges[:-1], bottom, rtol=0.0, atol=1e-9 * max(1.0, float(np.max(np.abs(edges))))):
         raise ParameterError("schedule quality: the layers' slabs do not stack (explicit planes, each slab centred "
                              "on its plane, with gaps or overlaps between them): no cusp or volume figures")
     return edges
