@@ -26,6 +26,7 @@ from .numbers import (
     layer_chunks,
     point_bounds,
     result_arrays,
+    stacked_slabs,
 )
 
 PathLike = str | os.PathLike
@@ -115,8 +116,8 @@ def write_cli(
         raise ParameterError(f"label must be text without commas, slashes, '$' or line breaks, got {label!r}")
     points, loop_offsets, layer_offsets = result_arrays(result)
     thickness = np.asarray(result.thickness, dtype=np.float64)
-    bottom = np.asarray(result.bottom, dtype=np.float64)
-    top = (bottom + thickness) / units
+    bottom, top = stacked_slabs(result, "a CLI file")
+    top = top / units
     if (points.size and np.abs(points).max() / units > MAX_ABS) or np.abs(top).max(initial=0) > MAX_ABS:
         raise ParameterError("result coordinates are too large to write in these units")
     is_hole = np.asarray(result.loop_is_hole, dtype=bool)

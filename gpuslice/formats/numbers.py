@@ -23,7 +23,7 @@ if TYPE_CHECKING:
 PathLike = str | os.PathLike
 
 __all__ = ["Token", "CHUNK_POINTS", "MAX_ABS", "format_numbers", "format_fixed", "fmt_scalar", "check_decimals",
-           "result_arrays", "checked_result", "point_bounds", "layer_chunks"]
+           "result_arrays", "checked_result", "stacked_slabs", "point_bounds", "layer_chunks"]
 
 # Points formatted per vectorised batch; bounds the memory the writers use (about 100 bytes a point).
 CHUNK_POINTS = 1 << 19
@@ -208,6 +208,23 @@ def layer_chunks(point_counts_cum: np.ndarray) -> Iterator[tuple[int, int]]:
         a = b
 
 
+
+
+def stacked_slabs(result: SliceResult, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """(bottom, top) float64 (L,) of ``result``'s slabs, mm, for a format that states each layer by its top alone
+    (``what``: "a 3MF slice stack", ...), the layer below ending where it starts: a :class:`ParameterError` when
+    the slabs do not stack so (explicit planes whose slabs, centred on them, leave gaps or overlap)."""
+    bottom = np.asarray(result.bottom, dtype=np.float64)
+    top = bottom + np.asarray(result.thickness, dtype=np.float64)
+    if top.size > 1:
+        eps = 1e-9 * max(1.0, float(np.max(np.abs(top))))
+        off = np.flatnonzero(np.abs(bottom[1:] - top[:-1]) > eps)
+        if off.size:
+            k = int(off[0]) + 1
+            raise ParameterError(f"{what} states each layer by its top, the one below ending where it starts, but "
+                                 f"layer {k - 1} ends at {top[k - 1]:g} mm and layer {k} starts at {bottom[k]:g} mm "
+                                 "(explicit planes): write .npz, .svg or .geojson, which state each slab")
+    return bottom, top
 
 
 def checked_result(result: SliceResult, decimals: int) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:

@@ -26,6 +26,7 @@ from .numbers import (
     format_fixed,
     layer_chunks,
     point_bounds,
+    stacked_slabs,
 )
 
 if TYPE_CHECKING:
@@ -82,11 +83,11 @@ def write_3mf_slices(result: SliceResult, path: PathLike, *, decimals: int = 6) 
     Raises
     ------
     ParameterError
-        ``decimals`` out of 0..9, or a malformed result (inconsistent offsets, coordinates beyond 1e9 mm).
+        ``decimals`` out of 0..9, or a malformed result (inconsistent offsets, coordinates beyond 1e9 mm), or
+        slabs that do not stack (:func:`~gpuslice.formats.numbers.stacked_slabs`).
     """
     decimals, points, loop_offsets, layer_offsets = checked_result(result, decimals)
-    bottom = np.asarray(result.bottom, dtype=np.float64)
-    top = bottom + np.asarray(result.thickness, dtype=np.float64)
+    bottom, top = stacked_slabs(result, "a 3MF slice stack")
     z_bottom = float(bottom[0]) if bottom.size else 0.0
     cum = loop_offsets[layer_offsets]
     with atomic_path(path) as tmp, zipfile.ZipFile(tmp, "w") as zf:

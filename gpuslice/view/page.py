@@ -16,7 +16,7 @@ typed arrays (decoded once at load, then every layer is a view into them), built
     loop_offsets  int32    (R+1,)  as SliceResult.loop_offsets
     layer_offsets int32    (L+1,)  as SliceResult.layer_offsets
     loop_flags    uint8    (R,)    bit 0: hole (clockwise), bit 1: open chain (loop_closed false)
-    z, thickness, area  float64 (L,)   mm, mm, mm^2
+    z, thickness, bottom, area  float64 (L,)   mm, mm, mm, mm^2 (bottom: each slab's, SliceResult.bottom)
     layer_points  int32    (L,)    points per layer
     repairs[kind] int32    (L,)    per-layer repair counts (kinds with a non-zero total only)
 
@@ -82,6 +82,7 @@ def _columns(result: SliceResult) -> dict[str, dict[str, Any]]:
         "loop_flags": _pack(flags, "u1"),
         "z": _pack(result.z, "f8"),
         "thickness": _pack(result.thickness, "f8"),
+        "bottom": _pack(result.bottom, "f8"),  # (the slabs where the exports put them: explicit planes' own)
         "area": _pack(result.area, "f8"),
         "layer_points": _pack(result.points_per_layer, "i4"),
     }

@@ -540,3 +540,26 @@ def test_format_fixed_matches_python(decimals):
             assert core.lstrip("-") == w
     assert pieces[0] == "<" + pieces[0][1:] and pieces[5].startswith("<[[") and pieces[5].endswith("|>")
     assert pieces[-1].endswith("|>")
+
+
+def test_formats_that_state_layers_by_their_tops_refuse_slabs_that_do_not_stack(tmp_path):
+    """A 3MF slice stack and a CLI file give each layer its top alone, the one below ending where it starts: planes
+    at 3, 5 and 7 mm with 0.1 mm slabs came out as 2 mm thick layers (an audit). Refused, naming the formats that
+    state each slab; planes whose slabs stack from any height are written."""
+    from gpuslice import mesh_from_triangles, slice_mesh
+    from gpuslice.formats.threemf import read_3mf_slices
+    from gpuslice.mesh import shapes
+
+    cube = mesh_from_triangles(shapes.box((0, 0, 0), (10, 10, 10)))
+    apart = slice_mesh(cube, z=np.array([3.0, 5.0, 7.0]), layer_thickness=0.1, backend="numpy")
+    for suffix in (".3mf", ".cli"):
+        out = tmp_path / f"apart{suffix}"
+        with pytest.raises(ParameterError, match=r"layer 0 ends at 3\.05 mm and layer 1 starts at 4\.95 mm"):
+            export(apart, out)
+        assert not out.exists()
+    band = slice_mesh(cube, z=np.array([3.05, 3.15, 3.25]), layer_thickness=0.1, backend="numpy")
+    export(band, tmp_path / "band.3mf")
+    z_bottom, slices = read_3mf_slices(tmp_path / "band.3mf")
+    assert z_bottom == pytest.approx(3.0) and [s[0] for s in slices] == pytest.approx([3.1, 3.2, 3.3])
+    export(band, tmp_path / "band.cli")
+    assert [z for z, _ in read_cli(tmp_path / "band.cli")] == pytest.approx([3.1, 3.2, 3.3])

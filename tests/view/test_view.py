@@ -288,6 +288,18 @@ def test_browser_slider_keys_and_shown_values(browser, torus, tmp_path):
     v.close()
 
 
+def test_browser_shows_explicit_planes_in_their_own_slabs(browser, tmp_path):
+    """Planes at 3, 5 and 7 mm with 0.1 mm layers sit in slabs 2.95-3.05 ...: the page said 0-0.1, 0.1-0.2 and a
+    0.3 mm tall model (an audit), summing thicknesses from the bed where the exports use SliceResult.bottom."""
+    res = _slice(shapes.box((0, 0, 0), (10, 10, 10)), z=np.array([3.0, 5.0, 7.0]), layer_thickness=0.1)
+    v = Page(browser, res, tmp_path)
+    for i, (lo, hi) in enumerate([(2.95, 3.05), (4.95, 5.05), (6.95, 7.05)]):
+        v.page.evaluate(f"gpusliceViewer.setLayer({i})")
+        got = [float(x) for x in v.text("span").split("–")]
+        assert got == pytest.approx([lo, hi], abs=1e-4)
+    v.close()
+
+
 def test_browser_draws_holes_as_holes_and_chart_jumps(browser, torus, tmp_path):
     v = Page(browser, torus, tmp_path)
     mid = torus.n_layers // 2  # the torus's widest ring: material for 10 < r < 20 mm around (0, 0)
