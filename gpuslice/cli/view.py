@@ -54,7 +54,7 @@ def _size(n: int) -> str:
               "check --printer` (default: the contours, default settings).")
 @click.option("--mask-every", type=int, default=1, show_default=True,
               help="--raster: a mask for every N-th layer only (smaller page).")
-@click.option("--title", default=None, help="Page title (default: the model's file name).")
+@click.option("--title", default=None, help="Page title (default, or empty: the model's file name).")
 @click.option("--check", is_flag=True, help="Run the pre-print checks (as `gpuslice check`: layers 0.05 mm unless -t "
               "is given) and mark islands, resin traps and suction cups on their layers, with a list to jump to them.")
 @click.option("-q", "--quiet", is_flag=True, help="Print nothing but errors.")
@@ -77,7 +77,8 @@ def view(source: str, output: str | None, raster: bool, printer: str, mask_every
         flags = {i.name: i.flags[0] for cls in (SliceParams, Placement) for i in options_of(cls) if i.flags}
         given = [flags[k] for k, v in kw.items() if v is not None and k in flags]
         if given:
-            fail(f"{source}: a saved result is already sliced; {', '.join(given)} only apply to meshes")
+            fail(f"{source}: a saved result is already sliced; {', '.join(given)} only "
+                 f"{'applies' if len(given) == 1 else 'apply'} to meshes")
     from ..raster.spec import ResinOptions
 
     masks = ropts = None
@@ -97,7 +98,7 @@ def view(source: str, output: str | None, raster: bool, printer: str, mask_every
         check_resin_layers(params)
     t0 = time.perf_counter()
     done = run_job(Job(source=source, placement=placement, params=params, mesh_check=False, saved_result=True,
-                       view=ViewOutput(output, title, masks, mask_every), checks=_checks(check, ropts)))
+                       view=ViewOutput(output, title or None, masks, mask_every), checks=_checks(check, ropts)))
     t1 = done.timings.get("view", 0.0)
     if not quiet:
         m = done.stats.get("masks")

@@ -288,6 +288,18 @@ def test_browser_slider_keys_and_shown_values(browser, torus, tmp_path):
     v.close()
 
 
+def test_cli_empty_title_and_one_flag_messages(torus_stl, tmp_path, capsys):
+    """An empty --title takes the default (the model's name), not a blank header; one flag given for a saved result
+    "applies" (an audit's cosmetic findings)."""
+    page = tmp_path / "t.html"
+    assert main(["view", str(torus_stl), "-t", "1", "--title", "", "-o", str(page), "-q"]) == 0
+    assert f"<title>{torus_stl.name}" in page.read_text()
+    npz = tmp_path / "t.npz"
+    assert main(["slice", str(torus_stl), "-t", "1", "-o", str(npz), "-q"]) == 0
+    assert main(["view", str(npz), "-t", "0.2", "-o", str(tmp_path / "u.html")]) == 2
+    assert "-t only applies to meshes" in capsys.readouterr().err
+
+
 def test_browser_shows_explicit_planes_in_their_own_slabs(browser, tmp_path):
     """Planes at 3, 5 and 7 mm with 0.1 mm layers sit in slabs 2.95-3.05 ...: the page said 0-0.1, 0.1-0.2 and a
     0.3 mm tall model (an audit), summing thicknesses from the bed where the exports use SliceResult.bottom."""
