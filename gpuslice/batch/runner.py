@@ -1,9 +1,8 @@
 """Batch execution: :class:`BatchRunner` hands one task per model (:func:`gpuslice.batch.task.run_model`) to this
 process (``workers=0``), to local worker processes (one OpenCL context and one kernel build per worker; a failed
-model is retried once on another worker, unless its file or options are at fault: a ``MeshFileError`` or
-``ParameterError`` fails anywhere; a worker that dies is replaced and its unfinished models re-run) or to a Dask
-``distributed.Client`` (the scheduler re-runs a lost worker's tasks itself; failed models are retried as locally),
-and collects their records into the batch report (:meth:`BatchRunner.report`).
+model is retried once on another worker unless its file or options are at fault; a worker that dies is replaced and
+its unfinished models re-run) or to a Dask ``distributed.Client`` (the scheduler re-runs a lost worker's tasks;
+failed models are retried as locally), and collects their records into the batch report (:meth:`BatchRunner.report`).
 
 Skipping: a model whose output exists is skipped (``force`` redoes it); outputs are only ever renamed into place
 complete, so existing means complete (with ``--check``, its check report must exist too: a contour file is written

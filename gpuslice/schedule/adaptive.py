@@ -3,12 +3,11 @@
 
 Every schedule returned here is a :class:`~gpuslice.schedule.Schedule` (built with :func:`~gpuslice.schedule.from_z`)
 whose layers tile ``[0, height]`` of the mesh contiguously, from the bed up: layer i spans ``[e_i, e_{i+1}]`` with
-``e_0 = 0`` and the last edge exactly at the mesh's top (so the last layer may be thinner than the rest, but never
-thinner than :data:`SLIVER_MM` unless the step asked for is: such a sliver joins the layer below, which grows by less
-than a micrometre; no printer moves in finer steps). Each layer
-is cut at the middle of its slab, ``z_i = (e_i + e_{i+1}) / 2`` (the project's convention, as Slic3r and CuraEngine).
-The schedule also carries ``info`` (a JSON-able dict: the mode, its parameters, and for ``roi`` the windows chosen
-at each level) and is accepted by :func:`~gpuslice.slicer.slice_mesh` as ``schedule=``.
+``e_0 = 0`` and the last edge exactly at the mesh's top (so the last layer may be thinner than the rest; a sliver
+under :data:`SLIVER_MM` joins the layer below). Each layer is cut at the middle of its slab, ``z_i = (e_i +
+e_{i+1}) / 2`` (the project's convention, as Slic3r and CuraEngine). The schedule also carries ``info`` (a
+JSON-able dict: the mode, its parameters, and for ``roi`` the windows chosen at each level) and is accepted by
+:func:`~gpuslice.slicer.slice_mesh` as ``schedule=``.
 
 ``cusp`` (Dolenc & Mäkelä): the cusp height of a facet with unit normal n in a layer of thickness t is t·|n_z|; each
 layer is as thick as allowed by ``t·|n_z| <= C`` over every non-horizontal facet that overlaps its slab, clamped to
@@ -66,8 +65,7 @@ ADAPTIVE_MODES = ("roi", "cusp", "area")
 #: the most bins of the error-bounded schedules: their width is at least the model's height / MAX_BINS
 MAX_BINS = 400_000
 
-#: a last layer thinner than this (and than the finest step asked for) joins the layer below, mm: no printer's Z axis
-#: moves in finer steps (the resin commands' thinnest layer, ``cli.options.MIN_RESIN_LAYER``)
+#: a last layer thinner than this and than the step asked for joins the layer below, mm: no Z axis steps finer
 SLIVER_MM = 0.001
 #: relative safety on |n_z| so float32 rounding never lets t·|n_z| exceed the bound in float64
 _NZ_SAFETY = 1.0 + 1e-6
