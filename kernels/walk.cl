@@ -156,7 +156,9 @@ void walk_layers(__global const int *next, __global const uchar *has_prev, __glo
 // error bound (1e-12 relative, far above the rounding of the products), so a cleared loop is simple in exact
 // arithmetic. Needs cl_khr_fp64; without it the kernel is absent and nesting tests every loop with GEOS.
 // Points are read as scalars, here and in walk_layers: vector swizzles crash Oclgrind 21.10's
-// uninitialised-value plugin (tests/kernels/test_oclgrind.py).
+// uninitialised-value plugin (tests/kernels/test_oclgrind.py), and it mis-ran the chain-building loop below while
+// that carried a float2 from one vertex to the next (wrong chains, every touching loop cleared; found by a helper's
+// run on such loops): that loop keeps scalars, and the Oclgrind test checks the screen's answers.
 #if defined(cl_khr_fp64)
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #ifndef SIMPLE_MAX_CHAINS
@@ -300,14 +302,16 @@ void simple_loops(__global const float *points, __global const long *offsets, co
     {
         // chain c starts at an extreme vertex i (the first found at i >= 0); each chain's range is gathered on
         // the way (the vertices before the first extreme belong to the last chain)
-        float2 a = sweep_point(p, 0, swap);
-        int prev = lex_less(sweep_point(p, n - 1, swap), a);
-        float x0 = a.x, x1 = a.x, pre0 = a.x, pre1 = a.x;
+        float ax = p[swap], ay = p[1 - swap];
+        const float lx = p[2 * (n - 1) + swap], ly = p[2 * (n - 1) + 1 - swap];
+        int prev = ly < ay || (ly == ay && lx < ax);
+        float x0 = ax, x1 = ax, pre0 = ax, pre1 = ax;
         for (long i = 0; i < n; ++i) {
-            const float2 b = sweep_point(p, i + 1 == n ? 0 : i + 1, swap);
-            x0 = fmin(x0, a.x);
-            x1 = fmax(x1, a.x);
-            const int up = lex_less(a, b);
+            const long j = i + 1 == n ? 0 : i + 1;
+            const float bx = p[2 * j + swap], by = p[2 * j + 1 - swap];
+            x0 = fmin(x0, ax);
+            x1 = fmax(x1, ax);
+            const int up = ay < by || (ay == by && ax < bx);
             if (up != prev) {
                 if (c == 0) {
                     pre0 = x0;
@@ -319,11 +323,12 @@ void simple_loops(__global const float *points, __global const long *offsets, co
                 start[c] = i;
                 dir[c] = up;
                 ++c;
-                x0 = a.x;
-                x1 = a.x;
+                x0 = ax;
+                x1 = ax;
             }
             prev = up;
-            a = b;
+            ax = bx;
+            ay = by;
         }
         xmin[c - 1] = fmin(x0, pre0);
         xmax[c - 1] = fmax(x1, pre1);

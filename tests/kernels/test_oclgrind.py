@@ -269,6 +269,19 @@ def _workload(pass_name: str) -> dict:
     _same((got.layer, got.edges, got.points), (ref.layer, ref.edges, ref.points), "crossings")
     nxt, _, _ = link_segments(ref, sphere, zs.astype(np.float32))
     _same(walk_chains(nxt, ref.layer, zs.size, dev), order_chains(nxt, ref.layer), "walk")
+    # walk.cl's screen of simple loops, against known answers: a loop touching or crossing itself is never cleared
+    # (its chain-building loop on float2 values was mis-run by Oclgrind 21.10, which then cleared all of these)
+    from gpuslice.slicing.walk import chain_kernels
+
+    touch = np.array([(0, 0), (4, 0), (4, 4), (2, 4), (2, 0.0), (0, 4)])
+    loops = [touch, touch[::-1], np.roll(touch, 2, 0), touch[:, ::-1], touch * 1.5 + 10,
+             np.array([(0, 0), (4, 0), (4, 4), (2, 4), (2, -0.5), (0, 4)]),  # crosses the bottom edge
+             np.array([(0, 0), (4, 0), (4, 4), (2, 4), (2, 0.5), (0, 4)]),  # simple
+             np.array([(0, 0), (5, 0), (5, 5), (0, 5.0)])]
+    pts, offs = np.concatenate(loops).astype(np.float32), np.cumsum([0] + [len(q) for q in loops])
+    got = chain_kernels(dev).simple_loops(pts, offs.astype(np.int64))
+    if got is not None:  # (None: a device without doubles has no screen)
+        _same((np.asarray(got, np.uint8),), (np.array([0, 0, 0, 0, 0, 0, 1, 1], np.uint8),), "simple loops")
     # walk.cl's device chaining (closed), its open-chain and conflict exits (a missing facet, a non-manifold edge)
     open_box = box_tri[1:]
     two_cubes = np.concatenate([S.box((0, 0, 0), (6, 6, 6)), S.box((6, 6, 0), (12, 12, 6))])
