@@ -110,6 +110,8 @@ class Job:
     portable : leave the device and backend out of the meta, so output bytes do not depend on the machine.
     saved_result : a ``.npz`` source is a saved result, loaded instead of sliced (``view``); elsewhere it is read as
         a mesh file (and refused as one).
+    date : the date a resin archive states (a naive UTC ``datetime``); None: ``SOURCE_DATE_EPOCH``'s, else the time
+        of writing (a batch's Dask workers get their client's, whatever their own environment holds).
     """
 
     source: str
@@ -127,6 +129,7 @@ class Job:
     cusp: bool = False
     portable: bool = False
     saved_result: bool = False
+    date: Any = None
 
     @property
     def model_name(self) -> str:
@@ -201,8 +204,8 @@ def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | Non
     """
     timings: dict[str, float] = {}
     stats: dict[str, Any] = {}
-    now = None
-    if job.resin is not None:  # a bad SOURCE_DATE_EPOCH fails here, before any work
+    now = job.date
+    if job.resin is not None and now is None:  # a bad SOURCE_DATE_EPOCH fails here, before any work
         from .raster.outputs import source_date
 
         now = source_date()

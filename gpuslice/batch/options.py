@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -99,6 +99,9 @@ class BatchOptions:
     check : also run the pre-print checks (:mod:`gpuslice.checks`, default options) on every model and write its
         report next to its output (:func:`check_path`): on the display's pixels with a resin output (as
         ``raster --check``), else on the contours (as ``gpuslice check``); either way on the batch's own layers.
+    date : the date resin archives state (:attr:`gpuslice.pipeline.Job.date`); None (with ``raster``): the
+        ``SOURCE_DATE_EPOCH`` of the process that makes the options, so that every worker, a Dask one too, writes
+        the date the client's environment gives (else each archive its time of writing).
     """
 
     params: SliceParams = SliceParams()
@@ -112,6 +115,7 @@ class BatchOptions:
                          "--raster) and write each report next to its output as <output>.check.json; they check the "
                          "batch's layers (-t: 0.1 mm by default, 0.05 with --raster, where `gpuslice check` slices "
                          "at 0.05)")
+    date: Any = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         if self.fmt not in CONTOUR_FORMATS:
@@ -121,6 +125,10 @@ class BatchOptions:
                 raise ParameterError(f"unknown raster output '{self.raster}' (use {', '.join(_resin_names())})",
                                      param="raster")
             self.resin()  # validates the display and resin options now, before any model is sliced
+            if self.date is None:  # (here, where the batch is run; the workers get it with the options)
+                from ..raster.outputs import source_date
+
+                object.__setattr__(self, "date", source_date())
         elif self.raster_options:
             raise ParameterError("raster_options need a raster output", param=("raster_options", "raster"))
 
@@ -169,7 +177,8 @@ class BatchOptions:
             pixels = (resin.spec, resin.settings) if resin is not None else (None, None)
             checks = CheckOutput(*pixels, on_report=partial(write_check_report, path=check_path(target)))
         return Job(source=source, name=name, label=label, data=data, placement=self.placement, params=self.params,
-                   contours=None if resin is not None else str(target), resin=resin, checks=checks, portable=True)
+                   contours=None if resin is not None else str(target), resin=resin, checks=checks, portable=True,
+                   date=self.date)
 
     def shaping(self) -> dict[str, Any]:
         """The options that shape output bytes (not the backend or device: both give bit-identical results), as the

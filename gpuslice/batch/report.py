@@ -51,7 +51,7 @@ def format_summary(report: dict[str, Any], max_rows: int = 40) -> str:
         lines.append(f"{name:{width}s} {r['status']:8s} {r.get('facets', ''):>9} {r.get('layers', ''):>7} "
                      f"{'' if t is None else f'{t:.3f}':>8s}{cell}  {_note(r)}")
     if len(rows) > max_rows:
-        lines.append(f"… {len(rows) - max_rows} more in the JSON report")
+        lines.append(f"… {len(rows) - max_rows} more (every model is in the JSON report, --report FILE)")
     s = report["summary"]
     rate = s["models_per_s"]
     lines.append(

@@ -22,6 +22,7 @@ from .options import (
     fail,
     slicing_options,
     slicing_values,
+    warn,
     with_options,
 )
 
@@ -94,7 +95,7 @@ class _Progress:
             self.bar.stop()
 
     def __call__(self, rec: dict) -> None:
-        if rec["status"] == "failed" and not self.quiet:
+        if rec["status"] == "failed":  # (-q hides the bar and the table, not a model's failure)
             line = f"gpuslice: failed: {rec['error']}"
             if self.bar is not None:
                 self.bar.console.print(line, markup=False, highlight=False)
@@ -129,7 +130,7 @@ class _Progress:
 @click.option("--force", is_flag=True, help="Redo models whose output exists; allow other options in OUT.")
 @click.option("--report", type=click.Path(path_type=str), default=None,
               help="Write the batch report (per model status, facets, layers, timings, error) as JSON.")
-@click.option("-q", "--quiet", is_flag=True, help="No progress bar and no summary table.")
+@click.option("-q", "--quiet", is_flag=True, help="No progress bar and no summary table (failures are still said).")
 def batch(inputs, out_dir, pattern, raster_opt, workers, threads, scheduler, transfer, force, report, quiet,
           **kw) -> None:
     """Slice every model in INPUTS (folders, searched recursively; list files of paths, .txt/.list; model files)
@@ -187,12 +188,29 @@ def batch(inputs, out_dir, pattern, raster_opt, workers, threads, scheduler, tra
             client.close()
     if report is not None:
         write_report(result, report)
+    for line in _resin_warnings(opts, out_dir) if result["summary"]["done"] else ():
+        warn(line)  # (as `raster` says them, once for the batch, once its outputs are in place)
     if not quiet:
         click.echo(format_summary(result))
         if report is not None:
             click.echo(f"wrote {report}")
     if result["summary"]["failed"]:
         raise SystemExit(1)
+
+
+def _resin_warnings(opts, out_dir: str) -> list[str]:
+    """`raster`'s warnings about the batch's resin options (no printer named, a preset without exposures), which
+    hold for every model's archive alike."""
+    if opts.raster is None:
+        return []
+    from ..raster.outputs import RESIN_FORMATS
+    from .raster import _generic_exposure, _no_printer
+
+    spec, ropts, settings = opts.resin()
+    fmt, what = RESIN_FORMATS[opts.raster], f"each {opts.raster} file in {out_dir}"
+    found = (_no_printer(ropts, fmt, spec, settings, what),
+             _generic_exposure(ropts, dict(opts.raster_options), fmt, what))
+    return [w for w in found if w]
 
 
 def _check_report_clear(report: str, inputs, models, out_dir: str) -> None:

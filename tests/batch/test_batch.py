@@ -689,3 +689,47 @@ def test_raster_options_in_another_order_are_the_same_options(tmp_path):
     assert again["summary"]["skipped"] == 1 and again["summary"]["failed"] == 0
     with pytest.raises(BatchError, match=r"holds outputs made with other options \(raster_options"):
         run_batch([models], out, opts((("exposure", "3.0"), *a[1:])), workers=0)
+
+
+def test_workers_write_the_date_of_the_batchs_environment(tmp_path, monkeypatch, device):
+    """A Dask worker started without the client's SOURCE_DATE_EPOCH wrote its own date into dated archives (an
+    audit: CTB headers and SL1 zip dates differed from `raster`'s): the options take the date where the batch runs,
+    and a worker whose environment says another writes the same bytes."""
+    import dataclasses
+    import datetime as dt
+
+    from gpuslice.batch.discover import discover as find
+    from gpuslice.batch.task import run_model
+
+    models = tmp_path / "m"
+    models.mkdir()
+    shapes.write_stl(shapes.box((0, 0, 0), (10, 10, 4)), models / "cube.stl")
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
+    opts = BatchOptions(SliceParams(thickness=0.5), Placement(), raster="sl1")
+    assert opts.date == dt.datetime(2023, 11, 14, 22, 13, 20)
+    model = find([models])[0]
+    want = run_model(model, opts, None)["payload"]
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1600000000")  # the worker's own environment
+    assert run_model(model, opts, None)["payload"] == want
+    undated = dataclasses.replace(opts, date=None)  # (made here, where the environment says 1600000000)
+    assert undated.date == dt.datetime(2020, 9, 13, 12, 26, 40) and run_model(model, undated, None)["payload"] != want
+
+
+def test_cli_batch_says_what_raster_warns_and_failures_under_q(tmp_path, capsys):
+    """`batch --raster` dropped `raster`'s warnings (no printer named; a preset without exposures), and -q hid the
+    failed models' lines too, so a failing batch printed nothing (an audit): both are said, once, on stderr."""
+    from gpuslice.cli import main
+
+    models = tmp_path / "m"
+    models.mkdir()
+    shapes.write_stl(shapes.box((0, 0, 0), (10, 10, 2)), models / "cube.stl")
+    (models / "bad.stl").write_bytes(b"solid x\n")
+    args = ["batch", str(models), "--raster", "ctb", "-t", "0.5", "-q"]
+    assert main([*args, "-o", str(tmp_path / "a"), "--raster-opt", "printer=elegoo-saturn-3-ultra"]) == 1
+    err = capsys.readouterr().err.splitlines()
+    assert any(line.startswith("gpuslice: failed:") and "bad.stl" in line for line in err)
+    assert [line for line in err if "warning" in line] == [
+        line for line in err if line.startswith("gpuslice: warning: each ctb file in") and "holds no exposures" in line]
+    assert len([line for line in err if "warning" in line]) == 1
+    assert main([*args, "-o", str(tmp_path / "b")]) == 1
+    assert sum("names no printer" in line for line in capsys.readouterr().err.splitlines()) == 1
