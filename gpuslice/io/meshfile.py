@@ -12,9 +12,11 @@ a subclass) whose message is one line naming the file and the problem.
 from __future__ import annotations
 
 import io
+import logging
 import os
 import re
 import stat
+import warnings
 import zipfile
 import zlib
 from pathlib import Path
@@ -181,6 +183,54 @@ def inflate_3mf(name: str, data: bytes | None = None) -> io.BytesIO:
     return out
 
 
+#: trimesh's logger gets a handler that drops its records (Python's last-resort handler printed them on stderr);
+#: a program's own logging configuration still receives them
+_QUIET = logging.NullHandler()
+#: an ASCII PLY header (its vertex and face counts, then the end of the header) and an OFF one (the counts line)
+_PLY_ASCII = re.compile(rb"\Aply\s*\r?\nformat\s+ascii\b.*?^element\s+vertex\s+(\d+)\s*$.*?"
+                        rb"^element\s+face\s+(\d+)\s*$.*?^end_header\s*?\r?\n", re.M | re.S)
+_OFF = re.compile(rb"\A\s*C?N?OFF[ \t]*(?:#[^\n]*)?\r?\n(?:[ \t]*(?:#[^\n]*)?\r?\n)*[ \t]*(\d+)\s+(\d+)[^\n]*\n")
+
+
+def _short_text(name: str, file_type: str, data: bytes | None) -> str | None:
+    """Why an ASCII PLY or an OFF file is cut short, or None: fewer lines after its header than the vertices and
+    faces it declares (trimesh reads what is there and says nothing)."""
+    if file_type not in ("ply", "off"):
+        return None
+    try:
+        text = data if data is not None else Path(name).read_bytes()
+    except OSError:
+        return None
+    found = (_PLY_ASCII if file_type == "ply" else _OFF).match(text)
+    if found is None:  # (a binary PLY: trimesh refuses its truncation itself)
+        return None
+    nv, nf = int(found.group(1)), int(found.group(2))
+    body = text[found.end():]
+    lines = body.count(b"\n") + (1 if body and not body.endswith(b"\n") else 0)
+    if lines < nv + nf:
+        return f"the {file_type.upper()} header declares {nv} vertices and {nf} faces, the file holds {lines} lines " \
+               "after it (cut short?)"
+    return None
+
+
+def _triangles(name: str, kind: str, vertices: np.ndarray, faces: np.ndarray, short: str | None) -> np.ndarray:
+    """(F, 3, 3) float64 corners of the faces trimesh read, or a one-line :class:`MeshFileError` for what it let
+    through: vertices without three coordinates (an OBJ ``v 0 10``), a face naming a vertex that is not there (a
+    negative index: numpy would take another vertex), an ASCII PLY or OFF file cut short (``short``)."""
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise MeshFileError(f"{name}: {kind} vertices with {vertices.shape[-1] if vertices.ndim == 2 else '?'} "
+                            "coordinates, not x y z (a vertex line short of a number?)")
+    faces = np.asarray(faces, np.int64).reshape(-1, 3) if faces.size else np.zeros((0, 3), np.int64)
+    bad = (faces < 0) | (faces >= len(vertices))
+    if bad.any():
+        raise MeshFileError(f"{name}: a {kind} face names vertex {int(faces[bad][0])}, but the file has "
+                            f"{len(vertices)} vertices (numbered from {0 if kind != 'OBJ' else 1}; an index out of "
+                            "range)")
+    if short is not None:
+        raise MeshFileError(f"{name}: {short}")
+    return vertices[faces]
+
+
 def _read_with_trimesh(name: str, file_type: str, data: bytes | None = None) -> RawMesh:
     """Read OBJ / PLY / OFF / 3MF with trimesh (imported here: it is slow to import), from the file ``name`` or
     from its bytes ``data`` (no temporary file); a 3MF is inflated first under :func:`zip_inflate_limit`."""
@@ -200,17 +250,21 @@ def _read_with_trimesh(name: str, file_type: str, data: bytes | None = None) -> 
                                     's:meshresolution="lowres", not the part): slice the model it was made from')
         source.seek(0)
     try:
-        if isinstance(source, str):
-            mesh = trimesh.load(source, force="mesh", process=False)
-        else:
-            mesh = trimesh.load(source, file_type=file_type, force="mesh", process=False)
-        triangles = np.asarray(mesh.triangles, dtype=np.float64)
+        # (trimesh's log lines and numpy's warnings on a broken file would go to stderr beside the one error line)
+        with warnings.catch_warnings(), np.errstate(all="ignore"):
+            warnings.simplefilter("ignore")
+            logging.getLogger("trimesh").addHandler(_QUIET)
+            if isinstance(source, str):
+                mesh = trimesh.load(source, force="mesh", process=False)
+            else:
+                mesh = trimesh.load(source, file_type=file_type, force="mesh", process=False)
+            vertices, faces = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces)
     except Exception as exc:  # any trimesh failure means a file it cannot read: one line for the user
         reason = flatten(str(exc), 200) or type(exc).__name__
         raise MeshFileError(
             f"{name}: cannot read {file_type.upper()} file: {type(exc).__name__}: {reason}"
         ) from None
-    triangles = triangles.reshape(-1, 3, 3)
+    triangles = _triangles(name, file_type.upper(), vertices, faces, _short_text(name, file_type, data))
     if len(triangles) == 0:
         raise EmptyMeshError(f"{name}: no facets ({file_type.upper()} file read by trimesh)")
     if file_type == "3mf":  # the model's unit (3MF core spec: micron ... meter; millimeter when absent), read as mm
