@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import BatchError, one_line
-from ..io.atomic import atomic_write_tree
+from ..io.atomic import atomic_write_tree, remove_path
 from .discover import Model, discover
 from .journal import JOURNAL_NAME, forget_journal, read_journal, record_finished, record_written_since, unchanged
 from .options import BatchOptions, check_path, same_options
@@ -97,6 +97,7 @@ class BatchRunner:
         self.progress = progress
         self.inputs = [str(i) for i in inputs]
         self.records: dict[int, dict] = {}
+        self._made: dict[str, list[int]] = {}  # (with force: the journal before the run)
         self.info: dict[str, Any] = {"workers_lost": 0, "retries": 0, "worker_init_s": []}
         self.wall_s = 0.0
         self.interrupted = False
@@ -107,6 +108,7 @@ class BatchRunner:
         if out.exists() and not out.is_dir():
             raise BatchError(f"{out}: exists and is not a folder")
         out.mkdir(parents=True, exist_ok=True)
+        self._made = (read_journal(out) or {}) if self.force else {}  # what earlier batches made, before it is redone
         manifest = out / MANIFEST_NAME
         want = {"fingerprint": self.opts.fingerprint(), "options": self.opts.shaping()}
         if manifest.exists():
@@ -154,8 +156,6 @@ class BatchRunner:
     def _cleanup_temporaries(self) -> None:
         """Remove temporaries left by killed workers beside this batch's outputs (``.NAME.tmp-…``): one listing
         per output folder, so 10,000 models in one folder cost one scan, not 10,000."""
-        from ..io.atomic import remove_path
-
         by_dir: dict[Path, set[str]] = collections.defaultdict(set)
         for m in self.models:
             target = self.out_dir / m.out
@@ -179,6 +179,10 @@ class BatchRunner:
         m = self.models[index]
         if rec["status"] == "done":
             record_finished(self.out_dir, self._files(index))
+        elif self.force:  # a redo that failed: its old files (a batch's, as journaled) would be skipped next time
+            for name in self._files(index):
+                if unchanged(self.out_dir, [name], self._made):
+                    remove_path(self.out_dir / name)
         rec["input"] = m.src
         if task is not None:
             rec["attempts"] = task.attempt

@@ -733,3 +733,20 @@ def test_cli_batch_says_what_raster_warns_and_failures_under_q(tmp_path, capsys)
     assert len([line for line in err if "warning" in line]) == 1
     assert main([*args, "-o", str(tmp_path / "b")]) == 1
     assert sum("names no printer" in line for line in capsys.readouterr().err.splitlines()) == 1
+
+
+def test_a_forced_redo_that_fails_leaves_no_stale_output(tmp_path, device):
+    """A model whose forced redo failed kept its old output, which the next run then skipped as done (an audit):
+    the failed redo removes it, so the next run tries the model again and says it fails."""
+    models = tmp_path / "m"
+    models.mkdir()
+    cube = models / "cube.stl"
+    shapes.write_stl(shapes.box(), cube)
+    out = tmp_path / "out"
+    assert _by_model(run_batch([models], out, OPTS, workers=0))["cube.stl"]["status"] == "done"
+    assert (out / "cube.npz").is_file()
+    cube.write_bytes(b"solid broken\n")  # the model changed, and is now broken
+    forced = _by_model(run_batch([models], out, OPTS, workers=0, force=True))["cube.stl"]
+    assert forced["status"] == "failed" and not (out / "cube.npz").exists()
+    again = _by_model(run_batch([models], out, OPTS, workers=0))["cube.stl"]
+    assert again["status"] == "failed"  # tried again, not skipped
