@@ -123,7 +123,8 @@ def discover(inputs: Sequence[str | os.PathLike], glob: str | None = None, suffi
         one of :data:`MESH_SUFFIXES`. Hidden files and folders (names starting with ``.``) are skipped.
     suffix : the output suffix that replaces each model's suffix (``""``: none, e.g. a PNG-stack folder).
     out_dir : the output folder: files inside it are never models (a batch's own outputs, e.g. ``.3mf`` slice
-        stacks, are not read back as inputs), and a model whose output would replace it is refused.
+        stacks, are not read back as inputs; when it is the input folder itself, the files its batch journal lists),
+        and a model whose output would replace it is refused.
 
     Raises
     ------
@@ -152,8 +153,12 @@ def discover(inputs: Sequence[str | os.PathLike], glob: str | None = None, suffi
         what = f"matching '{glob}'" if glob else f"ending in {', '.join(MESH_SUFFIXES)}"
         raise BatchError(f"{', '.join(map(str, inputs))}: no model files {what}")
     out_root = Path(os.fspath(out_dir)).resolve() if out_dir is not None else None
-    if out_root is not None:
-        files = [f for f in files if not f.resolve().is_relative_to(out_root)] or files
+    if out_root is not None:  # (an output folder that is the input folder itself: only the batch's own files go)
+        from .journal import read_journal
+
+        made = read_journal(out_root) or {}
+        files = [f for f in files if not f.resolve().is_relative_to(out_root)] or \
+            [f for f in files if f.resolve().relative_to(out_root).as_posix() not in made]
     base = Path(os.path.commonpath([str(r) for r in roots]))
     models: dict[str, Model] = {}
     outputs: dict[str, str] = {}

@@ -750,3 +750,18 @@ def test_a_forced_redo_that_fails_leaves_no_stale_output(tmp_path, device):
     assert forced["status"] == "failed" and not (out / "cube.npz").exists()
     again = _by_model(run_batch([models], out, OPTS, workers=0))["cube.stl"]
     assert again["status"] == "failed"  # tried again, not skipped
+
+
+def test_outputs_written_into_the_input_folder_are_not_read_back(tmp_path, device):
+    """`-o` the input folder itself with 3MF slice stacks: the second run took the first run's `.3mf` outputs for
+    models (an audit: exit 2, "its output would replace it"); the batch's own files, as its journal lists them, are
+    left out, and a model put there by the user is still taken."""
+    models = tmp_path / "m"
+    models.mkdir()
+    shapes.write_stl(shapes.box(), models / "cube.stl")
+    opts = BatchOptions(SliceParams(thickness=1.0), Placement(), fmt="3mf")
+    first = run_batch([models], models, opts, workers=0)
+    assert [r["status"] for r in first["models"]] == ["done"] and (models / "cube.3mf").is_file()
+    shapes.write_stl(shapes.cone(n=12), models / "cone.stl")
+    again = _by_model(run_batch([models], models, opts, workers=0))
+    assert {k: r["status"] for k, r in again.items()} == {"cube.stl": "skipped", "cone.stl": "done"}
