@@ -116,6 +116,9 @@ class BatchOptions:
                          "batch's layers (-t: 0.1 mm by default, 0.05 with --raster, where `gpuslice check` slices "
                          "at 0.05)")
     date: Any = field(default=None, compare=False)
+    #: (text as given, Printer) of a ``printer=`` preset file, read where the options are made: a worker elsewhere
+    #: (Dask) needs neither the file nor the same working folder
+    preset_files: tuple = field(default=(), compare=False)
 
     def __post_init__(self) -> None:
         if self.fmt not in CONTOUR_FORMATS:
@@ -124,6 +127,11 @@ class BatchOptions:
             if self.raster not in _resin_names():
                 raise ParameterError(f"unknown raster output '{self.raster}' (use {', '.join(_resin_names())})",
                                      param="raster")
+            preset = dict(self.raster_options).get("printer")
+            if not self.preset_files and isinstance(preset, str) and Path(preset).is_file():
+                from ..raster.printers import find_printer
+
+                object.__setattr__(self, "preset_files", ((preset, find_printer(preset)),))
             self.resin()  # validates the display and resin options now, before any model is sliced
             if self.date is None:  # (here, where the batch is run; the workers get it with the options)
                 from ..raster.outputs import source_date
@@ -139,7 +147,8 @@ class BatchOptions:
 
         given = dict(typed_raster_options(self.raster_options))
         resin_keys = {f.name for f in fields(ResinOptions)}
-        ropts = ResinOptions(**{k: v for k, v in given.items() if k in resin_keys})
+        read = dict(self.preset_files).get(given.get("printer"))  # (on a worker: the file as the client read it)
+        ropts = ResinOptions(**{k: v for k, v in given.items() if k in resin_keys}, preset_read=read)
         ropts.check_format(self.raster)
         display = {f.name: given.get(f.name) for f in fields(RasterSpec)}
         spec = ropts.spec(**display)
@@ -203,7 +212,8 @@ class BatchOptions:
 
 def same_options(a: Any, b: Any) -> bool:
     """Whether two manifests' ``options`` (:meth:`BatchOptions.shaping`) are the same, whatever order their
-    ``--raster-opt`` pairs were given in (each key's last value counts)."""
+    ``--raster-opt`` pairs were given in (each key's last value counts) and whatever path a preset file was given
+    by (its contents' digest counts)."""
     return _canonical(a) == _canonical(b)
 
 
@@ -216,4 +226,6 @@ def _canonical(options: Any) -> Any:
         pairs = sorted(dict((k, v) for k, v in options["raster_options"]).items())
     except (TypeError, ValueError):  # (an unreadable manifest's: compared as it is)
         return options
+    if "printer_file_sha256" in options:  # a preset file counts by its contents, not by the path it was given as
+        pairs = [p for p in pairs if p[0] != "printer"]
     return {**options, "raster_options": [list(p) for p in pairs]}

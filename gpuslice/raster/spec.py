@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -205,6 +205,9 @@ class ResinOptions:
                                        "for PNG layers made from runs) (default: the CPUs; 1: one thread)")
     z_samples: int = option(1, "Anti-aliasing in Z: each layer's greys averaged over this many planes inside its "
                             "slab (1: off; needs the OpenCL rasteriser)")
+    #: the :class:`Printer` that ``printer`` names, read elsewhere (a batch's client read the preset file, which a
+    #: Dask worker may not have): used instead of reading it again
+    preset_read: Printer | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         for name in ("printer", "job_name", "raster_backend"):
@@ -215,7 +218,7 @@ class ResinOptions:
             v = getattr(self, name)
             if not ((v is None and name == "workers") or (isinstance(v, numbers.Integral) and not isinstance(v, bool))):
                 raise ParameterError(f"{name} must be a whole number, got {v!r}", param=name)
-        if self.printer is not None:
+        if self.printer is not None and self.preset_read is None:
             find_printer(self.printer)
         if self.raster_backend not in BACKENDS:
             raise ParameterError(f"unknown raster backend '{self.raster_backend}' (use {', '.join(BACKENDS)})",
@@ -245,6 +248,8 @@ class ResinOptions:
     @property
     def preset(self) -> Printer | None:
         """The :class:`~gpuslice.raster.printers.Printer` that ``printer`` names, or None."""
+        if self.preset_read is not None:
+            return self.preset_read
         return find_printer(self.printer) if self.printer is not None else None
 
     def settings(self, **given) -> PrintSettings:

@@ -274,6 +274,41 @@ def test_a_changed_preset_file_is_a_change_of_options(tmp_path):
         run_batch([models], out, opts, workers=0)
 
 
+def test_a_preset_file_travels_with_the_options_and_counts_by_its_contents(tmp_path, monkeypatch, device):
+    """`--raster-opt printer=FILE` was read by each Dask worker from its own working folder (every model failed
+    naming a path the user never typed), and the same file given by another path was other options (an audit):
+    the options carry the preset as read where they are made, and a folder made with it by one path resumes by
+    another."""
+    import dataclasses
+    import pickle
+
+    from gpuslice.batch.task import run_model
+
+    models = tmp_path / "models"
+    models.mkdir()
+    shapes.write_stl(shapes.box(), models / "cube.stl")
+    (tmp_path / "resin.toml").write_text('inherits = "elegoo-saturn-3-ultra"\n[settings]\nexposure = 2.2\n')
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
+    opts = BatchOptions(SliceParams(thickness=1.0), Placement(fit=20.0), raster="goo",
+                        raster_options=(("printer", "resin.toml"), ("raster_backend", "numpy")))
+    out = tmp_path / "out"
+    assert [r["status"] for r in run_batch([models], out, opts, workers=0)["models"]] == ["done"]
+    absolute = dataclasses.replace(opts, preset_files=(), raster_options=(("printer", str(tmp_path / "resin.toml")),
+                                                                          ("raster_backend", "numpy")))
+    assert [r["status"] for r in run_batch([models], out, absolute, workers=0)["models"]] == ["skipped"]
+    # a worker elsewhere, without the file: the options it is sent still hold the preset
+    sent = pickle.loads(pickle.dumps(opts))
+    elsewhere = tmp_path / "worker"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    (tmp_path / "resin.toml").unlink()
+    model = discover([models])[0]
+    rec = run_model(model, sent, None)
+    assert rec["status"] == "done", rec["error"]
+    assert rec["payload"] == (out / "cube.goo").read_bytes()  # (the same preset, the same date: the same file)
+
+
 def test_a_model_that_fails_half_way_leaves_none_of_its_files(tmp_path):
     """With --check the check report is written before the archive: a model whose archive then failed kept its
     report alone beside nothing (a reviewer's audit: a PNG-stack folder holding other files)."""

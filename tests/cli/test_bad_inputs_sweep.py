@@ -97,7 +97,8 @@ def test_malformed_trimesh_files_are_one_line_errors(tmp_path, capsys, name, dat
     else:
         path.write_bytes(data if isinstance(data, bytes) else data.encode())
     assert main(["slice", str(path), "--backend", "numpy", "-o", str(tmp_path / "o.npz")]) == 2
-    _one_line_error(capsys, f"{path}: cannot read")
+    line = _one_line_error(capsys, f"{path}: ")
+    assert "cannot read" in line or "face names vertex" in line, line
     assert sorted(p.name for p in tmp_path.iterdir()) == [name]
 
 
