@@ -154,11 +154,11 @@ def discover(inputs: Sequence[str | os.PathLike], glob: str | None = None, suffi
         raise BatchError(f"{', '.join(map(str, inputs))}: no model files {what}")
     out_root = Path(os.fspath(out_dir)).resolve() if out_dir is not None else None
     if out_root is not None:  # (an output folder that is the input folder itself: only the batch's own files go)
-        from .journal import read_journal
+        from .journal import read_journal, unchanged
 
         made = read_journal(out_root) or {}
         files = [f for f in files if not f.resolve().is_relative_to(out_root)] or \
-            [f for f in files if f.resolve().relative_to(out_root).as_posix() not in made]
+            [f for f in files if not unchanged(out_root, [f.resolve().relative_to(out_root).as_posix()], made)]
     base = Path(os.path.commonpath([str(r) for r in roots]))
     models: dict[str, Model] = {}
     outputs: dict[str, str] = {}

@@ -1,6 +1,6 @@
 """Batch execution: :class:`BatchRunner` hands one task per model (:func:`gpuslice.batch.task.run_model`) to this
 process (``workers=0``), to local worker processes (one OpenCL context and one kernel build per worker; a failed
-model is retried once on another worker unless its file or options are at fault; a worker that dies is replaced and
+model is retried once on another worker unless its content or options are at fault; a worker that dies is replaced and
 its unfinished models re-run) or to a Dask ``distributed.Client`` (the scheduler re-runs a lost worker's tasks;
 failed models are retried as locally), and collects their records into the batch report (:meth:`BatchRunner.report`).
 

@@ -205,8 +205,10 @@ def run_model(model: Model, opts: BatchOptions, out_root: str | None, data: byte
         _remove_written(mine, started_ns)
         msg = one_line(exc)
         rec["error"] = msg if model.src in msg or model.rel in msg else f"{model.src}: {msg}"
-        # the file or the options are at fault: another worker would fail the same way, so no retry
-        rec["deterministic"] = isinstance(exc, (MeshFileError, ParameterError))
+        # what the file holds or the options are at fault: another worker would fail the same way, so no retry (a
+        # file this worker could not read, its memory, a device: it may not)
+        rec["deterministic"] = isinstance(exc, ParameterError) or (
+            isinstance(exc, MeshFileError) and not getattr(exc, "os_error", False))
     except BaseException:  # stopped (Ctrl-C, SIGTERM): none of its files, or all
         _remove_written(mine, started_ns)
         raise

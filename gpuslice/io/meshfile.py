@@ -116,7 +116,9 @@ def read_mesh_source(path: str | os.PathLike[str], data: bytes | None = None, la
         except GpusliceError as exc:  # name the file as the user gave it
             if label == where:
                 raise
-            raise type(exc)(str(exc).replace(where, label)) from None
+            named = type(exc)(str(exc).replace(where, label))
+            named.__dict__.update(exc.__dict__)  # (os_error: where it was read, not what it holds)
+            raise named from None
     suffix = Path(where).suffix.lower()
     if suffix in TRIMESH_EXTENSIONS:  # from memory, no temporary file (a 3MF inflated under its limits)
         return _read_with_trimesh(label, TRIMESH_EXTENSIONS[suffix], bytes(data))
@@ -124,14 +126,18 @@ def read_mesh_source(path: str | os.PathLike[str], data: bytes | None = None, la
 
 
 def _file_error(name: str, exc: OSError) -> MeshFileError:
-    """The one-line error for an OS error met while opening or reading ``name``."""
+    """The one-line error for an OS error met while opening or reading ``name``; marked ``os_error`` (where the file
+    is read, not what it holds: a batch tries such a model again on another worker, which may see the file)."""
     if isinstance(exc, IsADirectoryError):
-        return MeshFileError(f"{name}: is a directory")
-    if isinstance(exc, FileNotFoundError):
-        return MeshFileError(f"{name}: no such file")
-    if isinstance(exc, NotADirectoryError):
-        return MeshFileError(f"{name}: no such file (a parent is not a directory)")
-    return MeshFileError(f"{name}: cannot read: {_os_reason(exc)}")
+        err = MeshFileError(f"{name}: is a directory")
+    elif isinstance(exc, FileNotFoundError):
+        err = MeshFileError(f"{name}: no such file")
+    elif isinstance(exc, NotADirectoryError):
+        err = MeshFileError(f"{name}: no such file (a parent is not a directory)")
+    else:
+        err = MeshFileError(f"{name}: cannot read: {_os_reason(exc)}")
+    err.os_error = True
+    return err
 
 
 def zip_inflate_limit(zip_size: int) -> int:
@@ -198,15 +204,18 @@ def _short_text(name: str, file_type: str, data: bytes | None) -> str | None:
     if file_type not in ("ply", "off"):
         return None
     try:
-        text = data if data is not None else Path(name).read_bytes()
+        with io.BytesIO(data) if data is not None else open(name, "rb") as fh:
+            head = fh.read(1 << 16)
+            found = (_PLY_ASCII if file_type == "ply" else _OFF).match(head)
+            if found is None:  # (a binary PLY: trimesh refuses its truncation itself; a header past 64 KiB)
+                return None
+            lines, last = head.count(b"\n", found.end()), head[-1:]
+            while chunk := fh.read(1 << 22):  # (counted in pieces: a large ASCII file is not held twice)
+                lines, last = lines + chunk.count(b"\n"), chunk[-1:]
     except OSError:
         return None
-    found = (_PLY_ASCII if file_type == "ply" else _OFF).match(text)
-    if found is None:  # (a binary PLY: trimesh refuses its truncation itself)
-        return None
     nv, nf = int(found.group(1)), int(found.group(2))
-    body = text[found.end():]
-    lines = body.count(b"\n") + (1 if body and not body.endswith(b"\n") else 0)
+    lines += 1 if last not in (b"\n", b"") and len(head) > found.end() else 0
     if lines < nv + nf:
         return f"the {file_type.upper()} header declares {nv} vertices and {nf} faces, the file holds {lines} lines " \
                "after it (cut short?)"
@@ -259,6 +268,8 @@ def _read_with_trimesh(name: str, file_type: str, data: bytes | None = None) -> 
             else:
                 mesh = trimesh.load(source, file_type=file_type, force="mesh", process=False)
             vertices, faces = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces)
+    except MemoryError:  # (not the file's fault: a batch tries the model again elsewhere)
+        raise
     except Exception as exc:  # any trimesh failure means a file it cannot read: one line for the user
         reason = flatten(str(exc), 200) or type(exc).__name__
         raise MeshFileError(

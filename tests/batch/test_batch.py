@@ -376,6 +376,22 @@ def test_only_a_failure_another_attempt_may_not_repeat_is_retried(tmp_path, devi
     assert not any("deterministic" in r for r in report["models"])
 
 
+def test_a_file_a_worker_cannot_read_is_tried_on_another(tmp_path, device):
+    """A model the worker could not read (here a link to nowhere; on a cluster, a mount one worker lacks) is where
+    it is read, not what it holds: tried once more, on the other worker (a review: every MeshFileError was taken
+    for the file's fault), while a broken file's content is not retried."""
+    models = tmp_path / "m"
+    models.mkdir()
+    shapes.write_stl(shapes.box(), models / "cube.stl")
+    (models / "gone.stl").symlink_to(tmp_path / "nowhere.stl")
+    (models / "bad.stl").write_bytes(b"solid nothing\n")
+    recs = _by_model(run_batch([models], tmp_path / "out", OPTS, workers=2))
+    gone = recs["gone.stl"]
+    assert gone["status"] == "failed" and "no such file" in gone["error"] and gone["attempts"] == 2
+    assert len(gone["workers"]) == 2 and gone["workers"][0] != gone["workers"][1]
+    assert recs["bad.stl"]["attempts"] == 1 and recs["cube.stl"]["status"] == "done"
+
+
 def test_killed_worker_mid_batch(tree, serial, tmp_path):
     """SIGKILL one worker after the third finished model: the pool replaces it, its unfinished models re-run, and
     every model is done exactly once with the serial run's bytes; no temporary file is left."""
@@ -800,3 +816,18 @@ def test_outputs_written_into_the_input_folder_are_not_read_back(tmp_path, devic
     shapes.write_stl(shapes.cone(n=12), models / "cone.stl")
     again = _by_model(run_batch([models], models, opts, workers=0))
     assert {k: r["status"] for k, r in again.items()} == {"cube.stl": "skipped", "cone.stl": "done"}
+
+
+def test_discovery_takes_a_users_model_put_where_a_journaled_output_was(tmp_path, device):
+    """With the output folder the input folder, a batch's own outputs are left out by its journal; a file of the same
+    name that is not the journaled one (size, date) is the user's model and is taken (a review)."""
+    import trimesh
+
+    models = tmp_path / "m"
+    models.mkdir()
+    shapes.write_stl(shapes.box(), models / "old.stl")
+    opts = BatchOptions(SliceParams(thickness=1.0), Placement(), fmt="3mf")
+    run_batch([models], models, opts, workers=0)
+    (models / "old.stl").unlink()
+    trimesh.creation.box((5, 5, 5)).export(models / "old.3mf")  # the user's model, where the output was
+    assert [m.rel for m in discover([models], None, ".npz", models)] == ["old.3mf"]

@@ -67,6 +67,17 @@ def test_the_well_formed_files_read_as_twelve_facets():
         assert mesh.n_faces == 12 and np.allclose(np.ptp(mesh.vertices, axis=0), 10.0), name
 
 
+def test_files_on_disk_are_counted_whole_and_without_a_last_newline(tmp_path):
+    """The cut-short check counts a file's lines in pieces from disk; a last line without its newline counts."""
+    for data, name in ((_ply(), "c.ply"), (_off(), "c.off")):
+        path = tmp_path / name
+        path.write_bytes(data.rstrip(b"\n"))
+        assert load_mesh(path).n_faces == 12
+        path.write_bytes(data[: data.rindex(b"\n", 0, len(data) - 1) + 1])  # the last face line gone
+        with pytest.raises(MeshFileError, match="cut short"):
+            load_mesh(path)
+
+
 @pytest.mark.parametrize("drop", [1, 3])  # sizes that do not divide by 3 (a crash) and that do (a nonsense mesh)
 def test_an_obj_vertex_short_of_a_coordinate(drop):
     vlines = [f"v {x} {y} {z}" for x, y, z in CUBE_V]
