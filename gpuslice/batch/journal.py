@@ -82,3 +82,13 @@ def read_journal(folder: Path) -> dict[str, list[int]] | None:
 def unchanged(folder: Path, names: list[str], journal: dict[str, list[int]]) -> bool:
     """Whether each of ``names`` is the file the journal recorded (same size and modification time)."""
     return all(journal.get(name) is not None and journal[name] == _stamp(folder / name) for name in names)
+
+
+def remove_journaled(folder: Path, names: list[str], journal: dict[str, list[int]]) -> None:
+    """Remove those of ``names`` that are the files ``journal`` recorded (a batch's own outputs, unchanged since);
+    a file the journal does not list as it is, the user's, stays."""
+    from ..io.atomic import remove_path
+
+    for name in names:
+        if unchanged(folder, [name], journal):
+            remove_path(folder / name)

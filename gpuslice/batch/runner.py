@@ -30,6 +30,7 @@ from typing import Any
 
 from ..errors import BatchError, one_line
 from ..io.atomic import atomic_write_tree, remove_path
+from . import journal as _journal
 from .discover import Model, discover
 from .journal import JOURNAL_NAME, forget_journal, read_journal, record_finished, record_written_since, unchanged
 from .options import BatchOptions, check_path, same_options
@@ -97,7 +98,6 @@ class BatchRunner:
         self.progress = progress
         self.inputs = [str(i) for i in inputs]
         self.records: dict[int, dict] = {}
-        self._made: dict[str, list[int]] = {}  # (with force: the journal before the run)
         self.info: dict[str, Any] = {"workers_lost": 0, "retries": 0, "worker_init_s": []}
         self.wall_s = 0.0
         self.interrupted = False
@@ -108,7 +108,7 @@ class BatchRunner:
         if out.exists() and not out.is_dir():
             raise BatchError(f"{out}: exists and is not a folder")
         out.mkdir(parents=True, exist_ok=True)
-        self._made = (read_journal(out) or {}) if self.force else {}  # what earlier batches made, before it is redone
+        self._made = (read_journal(out) or {}) if self.force else {}  # (the journal before a forced run redoes it)
         manifest = out / MANIFEST_NAME
         want = {"fingerprint": self.opts.fingerprint(), "options": self.opts.shaping()}
         if manifest.exists():
@@ -180,9 +180,7 @@ class BatchRunner:
         if rec["status"] == "done":
             record_finished(self.out_dir, self._files(index))
         elif self.force:  # a redo that failed: its old files (a batch's, as journaled) would be skipped next time
-            for name in self._files(index):
-                if unchanged(self.out_dir, [name], self._made):
-                    remove_path(self.out_dir / name)
+            _journal.remove_journaled(self.out_dir, self._files(index), self._made)
         rec["input"] = m.src
         if task is not None:
             rec["attempts"] = task.attempt
