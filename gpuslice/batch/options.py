@@ -117,7 +117,8 @@ class BatchOptions:
                          "at 0.05)")
     date: Any = field(default=None, compare=False)
     #: (text as given, Printer) of a ``printer=`` preset file, read where the options are made: a worker elsewhere
-    #: (Dask) needs neither the file nor the same working folder
+    #: (Dask) needs neither the file nor the same working folder (keyed by the text: options remade with another
+    #: ``printer=`` never take it)
     preset_files: tuple = field(default=(), compare=False)
 
     def __post_init__(self) -> None:

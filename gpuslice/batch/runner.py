@@ -4,13 +4,11 @@ model is retried once on another worker unless its content or options are at fau
 its unfinished models re-run) or to a Dask ``distributed.Client`` (the scheduler re-runs a lost worker's tasks;
 failed models are retried as locally), and collects their records into the batch report (:meth:`BatchRunner.report`).
 
-Skipping: a model whose output exists is skipped (``force`` redoes it); outputs are only ever renamed into place
-complete, so existing means complete (with ``--check``, its check report must exist too: a contour file is written
-before the checks run). The output folder holds a small manifest (``.gpuslice-batch.json``) with the options that
-shape the outputs; a batch with other options into the same folder is refused unless ``force`` is given, so a re-run
-never skips a model whose output was made with different options. Existing outputs in a folder without a manifest
-were not made by a batch: they are refused too (by name), not skipped, unless ``force`` is given; so are files the
-batch's journal (:mod:`.journal`) does not list as they are (put there later, or changed since).
+Skipping: a model whose output exists is skipped (``force`` redoes it); outputs are only renamed into place complete
+(with ``--check``, its report must exist too). The output folder's manifest (``.gpuslice-batch.json``) holds the
+options that shape the outputs: other options are refused unless ``force``, so a re-run never skips an output of
+other options; so are outputs in a folder without a manifest (by name), and files the batch's journal
+(:mod:`.journal`) does not list as they are (put there later, or changed since).
 """
 
 from __future__ import annotations
@@ -45,8 +43,6 @@ MANIFEST_NAME = ".gpuslice-batch.json"
 PREFETCH = 2
 #: a model whose worker died this many times is reported failed instead of re-run again
 MAX_LOST = 2
-
-
 _PRELOAD = ["gpuslice.batch.task", "gpuslice.pipeline", "gpuslice.slicing.slicer", "gpuslice.io.meshfile",
             "gpuslice.formats", "gpuslice.io.atomic", "gpuslice.mesh.defects", "shapely"]
 

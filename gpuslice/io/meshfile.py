@@ -12,7 +12,6 @@ a subclass) whose message is one line naming the file and the problem.
 from __future__ import annotations
 
 import io
-import logging
 import os
 import re
 import stat
@@ -189,13 +188,20 @@ def inflate_3mf(name: str, data: bytes | None = None) -> io.BytesIO:
     return out
 
 
-#: trimesh's logger gets a handler that drops its records (Python's last-resort handler printed them on stderr);
-#: a program's own logging configuration still receives them
-_QUIET = logging.NullHandler()
 #: an ASCII PLY header (its vertex and face counts, then the end of the header) and an OFF one (the counts line)
 _PLY_ASCII = re.compile(rb"\Aply\s*\r?\nformat\s+ascii\b.*?^element\s+vertex\s+(\d+)\s*$.*?"
                         rb"^element\s+face\s+(\d+)\s*$.*?^end_header\s*?\r?\n", re.M | re.S)
 _OFF = re.compile(rb"\A\s*C?N?OFF[ \t]*(?:#[^\n]*)?\r?\n(?:[ \t]*(?:#[^\n]*)?\r?\n)*[ \t]*(\d+)\s+(\d+)[^\n]*\n")
+
+
+def _quiet_trimesh() -> None:
+    """Give trimesh's logger a handler that drops its records, once (Python's last-resort handler printed them on
+    stderr beside the one error line); a program's own logging configuration still receives them."""
+    import logging
+
+    log = logging.getLogger("trimesh")
+    if not any(isinstance(h, logging.NullHandler) for h in log.handlers):
+        log.addHandler(logging.NullHandler())
 
 
 def _short_text(name: str, file_type: str, data: bytes | None) -> str | None:
@@ -233,8 +239,7 @@ def _triangles(name: str, kind: str, vertices: np.ndarray, faces: np.ndarray, sh
     bad = (faces < 0) | (faces >= len(vertices))
     if bad.any():
         raise MeshFileError(f"{name}: a {kind} face names vertex {int(faces[bad][0])}, but the file has "
-                            f"{len(vertices)} vertices (numbered from {0 if kind != 'OBJ' else 1}; an index out of "
-                            "range)")
+                            f"{len(vertices)} vertices (counted from 0; an index out of range)")
     if short is not None:
         raise MeshFileError(f"{name}: {short}")
     return vertices[faces]
@@ -262,7 +267,7 @@ def _read_with_trimesh(name: str, file_type: str, data: bytes | None = None) -> 
         # (trimesh's log lines and numpy's warnings on a broken file would go to stderr beside the one error line)
         with warnings.catch_warnings(), np.errstate(all="ignore"):
             warnings.simplefilter("ignore")
-            logging.getLogger("trimesh").addHandler(_QUIET)
+            _quiet_trimesh()
             if isinstance(source, str):
                 mesh = trimesh.load(source, force="mesh", process=False)
             else:

@@ -30,7 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 from .graph import components
-from .mesh import Mesh
+from .mesh import Mesh, need_mesh
 
 __all__ = ["MESH_REPAIR_KINDS", "mesh_repairs", "outward_facets"]
 
@@ -225,11 +225,7 @@ def mesh_repairs(mesh: Mesh) -> dict[str, int]:
     Flipped facets and inside-out shells need no rewrite of the mesh: loop orientation comes from nesting, so they
     are sliced as if oriented outward; these counts say how many there were.
     """
-    if not isinstance(mesh, Mesh):
-        from ..errors import ParameterError
-
-        raise ParameterError(f"mesh_repairs takes a gpuslice Mesh (gpuslice.load_mesh(source) first), got "
-                             f"{type(mesh).__name__}")
+    need_mesh(mesh, "mesh_repairs")
     if "mesh_repairs" not in mesh._cache:
         mesh._cache["mesh_repairs"] = outward_facets(mesh)[1]
     return dict(mesh._cache["mesh_repairs"])

@@ -184,6 +184,14 @@ class Mesh:
         }
 
 
+def need_mesh(mesh: object, fn: str) -> None:
+    """A one-line :class:`ParameterError` when ``mesh`` handed to ``fn`` is not a loaded :class:`Mesh` (a path, a
+    Trimesh ...)."""
+    if not isinstance(mesh, Mesh):
+        raise ParameterError(f"{fn} takes a gpuslice Mesh (gpuslice.load_mesh(source) first), got "
+                             f"{type(mesh).__name__}")
+
+
 def stored_normal_mismatch(stored: np.ndarray, computed: np.ndarray) -> np.ndarray:
     """(F,) bool: stored normals that are missing (zero, NaN, inf) or more than 45° away from the winding's."""
     s = stored.astype(np.float64)

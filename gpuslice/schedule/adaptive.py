@@ -42,7 +42,7 @@ import numpy as np
 
 from ..device import KernelDriver, locked
 from ..errors import ParameterError
-from ..mesh.mesh import Mesh
+from ..mesh.mesh import Mesh, need_mesh
 from ..options import is_real
 from .uniform import Schedule, from_z
 
@@ -236,13 +236,6 @@ def _check_heights(min_height: float, max_height: float) -> None:
                              param=("max_height", "min_height"))
 
 
-def _need_mesh(mesh: Any, fn: str) -> None:
-    """A one-line :class:`ParameterError` when ``mesh`` is not a loaded :class:`Mesh` (a path, a Trimesh ...)."""
-    if not isinstance(mesh, Mesh):
-        raise ParameterError(f"{fn} takes a gpuslice Mesh (gpuslice.load_mesh(source) first), got "
-                             f"{type(mesh).__name__}")
-
-
 def cusp_schedule(
     mesh: Mesh,
     *,
@@ -267,7 +260,7 @@ def cusp_schedule(
         not); thicknesses are multiples of δ except the last layer, which ends at the top.
     device : an OpenCL :class:`~gpuslice.device.Device` for the per-facet work, or None for numpy.
     """
-    _need_mesh(mesh, "cusp_schedule")
+    need_mesh(mesh, "cusp_schedule")
     if mode not in ("cusp", "area"):
         raise ParameterError(f"unknown error-bounded mode '{mode}' (use cusp or area)")
     if device is not None:  # (a Device, or a spec such as "0:0")
@@ -405,7 +398,7 @@ def roi_schedule(
     ``info["levels"]`` lists, per level, its thickness, the region(s) sliced, their points per layer and z, the
     threshold and the windows chosen (layer indices within the region and z ranges in mm).
     """
-    _need_mesh(mesh, "roi_schedule")
+    need_mesh(mesh, "roi_schedule")
     if not (isinstance(ladder, tuple | list | np.ndarray) and all(is_real(t) for t in ladder)):
         raise ParameterError(f"roi_ladder must be positive thicknesses in mm, got {ladder!r}", param="roi_ladder")
     ladder = tuple(float(t) for t in ladder)
