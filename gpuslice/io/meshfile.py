@@ -3,10 +3,11 @@
 The slicer works on a triangle soup: an ``(F, 3, 3)`` float32 array holding the three corners of every facet in file
 order and file units (STL, OBJ, PLY and OFF have no units; for 3D printing they are millimetres by convention),
 except a 3MF, whose model declares its unit (micron to meter): it is read in millimetres (:data:`UNITS_3MF_MM`).
-Files named ``.obj``, ``.ply``, ``.off`` or ``.3mf`` are read through :mod:`trimesh` (imported lazily); every other
-file is parsed as STL, binary or ASCII (:mod:`gpuslice.io.stl`). :func:`read_mesh_source` also reads a file's bytes
-sent elsewhere (a batch worker). Every problem a user can cause raises a :class:`~gpuslice.errors.MeshFileError` (or
-a subclass) whose message is one line naming the file and the problem.
+Files named ``.obj``, ``.ply`` or ``.3mf`` are read through :mod:`trimesh` (imported lazily), ``.off`` by
+:mod:`gpuslice.io.off`; every other file is parsed as STL, binary or ASCII (:mod:`gpuslice.io.stl`).
+:func:`read_mesh_source` also reads a file's bytes sent elsewhere (a batch worker). Every problem a user can cause
+raises a :class:`~gpuslice.errors.MeshFileError` (or a subclass) whose message is one line naming the file and the
+problem.
 """
 
 from __future__ import annotations
@@ -23,7 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EmptyMeshError, GpusliceError, MeshFileError, flatten
-from .rawmesh import BINARY_STL_RECORD, MAX_COORDINATE, TRIMESH_EXTENSIONS, RawMesh, check_coordinates
+from .off import read_off
+from .rawmesh import BINARY_STL_RECORD, MAX_COORDINATE, NON_STL_EXTENSIONS, RawMesh, check_coordinates
 from .stl import _os_reason, read_stl_bytes
 
 __all__ = [
@@ -33,7 +35,7 @@ __all__ = [
     "read_stl_bytes",
     "BINARY_STL_RECORD",
     "MAX_COORDINATE",
-    "TRIMESH_EXTENSIONS",
+    "NON_STL_EXTENSIONS",
     "ZIP_MAX_INFLATED",
     "ZIP_MAX_RATIO",
     "ZIP_RATIO_FLOOR",
@@ -56,10 +58,10 @@ _INFLATE_CHUNK = 1 << 20
 def read_mesh_file(path: str | os.PathLike[str]) -> RawMesh:
     """Read a mesh file into a :class:`RawMesh`.
 
-    Files named ``.obj``, ``.ply``, ``.off`` or ``.3mf`` (any case) are read with
+    Files named ``.obj``, ``.ply`` or ``.3mf`` (any case) are read with
     ``trimesh.load(path, force="mesh", process=False)`` (all objects of the file merged, vertices not merged,
-    nothing repaired); every other name, ``.stl`` or not, goes through :func:`read_stl_bytes`, which tells
-    binary from ASCII STL and recognises common non-STL files.
+    nothing repaired), ``.off`` with :func:`gpuslice.io.off.read_off`; every other name, ``.stl`` or not, goes
+    through :func:`read_stl_bytes`, which tells binary from ASCII STL and recognises common non-STL files.
 
     Parameters
     ----------
@@ -93,14 +95,14 @@ def read_mesh_file(path: str | os.PathLike[str]) -> RawMesh:
         if not (stat.S_ISREG(mode) or stat.S_ISFIFO(mode)):  # /dev/zero would be read until memory runs out
             raise MeshFileError(f"{name}: not a regular file (a device or a socket)")
         ext = os.path.splitext(name)[1].lower()
-        if ext in TRIMESH_EXTENSIONS and not stat.S_ISFIFO(mode):  # trimesh opens the file itself
-            return _read_with_trimesh(name, TRIMESH_EXTENSIONS[ext])
+        if ext in NON_STL_EXTENSIONS and not stat.S_ISFIFO(mode):  # (trimesh opens the file itself)
+            return _read_non_stl(name, NON_STL_EXTENSIONS[ext])
         with open(name, "rb") as fh:  # (a FIFO's bytes read here: trimesh takes only a regular file by name)
             data = fh.read()
     except OSError as exc:
         raise _file_error(name, exc) from None
-    if ext in TRIMESH_EXTENSIONS:
-        return _read_with_trimesh(name, TRIMESH_EXTENSIONS[ext], data)
+    if ext in NON_STL_EXTENSIONS:
+        return _read_non_stl(name, NON_STL_EXTENSIONS[ext], data)
     return read_stl_bytes(data, name)
 
 
@@ -119,8 +121,8 @@ def read_mesh_source(path: str | os.PathLike[str], data: bytes | None = None, la
             named.__dict__.update(exc.__dict__)  # (os_error: where it was read, not what it holds)
             raise named from None
     suffix = Path(where).suffix.lower()
-    if suffix in TRIMESH_EXTENSIONS:  # from memory, no temporary file (a 3MF inflated under its limits)
-        return _read_with_trimesh(label, TRIMESH_EXTENSIONS[suffix], bytes(data))
+    if suffix in NON_STL_EXTENSIONS:  # from memory, no temporary file (a 3MF inflated under its limits)
+        return _read_non_stl(label, NON_STL_EXTENSIONS[suffix], bytes(data))
     return read_stl_bytes(data, label)
 
 
@@ -188,10 +190,9 @@ def inflate_3mf(name: str, data: bytes | None = None) -> io.BytesIO:
     return out
 
 
-#: an ASCII PLY header (its vertex and face counts, then the end of the header) and an OFF one (the counts line)
+#: an ASCII PLY header (its vertex and face counts, then the end of the header)
 _PLY_ASCII = re.compile(rb"\Aply\s*\r?\nformat\s+ascii\b.*?^element\s+vertex\s+(\d+)\s*$.*?"
                         rb"^element\s+face\s+(\d+)\s*$.*?^end_header\s*?\r?\n", re.M | re.S)
-_OFF = re.compile(rb"\A\s*C?N?OFF[ \t]*(?:#[^\n]*)?\r?\n(?:[ \t]*(?:#[^\n]*)?\r?\n)*[ \t]*(\d+)\s+(\d+)[^\n]*\n")
 
 
 def _quiet_trimesh() -> None:
@@ -205,14 +206,14 @@ def _quiet_trimesh() -> None:
 
 
 def _short_text(name: str, file_type: str, data: bytes | None) -> str | None:
-    """Why an ASCII PLY or an OFF file is cut short, or None: fewer lines after its header than the vertices and
-    faces it declares (trimesh reads what is there and says nothing)."""
-    if file_type not in ("ply", "off"):
+    """Why an ASCII PLY file is cut short, or None: fewer lines after its header than the vertices and faces it
+    declares (trimesh reads what is there and says nothing)."""
+    if file_type != "ply":
         return None
     try:
         with io.BytesIO(data) if data is not None else open(name, "rb") as fh:
             head = fh.read(1 << 16)
-            found = (_PLY_ASCII if file_type == "ply" else _OFF).match(head)
+            found = _PLY_ASCII.match(head)
             if found is None:  # (a binary PLY: trimesh refuses its truncation itself; a header past 64 KiB)
                 return None
             lines, last = head.count(b"\n", found.end()), head[-1:]
@@ -245,13 +246,45 @@ def _triangles(name: str, kind: str, vertices: np.ndarray, faces: np.ndarray, sh
     return vertices[faces]
 
 
-def _read_with_trimesh(name: str, file_type: str, data: bytes | None = None) -> RawMesh:
-    """Read OBJ / PLY / OFF / 3MF with trimesh (imported here: it is slow to import), from the file ``name`` or
-    from its bytes ``data`` (no temporary file); a 3MF is inflated first under :func:`zip_inflate_limit`."""
+#: a token 0 (or 0/..., a vertex index 0 where the line is a face: ``f 0 2 3``); OBJ's indices count from 1
+_ZERO_TOKEN = re.compile(rb"[ \t][+-]?0+(?=[/ \t\r\n#]|\Z)")
+
+
+def _obj_zero_line(data: bytes) -> int | None:
+    """The line number (from 1) of the first OBJ face line of ``data`` naming vertex 0, or None (one scan for
+    zero tokens, each then placed on its line: vertex lines hold most of them)."""
+    for found in _ZERO_TOKEN.finditer(data):
+        start = data.rfind(b"\n", 0, found.start()) + 1
+        head = data[start : found.start() + 1].lstrip()
+        if b"#" not in head and (head[:2] in (b"f ", b"f\t") or head[:3] in (b"fo ", b"fo\t")):
+            return data.count(b"\n", 0, start) + 1
+    return None
+
+
+def _read_bytes(name: str) -> bytes:
+    """The bytes of the file ``name`` (a one-line error for an OS error)."""
+    try:
+        with open(name, "rb") as fh:
+            return fh.read()
+    except OSError as exc:
+        raise _file_error(name, exc) from None
+
+
+def _read_non_stl(name: str, file_type: str, data: bytes | None = None) -> RawMesh:
+    """Read OBJ / PLY / 3MF with trimesh (imported here: it is slow to import) and OFF with :mod:`.off`, from the
+    file ``name`` or from its bytes ``data`` (no temporary file); a 3MF is inflated first under
+    :func:`zip_inflate_limit`."""
+    if file_type == "off":  # (not trimesh's reader: it dropped faces silently, module .off)
+        vertices, faces = read_off(_read_bytes(name) if data is None else data, name)
+        return _raw_mesh(name, file_type, _triangles(name, "OFF", vertices, faces, None), None)
     try:
         import trimesh
     except ImportError as exc:  # pragma: no cover - trimesh is a dependency
         raise MeshFileError(f"{name}: reading {file_type.upper()} files needs trimesh ({exc})") from None
+    if file_type == "obj":  # (read here once: trimesh takes an OBJ face's vertex 0, which does not exist, as 1)
+        data = _read_bytes(name) if data is None else data
+        if (line := _obj_zero_line(data)) is not None:
+            raise MeshFileError(f"{name}: line {line}: an OBJ face names vertex 0 (OBJ counts vertices from 1)")
     source: str | io.BytesIO = name if data is None else io.BytesIO(data)
     if file_type == "3mf":
         source = inflate_3mf(name, data)
@@ -281,8 +314,14 @@ def _read_with_trimesh(name: str, file_type: str, data: bytes | None = None) -> 
             f"{name}: cannot read {file_type.upper()} file: {type(exc).__name__}: {reason}"
         ) from None
     triangles = _triangles(name, file_type.upper(), vertices, faces, _short_text(name, file_type, data))
+    return _raw_mesh(name, file_type, triangles, mesh)
+
+
+def _raw_mesh(name: str, file_type: str, triangles: np.ndarray, mesh) -> RawMesh:
+    """The :class:`RawMesh` of a non-STL file's ``triangles`` (a 3MF's in millimetres by its unit, read from
+    trimesh's ``mesh``); refuses a file without facets and coordinates out of range."""
     if len(triangles) == 0:
-        raise EmptyMeshError(f"{name}: no facets ({file_type.upper()} file read by trimesh)")
+        raise EmptyMeshError(f"{name}: no facets ({file_type.upper()} file)")
     if file_type == "3mf":  # the model's unit (3MF core spec: micron ... meter; millimeter when absent), read as mm
         unit = getattr(mesh, "units", None) or "millimeter"
         unit = {"millimeters": "millimeter"}.get(unit, unit)  # (trimesh's name when the model names no unit)

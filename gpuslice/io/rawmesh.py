@@ -10,7 +10,7 @@ import numpy as np
 
 from ..errors import InvalidGeometryError
 
-__all__ = ["RawMesh", "BINARY_STL_RECORD", "MAX_COORDINATE", "TRIMESH_EXTENSIONS", "check_coordinates"]
+__all__ = ["RawMesh", "BINARY_STL_RECORD", "MAX_COORDINATE", "NON_STL_EXTENSIONS", "check_coordinates"]
 
 #: One 50-byte binary STL facet record: stored normal, three corners, the 16-bit "attribute byte count".
 BINARY_STL_RECORD = np.dtype([("normal", "<f4", (3,)), ("v", "<f4", (3, 3)), ("attr", "<u2")])
@@ -20,7 +20,7 @@ BINARY_STL_RECORD = np.dtype([("normal", "<f4", (3,)), ("v", "<f4", (3, 3)), ("a
 MAX_COORDINATE = 1e18
 
 #: Extensions (lower case) read through trimesh; every other name is parsed as an STL.
-TRIMESH_EXTENSIONS = {".obj": "obj", ".ply": "ply", ".off": "off", ".3mf": "3mf"}
+NON_STL_EXTENSIONS = {".obj": "obj", ".ply": "ply", ".off": "off", ".3mf": "3mf"}
 
 _HEADER_BYTES = 84
 _RECORD_BYTES = 50

@@ -89,15 +89,15 @@ def _from_trimesh(mesh: Any, name: str | None) -> SourceTriangles:
 
 
 def _from_bytes(data: bytes, name: str | None, default: str = "<bytes>") -> SourceTriangles:
-    from ..io.meshfile import _read_with_trimesh, read_stl_bytes
-    from ..io.rawmesh import TRIMESH_EXTENSIONS
+    from ..io.meshfile import _read_non_stl, read_stl_bytes
+    from ..io.rawmesh import NON_STL_EXTENSIONS
 
     label = name or default
     suffix = os.path.splitext(label)[1].lower()
-    if suffix in TRIMESH_EXTENSIONS:
-        raw = _read_with_trimesh(label, TRIMESH_EXTENSIONS[suffix], data=data)
+    if suffix in NON_STL_EXTENSIONS:
+        raw = _read_non_stl(label, NON_STL_EXTENSIONS[suffix], data=data)
     elif suffix != ".stl" and data[:4] == b"PK\x03\x04":  # an unnamed zip: a 3MF
-        raw = _read_with_trimesh(label, "3mf", data=data)
+        raw = _read_non_stl(label, "3mf", data=data)
     else:
         raw = read_stl_bytes(data, label)
     return SourceTriangles(raw.triangles, raw.normals, label, raw.source_format, raw.solids)

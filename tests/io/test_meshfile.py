@@ -466,8 +466,8 @@ def test_a_fifo_is_read_like_a_file(tmp_path: Path, suffix: str, data: bytes | N
 
 def test_trimesh_errors(tmp_path: Path) -> None:
     raises_for(tmp_path, "bad.ply", b"\x00\x01garbage", MeshFileError, r"bad\.ply: cannot read PLY file: ")
-    raises_for(tmp_path, "bad.off", b"OFF\n3 1 0\n0 0 0\n1 0 0\n", MeshFileError,
-               r"bad\.off: cannot read OFF")
+    raises_for(tmp_path, "bad.off", b"OFF\n3 1 0\n0 0 0\n1 0 0\n0 1\n3 0 1 2\n", MeshFileError,
+               r"bad\.off: cannot read OFF file: vertex line 3")
     raises_for(tmp_path, "bad.3mf", b"PK\x03\x04junk", MeshFileError, r"bad\.3mf: cannot read 3MF file: ")
     raises_for(tmp_path, "empty.obj", b"# nothing\n", EmptyMeshError, r"empty\.obj: no facets")
     raises_for(tmp_path, "nan.obj", OBJ.replace(b"v 0 0 1", b"v 0 nan 1"), InvalidGeometryError,

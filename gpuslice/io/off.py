@@ -1,0 +1,122 @@
+"""Read ASCII OFF files (Geomview's Object File Format) into vertices and triangles, strictly.
+
+The layout (Geomview's ``OFF`` manual page): an optional keyword line ``[ST][C][N]OFF``; a counts line ``NV NF
+[NE]`` (on the keyword's line or the next); ``NV`` vertex lines ``x y z`` (then, per the keyword, a normal, a
+colour, a texture coordinate: ignored); ``NF`` face lines ``n i_1 ... i_n`` (vertex indices counted from 0, then
+an optional colour: ignored). ``#`` starts a comment anywhere; blank lines are skipped. A face of n > 3 vertices
+is cut into a fan of n − 2 triangles (its first vertex shared), which is exact for the planar convex faces OFF
+files hold and keeps the face's orientation.
+
+trimesh's OFF reader (5.x) let broken files through silently: a comment line after the counts line dropped a
+face, a face line short of an index dropped that face, a face colour dropped every face. Here each is refused with
+one line naming the file and the line, or read as the specification says (a colour is ignored).
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+from ..errors import MeshFileError
+
+__all__ = ["read_off"]
+
+_KEYWORD = re.compile(rb"(?:ST)?C?N?(4?)(n?)OFF")
+
+
+def _content_lines(data: bytes) -> list[bytes]:
+    """The file's lines without comments, blank ones left out."""
+    if b"#" in data:
+        data = re.sub(rb"#[^\n]*", b"", data)
+    return [line for line in data.split(b"\n") if line.strip()]
+
+
+def read_off(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices ``(V, 3)`` float64 (file units) and triangles ``(F, 3)`` int64 (indices into the vertices, not
+    yet checked against their count) of the ASCII OFF file ``data``; a :class:`MeshFileError` naming ``name``
+    for a binary OFF, a 4-D or n-D one, a bad counts line, a vertex or face line that is short or not numbers, a
+    face of fewer than 3 vertices, or fewer lines than the counts declare (cut short)."""
+
+    def fail(reason: str) -> MeshFileError:
+        return MeshFileError(f"{name}: cannot read OFF file: {reason}")
+
+    lines = _content_lines(data)
+    if not lines:
+        raise fail("no OFF header (the file holds nothing but comments or blank lines)")
+    tokens = lines[0].split()
+    head = 1  # (content lines before the vertices)
+    keyword = _KEYWORD.fullmatch(tokens[0])
+    if keyword is not None:
+        if keyword.group(1) or keyword.group(2):
+            raise fail(f"a {tokens[0].decode()} file holds points of other than 3 dimensions")
+        if b"BINARY" in tokens[1:]:
+            raise fail("a binary OFF file (save it as ASCII OFF)")
+        tokens = tokens[1:]
+        if not tokens:  # (the counts on the next line, as usual)
+            if len(lines) < 2:
+                raise fail("no counts line after the OFF keyword")
+            tokens, head = lines[1].split(), 2
+    elif tokens[0].upper().endswith(b"OFF"):
+        raise fail(f"unknown keyword {tokens[0].decode(errors='replace')!r}")
+    try:
+        counts = [int(t) for t in tokens[:3]]
+    except ValueError:
+        counts = []
+    if len(counts) < 2 or min(counts) < 0:
+        raise fail(f"the counts line {b' '.join(tokens).decode(errors='replace')!r} is not vertex, face "
+                   "(and edge) counts")
+    nv, nf = counts[0], counts[1]
+    body = lines[head:]
+    if len(body) < nv + nf:
+        raise MeshFileError(f"{name}: the OFF header declares {nv} vertices and {nf} faces, the file holds "
+                            f"{len(body)} lines after it (cut short?)")
+    vertices = _numbers(body[:nv], float, 3, "vertex", fail)
+    rows = body[nv : nv + nf]
+    try:  # (the usual file: every face a triangle; anything after its three indices is a colour)
+        first = np.loadtxt(rows, dtype=np.int64, usecols=(0, 1, 2, 3), ndmin=2) if nf else np.zeros((0, 4), int)
+    except ValueError:
+        first = None
+    if first is not None and (first[:, 0] == 3).all():
+        return vertices, first[:, 1:].copy()
+    return vertices, _polygons(rows, fail)
+
+
+def _numbers(rows: list[bytes], dtype, n: int, what: str, fail) -> np.ndarray:
+    """The first ``n`` numbers of each line in ``rows`` (the ``what`` lines, counted from 1 in messages)."""
+    if not rows:
+        return np.zeros((0, n), dtype)
+    try:
+        return np.loadtxt(rows, dtype=dtype, usecols=tuple(range(n)), ndmin=2)
+    except ValueError:
+        for k, row in enumerate(rows):  # (only on failure: find the line to name)
+            parts = row.split()
+            try:
+                [dtype(p) for p in parts[:n]]
+            except ValueError:
+                parts = []
+            if len(parts) < n:
+                raise fail(f"{what} line {k + 1} ({row.strip().decode(errors='replace')[:40]!r}) does not start "
+                           f"with {n} numbers") from None
+        raise fail(f"unreadable {what} lines") from None
+
+
+def _polygons(rows: list[bytes], fail) -> np.ndarray:
+    """Triangles of face lines ``n i_1 ... i_n [colour]`` (a fan for n > 3): one pass in Python, only for files
+    whose faces are not all triangles or whose lines are not all well formed."""
+    tris: list[tuple[int, int, int]] = []
+    for k, row in enumerate(rows):
+        parts = row.split()
+        try:
+            n = int(parts[0])
+            idx = [int(p) for p in parts[1 : n + 1]]
+        except ValueError:
+            n, idx = -1, []
+        text = row.strip().decode(errors="replace")[:40]
+        if n < 0 or len(idx) < n:
+            raise fail(f"face line {k + 1} ({text!r}) lists fewer vertex indices than its count {parts[0].decode()}"
+                       if n >= 0 else f"face line {k + 1} ({text!r}) is not a count and vertex indices")
+        if n < 3:
+            raise fail(f"face line {k + 1} ({text!r}) has {n} vertices (a face needs 3)")
+        tris.extend((idx[0], idx[j], idx[j + 1]) for j in range(1, n - 1))
+    return np.asarray(tris, np.int64).reshape(-1, 3)
