@@ -37,11 +37,13 @@ little endian after its first fields:
   states;
 * a CRC-32 of every byte before it (zero start, no final inversion, as ``.cxdlp`` v3), big endian.
 
-**What the format cannot hold is refused before any work** (:func:`refuse_settings`): the file's global settings have
-one retract speed, one slow retract stage and one set of rests for the bottom and the normal layers (the bottom
-layers' own are only in the per-layer records, which the printer follows only with ``--per-layer-settings``, off by
-default: some firmware misbehaves with it), so bottom values that differ need ``--per-layer-settings``; a job without
-a Halot preset is refused, as for ``.cxdlp``.
+**What the format cannot hold is refused** (:func:`refuse_settings`): a job without a Halot preset before any work,
+as for ``.cxdlp``. The file's global settings have one retract speed, one slow retract stage and one set of rests
+for the bottom and the normal layers (the bottom layers' own are only in the per-layer records, which the printer
+follows only with the per-layer switch on), so bottom values that differ need ``--per-layer-settings`` (off by
+default: some firmware misbehaves with it) where the switch does not turn on by itself, as it does for layers of
+several thicknesses (:func:`gpuslice.raster.settings.per_layer_mode`); refused once the layers' thicknesses are
+known, before the file is opened.
 """
 
 from __future__ import annotations
@@ -80,9 +82,11 @@ _PER_LAYER_ONLY = ("retract_speed", "retract_height2", "retract_speed2", "wait_b
                    "wait_after_lift")
 
 
-def refuse_settings(path, name: str, options, settings, spec=None) -> None:
+def refuse_settings(path, name: str, options, settings, spec=None, thickness_mm=None) -> None:
     """``.cxdlpv4``'s settings check (:meth:`gpuslice.raster.outputs.ResinFormat.check_settings`), before any work: a
-    Halot preset (its model code), and bottom-layer values the global settings hold (module docstring)."""
+    Halot preset (its model code); and, once the layers' thicknesses ``thickness_mm`` are known (the writer's
+    check), bottom-layer values only per-layer records hold when the per-layer switch stays off (module docstring:
+    it turns on by itself for layers of several thicknesses)."""
     if not _model_code(options):
         raise ParameterError(f"{path}: a .cxdlpv4 file carries its printer's model code, which the printer checks: "
                              "give a Creality Halot --printer preset (gpuslice printers lists them)")
@@ -90,7 +94,7 @@ def refuse_settings(path, name: str, options, settings, spec=None) -> None:
         cols, rows = spec.png_size
         if cols > 0xFFFF or rows > 0xFFFF:
             raise ParameterError(f"{path}: a .cxdlpv4 file holds at most 65535x65535 pixels, not {cols}x{rows}")
-    if settings.per_layer_settings:
+    if thickness_mm is None or per_layer_mode(settings, thickness_mm):
         return
     b, n = settings.group(True), settings.group(False)
     for key in _PER_LAYER_ONLY:
@@ -215,6 +219,6 @@ def _settings_blocks(s, ml: float, anti_alias: int, now, bottom_layers: int, per
 
 def write_target(layers: Iterable[Tile | RunLayer], target) -> dict[str, Any]:
     """The registry's writer (:mod:`gpuslice.raster.outputs`): a ``.cxdlpv4`` file for the Halot the preset names."""
-    refuse_settings(target.path, "cxdlpv4", target.options, target.settings, target.spec)
+    refuse_settings(target.path, "cxdlpv4", target.options, target.settings, target.spec, target.result.thickness)
     preset = target.options.preset
     return write_cxdlpv4(layers, target, code=_model_code(target.options), z_travel=float(preset.build_height))

@@ -125,11 +125,29 @@ def test_bottom_values_only_per_layer_records_hold_are_refused_unless_per_layer(
                                                  "layers unless per-layer settings are on"):
             write_target(iter([]), target(tmp_path / "x.cxdlpv4", torus, opts, s))
         per_layer = PrintSettings(**{**SETTINGS.__dict__, **change, "per_layer_settings": True})
-        refuse_settings(tmp_path / "x.cxdlpv4", "cxdlpv4", opts, per_layer)  # (held: per-layer records)
+        refuse_settings(tmp_path / "x.cxdlpv4", "cxdlpv4", opts, per_layer, None, torus.thickness)  # (records)
+        refuse_settings(tmp_path / "x.cxdlpv4", "cxdlpv4", opts, s)  # (thicknesses unknown: the writer decides)
     for options in (ResinOptions(), ResinOptions(printer="generic-4k")):
         with pytest.raises(ParameterError, match="x.cxdlpv4: a .cxdlpv4 file carries its printer's model code"):
             refuse_settings(tmp_path / "x.cxdlpv4", "cxdlpv4", options, SETTINGS)
     assert not (tmp_path / "x.cxdlpv4").exists()
+
+
+def test_bottom_values_of_layers_of_several_thicknesses_are_held(tmp_path):
+    """A thicker first layer turns the per-layer switch on by itself: the bottom layers' own values are written
+    (they were refused, asking for --per-layer-settings, which changed nothing in the file)."""
+    res = slice_mesh(mesh_from_triangles(shapes.torus(15.0, 5.0, 48, 24)), thickness=0.5, first_layer=1.0,
+                     backend="numpy")
+    s = PrintSettings(**{**SETTINGS.__dict__, "bottom_retract_speed": 120.0, "bottom_wait_before_cure": 3.0})
+    out = tmp_path / "v.cxdlpv4"
+    opts = ResinOptions(printer=preset_file(tmp_path))
+    write_target(iter_tiles(res, opts.spec(), backend="numpy"), target(out, res, opts, s))
+    got = read_cxdlpv4(out)
+    assert got.slicer["per_layer"] == 1
+    explicit = tmp_path / "e.cxdlpv4"
+    s_on = PrintSettings(**{**s.__dict__, "per_layer_settings": True})
+    write_target(iter_tiles(res, opts.spec(), backend="numpy"), target(explicit, res, opts, s_on))
+    assert explicit.read_bytes() == out.read_bytes()
 
 
 def test_per_layer_settings_flag_and_each_bottom_layers_own_values(tmp_path, torus):
