@@ -75,7 +75,7 @@ def read_off(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray]:
     rows = body[nv : nv + nf]
     try:  # (the usual file: every face a triangle; anything after its three indices is a colour)
         first = np.loadtxt(rows, dtype=np.int64, usecols=(0, 1, 2, 3), ndmin=2) if nf else np.zeros((0, 4), int)
-    except ValueError:
+    except (ValueError, OverflowError):  # (an index past int64: found by the line below)
         first = None
     if first is not None and (first[:, 0] == 3).all():
         return vertices, first[:, 1:].copy()
@@ -88,7 +88,7 @@ def _numbers(rows: list[bytes], dtype, n: int, what: str, fail) -> np.ndarray:
         return np.zeros((0, n), dtype)
     try:
         return np.loadtxt(rows, dtype=dtype, usecols=tuple(range(n)), ndmin=2)
-    except ValueError:
+    except (ValueError, OverflowError):
         for k, row in enumerate(rows):  # (only on failure: find the line to name)
             parts = row.split()
             try:
@@ -118,5 +118,7 @@ def _polygons(rows: list[bytes], fail) -> np.ndarray:
                        if n >= 0 else f"face line {k + 1} ({text!r}) is not a count and vertex indices")
         if n < 3:
             raise fail(f"face line {k + 1} ({text!r}) has {n} vertices (a face needs 3)")
+        if any(abs(i) >= 1 << 62 for i in idx):
+            raise fail(f"face line {k + 1} ({text!r}) names a vertex index out of range")
         tris.extend((idx[0], idx[j], idx[j + 1]) for j in range(1, n - 1))
     return np.asarray(tris, np.int64).reshape(-1, 3)

@@ -50,13 +50,16 @@ def test_a_cube_in_every_layout_is_the_whole_cube(data):
                                                                "than its count 3"),
     (off(CUBE_T[:5] + [(0, 1)]), r"face line 6 \('2 0 1'\) has 2 vertices \(a face needs 3\)"),
     (off(CUBE_T[:2] + [(0, 1, "x")]), r"face line 3 \('3 0 1 x'\) is not a count and vertex indices"),
+    (off(CUBE_T[:2] + [(0, 1, 10**20)]), r"face line 3 \('3 0 1 100000000000000000000'\) names a vertex index "
+                                          "out of range"),
     (off(vertex="{} {}"), r"vertex line 1 \('0 0'\) does not start with 3 numbers"),
     (off(head="OFF\n{nv} faces\n"), r"the counts line '8 faces' is not vertex, face \(and edge\) counts"),
     (off(head="4OFF\n{nv} {nf} 0\n"), r"a 4OFF file holds points of other than 3 dimensions"),
     (b"OFF BINARY\n\x00\x00\x00\x08", r"a binary OFF file \(save it as ASCII OFF\)"),
     (b"# only a comment\n\n", r"no OFF header"),
     (off(head="OFFX\n{nv} {nf} 0\n"), r"the counts line 'OFFX' is not"),
-], ids=["short-face", "two-vertices", "not-a-number", "short-vertex", "counts", "4d", "binary", "empty", "keyword"])
+], ids=["short-face", "two-vertices", "not-a-number", "huge-index", "short-vertex", "counts", "4d", "binary", "empty",
+        "keyword"])
 def test_broken_off_files_are_one_line_errors(data, message):
     with pytest.raises(MeshFileError, match=r"^b\.off: cannot read OFF file: " + message):
         load_mesh(data, name="b.off")
