@@ -54,7 +54,10 @@ def check_points_fit(xy: np.ndarray, spec: RasterSpec, bounds, name: str = "mode
     (x0, y0), (x1, y1) = point_bounds(xy)
     corners = np.array([[x0, y0], [x0, y1], [x1, y0], [x1, y1]], np.float64)
     lo, hi = point_bounds(spec.to_pixels(corners, bounds))
-    eps = 1e-6
+    # two float32 steps of the largest coordinate, in pixels: a part exactly the display's size (whose float32
+    # points lie a step over it, as 68.04 rounds up) fits; what lies past the edge by that much is not drawn
+    ulp = float(np.spacing(np.float32(max(abs(x0), abs(x1), abs(y0), abs(y1)))))
+    eps = max(1e-6, 2.0 * ulp / min(spec.px, spec.py))
     cols, rows = spec.png_size
     if lo[0] < -eps or lo[1] < -eps or hi[0] > cols + eps or hi[1] > rows + eps:
         bx, by = spec.bed_mm
@@ -64,8 +67,10 @@ def check_points_fit(xy: np.ndarray, spec: RasterSpec, bounds, name: str = "mode
             where = (f": --keep-xy keeps its own x {x0:.2f} to {x1:.2f} and y {y0:.2f} to {y1:.2f} mm, and the display "
                      f"spans x 0 to {bx:.2f} and y 0 to {by:.2f} mm (move the model, or leave --keep-xy out to centre "
                      "it)")
+        over = max(-lo[0], -lo[1], hi[0] - cols, hi[1] - rows)
+        by_px = f" (it reaches {over:.3g} pixels past an edge)" if over < 1 and not where else ""
         raise ParameterError(f"{name}: the model ({w:.2f} x {h:.2f} mm) does not fit on the display "
-                             f"({bx:.2f} x {by:.2f} mm) at this placement{where}")
+                             f"({bx:.2f} x {by:.2f} mm) at this placement{where}{by_px}")
 
 
 def check_fits(result: SliceResult, spec: RasterSpec, bounds=None, name: str = "model",

@@ -268,3 +268,21 @@ def test_a_second_stage_speed_without_its_height_is_refused():
             PrintSettings(**kw)
     PrintSettings(lift_height2=0.5, lift_speed2=120.0, bottom_lift_height2=0.0)  # (the bottom inherits, unused)
     PrintSettings(lift_speed2=120.0, bottom_lift_height2=2.0)  # (the bottom layers' stage at --lift-speed2)
+
+
+@pytest.mark.parametrize("printer", ["prusa-sl1", "anycubic-photon-mono-m5s", "elegoo-mars-3"])
+def test_a_part_exactly_the_display_fits(tmp_path, printer, capsys):
+    """A part exactly the preset's display size: its float32 points lie a step over it on some presets (68.04 rounds
+    up), and it was refused with "the model (120.96 x 68.04 mm) does not fit on the display (120.96 x 68.04 mm)";
+    a part 2 µm larger is still refused, saying by how much."""
+    from gpuslice.raster import ResinOptions
+
+    w, h = sorted(ResinOptions(printer=printer).spec().bed_mm, reverse=True)
+    for extra, code in ((0.0, 0), (0.002, 2)):
+        stl = tmp_path / f"d{extra}.stl"
+        trimesh.creation.box(bounds=[[0, 0, 0], [w + extra, h, 0.1]]).export(stl)
+        capsys.readouterr()
+        assert main(["raster", str(stl), "--printer", printer, "-t", "0.05", "-q", "--no-progress", "-o",
+                     f"{tmp_path / f'd{extra}'}/"]) == code
+        if code:
+            assert "pixels past an edge" in capsys.readouterr().err
