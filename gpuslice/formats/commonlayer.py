@@ -44,6 +44,21 @@ def _cli_decimals(units_mm: float) -> int:
     return max(0, min(9, math.ceil(math.log10(units_mm / 1e-4) - 1e-9)))
 
 
+def _height_decimals(top: np.ndarray, decimals: int, chosen: bool) -> int:
+    """Decimals for the layer tops ``top`` (file units): ``decimals``, or more (up to 9) where that many would
+    write two layers at one height (layers thinner than 0.1 µm); a :class:`ParameterError` for ``decimals`` the
+    caller ``chosen`` that does."""
+    def distinct(d: int) -> bool:
+        return bool(np.all(np.diff(np.rint(top * 10.0**d)) > 0))
+
+    if top.size < 2 or distinct(decimals):
+        return decimals
+    if chosen:
+        raise ParameterError(f"decimals={decimals} writes two layers at one height (the thinnest layer is "
+                             f"{float(np.diff(top).min()):.3g} file units): give more decimals, or None")
+    return next((d for d in range(decimals + 1, 10) if distinct(d)), 9)
+
+
 def write_cli(
     result: SliceResult,
     path: PathLike,
@@ -81,7 +96,8 @@ def write_cli(
       ``loop_closed``. A closed polyline repeats its first point at the end and ``n`` counts it.
     * **Numbers**: coordinates and heights are ``mm / units`` in fixed-point decimal with ``decimals``
       digits (default: enough for 0.1 µm, i.e. 4 with the default ``units_mm=1``, 1 with ``0.001``, 0 with
-      ``0.0001``), rounded half-to-even. No date or other varying header, so output is deterministic.
+      ``0.0001``; the layer heights get more where layers thinner than that would share a height), rounded
+      half-to-even. No date or other varying header, so output is deterministic.
 
     Parameters
     ----------
@@ -111,6 +127,7 @@ def write_cli(
         raise ParameterError(f"units_mm must be a number from 0.000001 to 1000, got {units_mm!r}")
     units_text = f"{float(units_mm):015.6f}"
     units = float(units_text)
+    chosen = decimals is not None
     decimals = _cli_decimals(units) if decimals is None else check_decimals(decimals)
     if not isinstance(label, str) or re.search(r"[,/\r\n$]", label):
         raise ParameterError(f"label must be text without commas, slashes, '$' or line breaks, got {label!r}")
@@ -125,8 +142,8 @@ def write_cli(
     direction = np.where(~closed, CLI_OPEN, np.where(is_hole, CLI_CLOCKWISE, CLI_COUNTER_CLOCKWISE))
     n_layers = int(thickness.size)
 
-    def fnum(x: Sequence[float] | np.ndarray) -> list[str]:
-        text, _ = format_numbers(np.asarray(x, dtype=np.float64), decimals, ord("\n"))
+    def fnum(x: Sequence[float] | np.ndarray, digits: int = decimals) -> list[str]:
+        text, _ = format_numbers(np.asarray(x, dtype=np.float64), digits, ord("\n"))
         return text.tobytes().decode().split("\n")[:-1]
 
     lines = ["$$HEADERSTART", "$$ASCII", f"$$UNITS/{units_text}", "$$VERSION/200", f"$$LABEL/1,{label}"]
@@ -136,7 +153,7 @@ def write_cli(
         box = (lo[0], lo[1], bottom[0] / units, hi[0], hi[1], top[-1])
         lines.append("$$DIMENSION/" + ",".join(fnum(box)))
     lines += [f"$$LAYERS/{n_layers:06d}", "$$HEADEREND", "$$GEOMETRYSTART", ""]
-    top_text = fnum(top)
+    top_text = fnum(top, _height_decimals(top, decimals, chosen))
 
     cum = loop_offsets[layer_offsets]
     with atomic_path(path) as tmp, open(tmp, "wb", buffering=1 << 20) as fh:

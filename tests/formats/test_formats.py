@@ -296,6 +296,24 @@ def test_cli_roundtrip(result, random_result, tmp_path):
         check_cli_roundtrip(res, out, atol=0.5e-4 + 1e-5)
 
 
+def test_cli_layers_thinner_than_its_digits_keep_their_heights(tmp_path):
+    """Layers of 0.00005 mm written to 4 decimals were $$LAYER/0.0000, 0.0001, 0.0002, 0.0002, ... (a helper's
+    audit): the heights now get the digits that keep them apart; digits the caller chose are refused instead."""
+    from gpuslice import mesh_from_triangles, slice_mesh
+    from gpuslice.mesh import shapes
+
+    res = slice_mesh(mesh_from_triangles(shapes.box(hi=(1.0, 1.0, 0.001))), thickness=0.00005, backend="numpy")
+    assert res.n_layers == 20
+    write_cli(res, tmp_path / "t.cli")
+    tops = [z for z, _ in read_cli(tmp_path / "t.cli")]
+    np.testing.assert_allclose(tops, res.bottom + res.thickness, rtol=0, atol=1e-9)
+    assert "$$LAYER/0.00005\n" in (tmp_path / "t.cli").read_text()
+    check_cli_roundtrip(res, tmp_path / "t.cli", atol=0.5e-4 + 1e-9)
+    with pytest.raises(ParameterError, match=r"decimals=4 writes two layers at one height"):
+        write_cli(res, tmp_path / "u.cli", decimals=4)
+    assert not (tmp_path / "u.cli").exists()
+
+
 def test_cli_text(result, tmp_path):
     out = tmp_path / "r.cli"
     write_cli(result, out)
