@@ -274,6 +274,15 @@ def test_roi_absolute_threshold_and_all_windows(sphere):
     assert np.allclose(many.thickness[:-1], 0.5)  # everything is of interest
 
 
+@pytest.mark.parametrize("ladder", [(1.0, 0.3, 0.0999), (1.0, 0.5, 0.0999), (1.0, 0.3, 0.07), (1.0, 0.3), (0.7, 0.3)])
+def test_roi_steps_that_do_not_divide_each_other(sphere, ladder):
+    """A window is tiled with its step from its bottom; a remainder under half a step used to be a layer of its own
+    inside the part (0.0015 mm at z 5.7 with 1, 0.3, 0.0999: a helper's audit): it is shared with the layer below."""
+    sched = roi_schedule(sphere, ladder, quantile=0.5, max_windows=0)
+    assert all(level["windows"] for level in sched.info["levels"])  # every level refined somewhere
+    _check_tiling(sphere, sched, lo=ladder[-1] / 2 - 1e-9, hi=ladder[0] + 1e-9)  # no layer under half the finest
+
+
 @pytest.mark.parametrize("ladder", [(0.1, 1.0), (1.0, -0.5), ()])
 def test_roi_bad_ladder(sphere, ladder):
     with pytest.raises(ParameterError):
