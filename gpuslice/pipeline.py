@@ -234,7 +234,7 @@ def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | Non
 
                 release_scratch(dev)
         out = JobResult(mesh, result, dev, timings, stats)
-        if result.n_layers == 0 and (job.contours is not None or job.checks is not None or job.view is not None):
+        if result.n_layers == 0:  # (also with no output: a summary or a report of no layers, exit 0, hid it)
             from .errors import ParameterError
 
             raise ParameterError(f"{job.model_name}: no layers to write {_too_thin(mesh, job)}")

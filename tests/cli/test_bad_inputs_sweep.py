@@ -273,9 +273,12 @@ def test_terminate_handling_keeps_nohup_and_restores_handlers():
     ["slice", "{cube}", "-t", "100", "-o", "{tmp}/o.svg"],
     ["check", "{cube}", "-t", "100", "--json", "{tmp}/r.json"],
     ["view", "{cube}", "-t", "100", "-o", "{tmp}/v.html"],
+    ["slice", "{cube}", "-t", "100", "--report", "{tmp}/r.json"],
+    ["slice", "{cube}", "-t", "100"],
 ])
 def test_a_model_thinner_than_one_layer_writes_nothing(cube, tmp_path, capsys, args):
-    """`raster` already refused it; `slice`, `check` and `view` wrote an empty file (or report) with exit 0."""
+    """`raster` already refused it; `slice`, `check` and `view` wrote an empty file (or report) with exit 0, and
+    `slice` with only --report, or with no output (its summary: "0 layers"), still did."""
     assert main([a.format(cube=cube, tmp=tmp_path) for a in args]) == 2
     _one_line_error(capsys, str(cube), "no layers to write")
     assert list(tmp_path.iterdir()) == []
