@@ -177,8 +177,11 @@ def load_job_mesh(job: Job, device=None, timings: dict[str, float] | None = None
     raw = read_mesh_source(job.source, job.data, job.label)
     timings["load"] = time.perf_counter() - t
     t = time.perf_counter()
+    # a resin job centres the part on the display anyway (unless --keep-xy): a far one is centred in float64 first
+    auto = job.resin is not None and not job.resin.spec.keep_xy
     mesh = mesh_from_triangles(raw.triangles, raw.normals, scale=job.placement.scale, fit=job.placement.fit,
-                               name=job.model_name, source_format=raw.source_format, solids=raw.solids, device=device)
+                               name=job.model_name, source_format=raw.source_format, solids=raw.solids, device=device,
+                               center=True if job.placement.center else None if auto else False)
     timings["topology"] = time.perf_counter() - t
     return mesh
 

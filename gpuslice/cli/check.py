@@ -22,10 +22,12 @@ from .options import (
     check_output_file,
     check_resin_layers,
     click_options,
+    far_warning,
     refuse_model_as_output,
     slicing_options,
     slicing_values,
     values,
+    warn,
     with_options,
 )
 
@@ -130,6 +132,8 @@ def check(model: str, json_path: str | None, quiet: bool, **kw) -> None:
         done = run_job(Job(source=model, placement=placement, params=params, mesh_check=False, checks=checks))
     except ParameterError as exc:  # CheckOptions' fields as this command's flags (cli.options knows the others)
         raise _with_flags(exc) from None
+    if (far := far_warning(model, done.mesh)) is not None:
+        warn(far)
     if not quiet:
         print_report(done.stats["checks"], Path(model).name)
         if json_path is not None:

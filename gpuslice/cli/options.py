@@ -43,6 +43,23 @@ def warn(message: str) -> None:
     click.echo(f"gpuslice: warning: {message}", err=True)
 
 
+def far_warning(model: str, mesh) -> str | None:
+    """The warning (for :func:`warn`) when ``mesh`` reaches beyond :data:`gpuslice.mesh.mesh.FAR_XY_MM` in X or Y
+    and was not centred: its float32 coordinates, and so its layers, are coarser there than the model may be."""
+    import numpy as np
+
+    from ..mesh.mesh import FAR_XY_MM, extreme_xy
+
+    if mesh is None or mesh.n_faces == 0 or mesh.offset[0] or mesh.offset[1]:
+        return None
+    reach = extreme_xy(mesh.vertices.min(axis=0), mesh.vertices.max(axis=0))
+    if reach <= FAR_XY_MM:
+        return None
+    step = float(np.spacing(np.float32(reach)))
+    return (f"{model}: its X/Y reach {reach:.6g} mm from the origin, where float32 coordinates lie {step:.2g} mm "
+            "apart, and its layers carry that error (--center moves the model to the origin first, in float64)")
+
+
 def open_chains_warning(model: str, result, output: str) -> str | None:
     """The warning (for :func:`warn`) when ``result`` has open chains (a mesh not closed where they are), else None:
     an archive or mask leaves what they outline unfilled, so those layers print blank or partly blank, which nothing

@@ -11,9 +11,11 @@ from .options import (
     check_distinct_outputs,
     check_output_file,
     fail,
+    far_warning,
     refuse_model_as_output,
     slicing_options,
     slicing_values,
+    warn,
     with_options,
 )
 
@@ -88,6 +90,8 @@ def slice_cmd(model: str, output: str | None, fmt_name: str | None, report: str 
                            contours_format=fmt_name, cusp=report is not None))
         if report is not None:
             write_report(build_report(done.result), report)
+    if (far := far_warning(model, done.mesh)) is not None:
+        warn(far)
     meta = done.result.meta
     if not quiet:
         for line in adaptive_lines(meta):

@@ -16,9 +16,11 @@ from .options import (
     check_output_file,
     check_resin_layers,
     fail,
+    far_warning,
     refuse_model_as_output,
     slicing_options,
     slicing_values,
+    warn,
     with_options,
 )
 
@@ -99,6 +101,8 @@ def view(source: str, output: str | None, raster: bool, printer: str, mask_every
     t0 = time.perf_counter()
     done = run_job(Job(source=source, placement=placement, params=params, mesh_check=False, saved_result=True,
                        view=ViewOutput(output, title or None, masks, mask_every), checks=_checks(check, ropts)))
+    if (far := far_warning(source, done.mesh)) is not None:
+        warn(far)
     t1 = done.timings.get("view", 0.0)
     if not quiet:
         m = done.stats.get("masks")

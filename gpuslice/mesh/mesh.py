@@ -37,6 +37,9 @@ __all__ = ["Mesh", "Placement", "load_mesh", "mesh_from_triangles", "mesh_from_a
 
 #: below this many facets the numpy weld is faster than a kernel launch round trip
 DEVICE_WELD_MIN_FACETS = 20_000
+#: X/Y beyond this (mm) are "far from the origin": float32 coordinates there lie more than 0.5 µm apart, so the
+#: crossings lose precision the model had (a float64 source) or need not lose (a resin job centres the part anyway)
+FAR_XY_MM = 4096.0
 
 
 @dataclass
@@ -225,10 +228,13 @@ def count_bodies(mesh: Mesh) -> int:
 @dataclass(frozen=True)
 class Placement:
     """How a mesh is scaled before slicing (declared once, :mod:`gpuslice.options`). It then always stands on the
-    bed: its lowest point at z = 0, X and Y kept. Give ``scale`` or ``fit``, or neither (file units are mm)."""
+    bed: its lowest point at z = 0, X and Y kept unless ``center``. Give ``scale`` or ``fit``, or neither (file units
+    are mm)."""
 
     scale: float | None = option(None, "Multiply coordinates by this factor (to mm)")
     fit: float | None = option(None, "Scale so the longest side is this many mm")
+    center: bool = option(False, "Move the centre of the model's X/Y box to the origin, in float64 before the one "
+                          "rounding to float32 (a model far from the origin keeps its precision)")
 
     def __post_init__(self) -> None:
         _check_scale_fit(self.scale, self.fit)
@@ -256,11 +262,15 @@ def mesh_from_triangles(
     source_format: str = "arrays",
     solids: int = 1,
     device=None,
+    center: bool | None = False,
 ) -> Mesh:
     """Build a :class:`Mesh` from (F, 3, 3) corner coordinates (file units).
 
     ``scale`` multiplies every coordinate; ``fit`` scales so the longest bounding-box side is ``fit`` mm (give one
-    or neither). The result always stands on the bed: its lowest point is moved to z = 0; X and Y are kept.
+    or neither). The result always stands on the bed: its lowest point is moved to z = 0; X and Y are kept, unless
+    ``center`` (True: the centre of the X/Y box is moved to the origin; None: only where the model reaches beyond
+    :data:`FAR_XY_MM`, as resin jobs ask, since they centre the part on the display anyway; ``Mesh.offset`` holds
+    the move).
     Corners are stored as float32: float32 values (an STL's) are welded bit for bit as given, then placed; finer
     values (float64, integers beyond 2^24) are placed in float64 first and rounded once (a model far above the bed
     loses nothing to the rounding of its own frame).
@@ -294,17 +304,18 @@ def mesh_from_triangles(
         # once after, so a model far from z = 0 (or large, then fitted) loses nothing to the rounding of its own
         # far-away frame. Sources whose values are float32 already (an STL's, a Trimesh loaded from one) are
         # welded as stored, then placed: the same mesh as their binary STL.
-        placed = _placement(flat, name, scale, fit)
+        placed = _placement(flat, name, scale, fit, center)
         factor, offset = placed
         corners = np.ascontiguousarray(flat.astype(np.float64) * factor + offset, dtype=np.float32)
     return _from_corners(
         corners, normals, name=name, source_format=source_format, scale=scale, fit=fit, solids=solids,
-        device=device if tri.shape[0] > DEVICE_WELD_MIN_FACETS else None, placed=placed,
+        device=device if tri.shape[0] > DEVICE_WELD_MIN_FACETS else None, placed=placed, center=center,
     )
 
 
-def _placement(verts: np.ndarray, name: str, scale: float | None, fit: float | None):
-    """The scale factor and the offset that put the (scaled) mesh on the bed."""
+def _placement(verts: np.ndarray, name: str, scale: float | None, fit: float | None, center: bool | None = False):
+    """The scale factor and the offset that put the (scaled) mesh on the bed (and its X/Y centre at the origin when
+    ``center``; None: when it reaches beyond :data:`FAR_XY_MM`)."""
     lo = np.array([verts[:, k].min() for k in range(3)], dtype=np.float64)
     hi = np.array([verts[:, k].max() for k in range(3)], dtype=np.float64)
     factor = 1.0
@@ -321,10 +332,19 @@ def _placement(verts: np.ndarray, name: str, scale: float | None, fit: float | N
     if 0 < longest * factor < np.finfo(np.float32).tiny:  # every coordinate would round to 0 (or a subnormal)
         raise InvalidGeometryError(f"{name}: scale {factor:.3g} shrinks the mesh ({longest:.3g} units across) below "
                                    "float32's smallest length")
-    return factor, np.array([0.0, 0.0, -lo[2] * factor])
+    if center is None:
+        center = extreme_xy(lo, hi) * factor > FAR_XY_MM
+    mid = 0.5 * (lo + hi) * factor if center else np.zeros(3)
+    return factor, np.array([-mid[0], -mid[1], -lo[2] * factor])
 
 
-def _from_corners(corners, normals, *, name, source_format, scale, fit, solids, device=None, placed=None) -> Mesh:
+def extreme_xy(lo, hi) -> float:
+    """The largest |x| or |y| of a box (lo, hi), in its units."""
+    return float(np.abs(np.concatenate([np.asarray(lo)[:2], np.asarray(hi)[:2]])).max())
+
+
+def _from_corners(corners, normals, *, name, source_format, scale, fit, solids, device=None, placed=None,
+                  center=False) -> Mesh:
     """The mesh of float32 ``corners`` (3 a facet): welded bit for bit, then scaled and put on the bed
     (:func:`_placement`) unless ``placed`` = (factor, offset) says the caller did that already."""
     n_faces = corners.shape[0] // 3
@@ -340,8 +360,8 @@ def _from_corners(corners, normals, *, name, source_format, scale, fit, solids, 
     if placed is not None:  # (the corners came placed and rounded once)
         factor, offset = placed
     else:
-        factor, offset = _placement(verts, name, scale, fit)
-        if factor != 1.0 or offset[2] != 0.0:
+        factor, offset = _placement(verts, name, scale, fit, center)
+        if factor != 1.0 or offset.any():
             verts = (verts.astype(np.float64) * factor + offset).astype(np.float32) + np.float32(0.0)
     faces = vid.reshape(n_faces, 3)
     good = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])
@@ -379,14 +399,16 @@ def _from_corners(corners, normals, *, name, source_format, scale, fit, solids, 
 
 def mesh_from_arrays(
     vertices: np.ndarray, faces: np.ndarray, *, scale: float | None = None, fit: float | None = None,
-    name: str = "<arrays>",
+    name: str = "<arrays>", center: bool | None = False,
 ) -> Mesh:
-    """Build a :class:`Mesh` from indexed arrays: vertices (V, 3) and faces (F, 3), counter-clockwise outward."""
-    return mesh_from_triangles(_arrays(vertices, faces, name), scale=scale, fit=fit, name=name)
+    """Build a :class:`Mesh` from indexed arrays: vertices (V, 3) and faces (F, 3), counter-clockwise outward
+    (``scale``, ``fit``, ``center``: :func:`mesh_from_triangles`)."""
+    return mesh_from_triangles(_arrays(vertices, faces, name), scale=scale, fit=fit, name=name, center=center)
 
 
 def load_mesh(
-    source, *, scale: float | None = None, fit: float | None = None, device=None, name: str | None = None
+    source, *, scale: float | None = None, fit: float | None = None, device=None, name: str | None = None,
+    center: bool | None = False,
 ) -> Mesh:
     """Load a mesh from a file or from memory, scale it and place it on the bed (lowest z = 0).
 
@@ -401,6 +423,8 @@ def load_mesh(
         scaled and put on the bed before they are rounded to float32 (:func:`mesh_from_triangles`).
     scale : multiply every coordinate by this factor (file units to mm).
     fit : instead, scale so the longest bounding-box side is ``fit`` mm.
+    center : move the centre of the X/Y box to the origin (None: only beyond :data:`FAR_XY_MM`), in float64 before
+        the coordinates are rounded to float32 (:func:`mesh_from_triangles`).
     device : optional OpenCL :class:`~gpuslice.device.Device` to weld on (see :func:`mesh_from_triangles`).
     name : how messages and ``Mesh.name`` call an in-memory source (its suffix picks the format of bytes).
 
@@ -416,11 +440,11 @@ def load_mesh(
         raise ParameterError(f"name must be a string (how messages call the source), got {type(name).__name__}")
     _check_scale_fit(scale, fit)
     if isinstance(source, Mesh):
-        if scale is None and fit is None:
+        if scale is None and fit is None and not center:
             return source
         return mesh_from_triangles(source.triangles, source.stored_normals, scale=scale, fit=fit,
                                    name=name or source.name, source_format=source.source_format,
-                                   solids=source.solids, device=device)
+                                   solids=source.solids, device=device, center=center)
     if isinstance(source, str | os.PathLike):
         from ..io.meshfile import read_mesh_file
 
@@ -442,4 +466,5 @@ def load_mesh(
         source_format=fmt,
         solids=solids,
         device=device,
+        center=center,
     )
