@@ -196,6 +196,8 @@ class BatchOptions:
         p = self.params
         d: dict[str, Any] = {k: getattr(p, k) for k in ("thickness", "first_layer", "z_mode", "fill_rule", "max_gap")}
         d.update(asdict(self.placement))
+        if d.pop("center"):  # recorded only when set: folders made before --center keep their fingerprint
+            d["center"] = True
         d.update(fmt=self.fmt, raster=self.raster,
                  raster_options=[[k, _as_recorded(v)] for k, v in self.raster_options])
         d["schedule"] = {k: list(v) if isinstance(v, tuple) else v for k, v in
