@@ -120,8 +120,12 @@ void runs_pieces(const int n_units, __global const int4 *units, __global const f
 // cuts the others into units), and an upper bound of the cell records it gives each row, added as a difference
 // over its rows: cap_diff[g0] += b, cap_diff[g1 + 1] -= b (integer atomics: order-free). A row piece spans
 // |xe - xs| <= |dudv| * 1.002 + 0.05 columns (ye - ys <= 1; float32 errors: y - v0 rounded by <= 2^-11 (tile-local
-// v < 2^14), times |dudv|, twice; u < 2^14: < 0.002 more each), so <= floor(that) + 2 cells and one record more;
-// b >= 2 (a piece's descriptor takes 2 int2 slots) unless extra < 0 (tests: forces the fallback).
+// v < 2^14), times |dudv|, twice; u < 2^14: < 0.002 more each), and <= |u1 - u0| * 1.002 + 0.05 (a piece lies on
+// the edge: y - v0 is exact where y and v0 are within 2x of each other (Sterbenz), else both are under 2 |dv| and
+// it is rounded by <= 2^-23 |dv|, so x = u0 + (y - v0) * dudv is off by <= ~2^-21 |du| + 2^-11: without that bound
+// a short, nearly horizontal edge reserved a whole tile row, 60x a batch's budget on a CAD part), so <= floor(the
+// smaller) + 2 cells and one record more; b >= 2 (a piece's descriptor takes 2 int2 slots) unless extra < 0 (tests:
+// forces the fallback, which also catches a bound that was too small).
 __kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
 void runs_prep(const int n_edges, const int rows_max, const int extra, __global const float4 *edges,
                __global const int *edge_tile, __global const int4 *tiles, __global uchar *whole,
@@ -139,7 +143,8 @@ void runs_prep(const int n_edges, const int rows_max, const int extra, __global 
     }
     const float q = (e.z - e.x) / (e.w - e.y), ad = RUNS_HI(q, -q);
     whole[gid] = rb - ra < rows_max;
-    const int b = RUNS_HI(RUNS_LO(runs_floor(RUNS_LO(ad * 1.002f + 0.05f, (float)t.y)) + 3, t.y + 1) + extra, 0);
+    const float du = e.z - e.x, span = RUNS_LO(ad, RUNS_HI(du, -du)) * 1.002f + 0.05f;
+    const int b = RUNS_HI(RUNS_LO(runs_floor(RUNS_LO(span, (float)t.y)) + 3, t.y + 1) + extra, 0);
     atomic_add(cap_diff + t.x + ra, b);
     atomic_sub(cap_diff + t.x + rb + 1, b);
 }

@@ -95,8 +95,9 @@ class RunsKernel(KernelDriver):
         # kernel objects of this driver's own: a lane's driver sets their arguments from its own thread
         self._prep, self._edges, self._pieces, self._rows_k, self._emit = (
             cl.Kernel(prog, name) for name in ("runs_prep", "runs_edges", "runs_pieces", "runs_rows", "runs_emit"))
-        #: rows finished on the host so far (more than CH records), batches redone by the numpy twin
-        self.long_rows = self.fallbacks = 0
+        #: rows finished on the host so far (more than CH records), batches redone by the numpy twin; the most
+        #: piece slots (int2, 8 bytes each) one batch's capacities reserved
+        self.long_rows = self.fallbacks = self.peak_slots = 0
         #: set to a dict to get seconds per stage added up in it (the queue is then drained after each stage)
         self.timings: dict[str, float] | None = None
         self._t = 0.0
@@ -174,6 +175,7 @@ class RunsKernel(KernelDriver):
         np.cumsum(cap, out=cap)  # (in place: row_off[1:])
         if row_off[-1] >= 2**31:
             raise ParameterError("too many pieces in one batch of layers: lower max_batch_pieces")
+        self.peak_slots = max(self.peak_slots, int(row_off[-1]))
         split = np.flatnonzero(whole == 0)
         self._mark("prep: bounds, capacities")
         off32 = self._host("row_off32", n_rows + 1, np.int32)

@@ -314,6 +314,25 @@ def test_random_slopes(device, seed):
         check_against_raster(res, spec, list(range(6)), device)
 
 
+def test_short_nearly_horizontal_edges_reserve_what_they_cover(device):
+    """A zigzag of 4,000 edges 0.5 px long and 0.004 px tall across a row boundary, on a 4,000-column display: each
+    piece's capacity was bounded by |du/dv| (125 columns here, the whole tile row for flatter ones), reserving
+    ~60x a batch's budget on a CAD part (fandisk: 1.3 GB); it is now bounded by the edge's own |du| too."""
+    n = 4000
+    x = 10.0 + 0.5 * np.arange(n + 1)
+    top = np.c_[x, np.where(np.arange(n + 1) % 2, 20.002, 19.998)]
+    poly = np.concatenate([top, [[x[-1], 10.0], [x[0], 10.0]]])[::-1]  # counter-clockwise
+    res = make_result([[(poly, False, -1, True)]])
+    spec = RasterSpec(resolution=(4000, 40), pixel=1.0, keep_xy=True, gamma=1.0)
+    kern = RunsKernel.of(device)
+    kern.peak_slots, fallbacks = 0, kern.fallbacks
+    b = kern.run(layer_edges(res, spec), range(1), gamma_lut(1.0), spec.shape)
+    assert kern.fallbacks == fallbacks
+    assert 0 < kern.peak_slots < 20 * (n + 2) * 2  # a few cells an edge in each of its two rows (was ~2,000,000)
+    assert_runs_equal(runs_numpy(layer_edges(res, spec), gamma_lut(1.0), spec.shape), b)
+    check_against_raster(res, spec, [0], device)
+
+
 def test_iter_runs_batches_and_empty_layers(device):
     res = slice_mesh(mesh_from_triangles(shapes.torus(15.0, 5.0, 48, 24)), z=np.array([-1.0, 2.0, 5.0, 50.0]),
                      backend="numpy")
