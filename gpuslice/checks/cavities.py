@@ -264,7 +264,9 @@ class CavityFinder:
             lo, hi, border = lines.gaps_touching(line[up] + rows, a[up], b[up], np.ones(up.size, bool))
             q, j = expand_pairs(lo, hi)
             other = hole_of[j]
-            self.edges.append((h[up][q[other >= 0]], other[other >= 0]))
+            # one link per pair of holes, not one per grid row they share (kept for the whole model: memory)
+            key = np.unique(h[up][q[other >= 0]].astype(np.int64) << 32 | other[other >= 0].astype(np.int64))
+            self.edges.append((key >> 32, key & 0xFFFFFFFF))
             self.open_above.append(np.unique(np.concatenate([h[up][border], h[up][q[other < 0]]])))
         layer = k + lines.layer0
         down = np.flatnonzero((h >= 0) & (k >= 1) & (layer >= 1))  # this batch's own layers; layer 0: the plate

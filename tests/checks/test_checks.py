@@ -497,6 +497,13 @@ def test_batches_give_the_same_answers():
 
     (c1, i1), (c2, i2) = run(whole), run(small)
     assert c1.kind.tolist() == c2.kind.tolist() == [TRAP, SUCTION_CUP, SUCTION_CUP]
+    # the links kept between holes are one per pair, not one per grid row two holes share (a helper's memory audit:
+    # 57 KB a layer on a hollow box at 12K pixels, 1.19 GB at 16,000 layers)
+    f = CavityFinder(*spec.shape, np.linalg.inv(np.vstack([spec.affine(None), [0, 0, 1]]))[:2], 0.01, res.thickness,
+                     res.z, 0.1)
+    f.feed(*whole[0])
+    pairs = np.concatenate([np.stack(e, axis=1) for e in f.edges])
+    assert len(pairs) == len(np.unique(pairs, axis=0)) and len(pairs) <= 2 * f.n_holes
     for name in ("volume", "layer_min", "layer_max", "x", "y", "z", "max_area"):
         assert np.array_equal(getattr(c1, name), getattr(c2, name)), name
     assert np.array_equal(i1.unsupported, i2.unsupported) and np.array_equal(i1.layer, i2.layer)
