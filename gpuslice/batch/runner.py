@@ -16,11 +16,10 @@ from __future__ import annotations
 import collections
 import contextlib
 import json
-import multiprocessing
 import os
 import time
-from collections.abc import Callable, Iterable, Sequence
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from collections.abc import Callable, Sequence
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,6 +31,7 @@ from . import journal as _journal
 from .discover import Model, discover
 from .journal import JOURNAL_NAME, forget_journal, read_journal, record_finished, record_written_since, unchanged
 from .options import BatchOptions, check_path, same_options
+from .pool import Slot, helpers_ignoring_sighup, mp_context, stop_slots
 from .report import checks_summary
 from .task import _cores, _worker_device, default_workers, init_worker, pocl_thread_env, run_model
 
@@ -43,18 +43,7 @@ MANIFEST_NAME = ".gpuslice-batch.json"
 PREFETCH = 2
 #: a model whose worker died this many times is reported failed instead of re-run again
 MAX_LOST = 2
-_PRELOAD = ["gpuslice.batch.task", "gpuslice.pipeline", "gpuslice.slicing.slicer", "gpuslice.io.meshfile",
-            "gpuslice.formats", "gpuslice.io.atomic", "gpuslice.mesh.defects", "shapely"]
 
-
-def _mp_context():
-    methods = multiprocessing.get_all_start_methods()
-    if "forkserver" in methods:  # pyopencl contexts do not survive fork; forkserver forks a clean process
-        ctx = multiprocessing.get_context("forkserver")
-        # imported once in the forkserver, inherited by every worker (no OpenCL there: contexts come after the fork)
-        ctx.set_forkserver_preload(_PRELOAD)
-        return ctx
-    return multiprocessing.get_context("spawn")
 
 
 @dataclass
@@ -65,16 +54,6 @@ class _Task:
     avoid: str | None = None  # the worker a failed first attempt ran on
     errors: list[str] = field(default_factory=list)
     workers: list[str] = field(default_factory=list)  # the workers of earlier attempts
-
-
-@dataclass
-class _Slot:
-    """One local worker: a single-process executor, so a retry can be sent to another worker and a dead worker
-    breaks only its own executor."""
-
-    name: str
-    executor: ProcessPoolExecutor
-    inflight: dict[Future, _Task] = field(default_factory=dict)
 
 
 class BatchRunner:
@@ -221,7 +200,7 @@ class BatchRunner:
 
     # ---- local worker processes --------------------------------------------------------------------------
     def _run_local(self, tasks: list[_Task], workers: int, threads: int) -> None:
-        ctx = _mp_context()
+        ctx = mp_context()
         # the whole environment: a forkserver started earlier carries the environment of that moment
         env = {**os.environ, **pocl_thread_env(threads)}
         init_args = (env, self.opts.params.device, self.opts.params.backend, self.opts.raster is not None)
@@ -229,12 +208,13 @@ class BatchRunner:
         def new_executor():
             return ProcessPoolExecutor(1, mp_context=ctx, initializer=init_worker, initargs=init_args)
 
-        slots = [_Slot(f"local-{k}", new_executor()) for k in range(workers)]
+        helpers_ignoring_sighup(ctx)
+        slots = [Slot(f"local-{k}", new_executor()) for k in range(workers)]
         self._slots = slots
         queue: collections.deque[_Task] = collections.deque(tasks)
         out_root = str(self.out_dir)
 
-        def take(slot: _Slot) -> _Task | None:
+        def take(slot: Slot) -> _Task | None:
             for k, t in enumerate(queue):
                 if t.avoid != slot.name:
                     del queue[k]
@@ -294,7 +274,7 @@ class BatchRunner:
                         slot.executor.shutdown(wait=False, cancel_futures=True)
                         slot.executor = new_executor()
         except BaseException:
-            _stop_slots(slots)
+            stop_slots(slots)
             raise
         for slot in slots:
             slot.executor.shutdown(wait=True)
@@ -444,29 +424,6 @@ class BatchRunner:
             "models": records,
             "summary": summary,
         }
-
-
-def _stop_slots(slots: Iterable[_Slot]) -> None:
-    """Cancel what is queued and stop every worker now (Ctrl-C): SIGTERM (the worker removes its temporary
-    output), then SIGKILL for any still running a second later."""
-    procs = []
-    for slot in slots:
-        for fut in slot.inflight:
-            fut.cancel()
-        procs += list((getattr(slot.executor, "_processes", None) or {}).values())
-    for p in procs:
-        with contextlib.suppress(Exception):
-            p.terminate()
-    deadline = time.monotonic() + 1.0
-    for p in procs:
-        with contextlib.suppress(Exception):
-            p.join(max(0.0, deadline - time.monotonic()))
-            if p.is_alive():
-                p.kill()
-                p.join(1.0)
-    for slot in slots:
-        with contextlib.suppress(Exception):
-            slot.executor.shutdown(wait=False, cancel_futures=True)
 
 
 def _device_plugin(device: str | None, backend: str):

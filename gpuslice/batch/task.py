@@ -79,8 +79,11 @@ def init_worker(env: dict[str, str] | None = None, device: str | None = None, ba
     ``one_arena``: its threads share one malloc arena (a batch of resin outputs: as ``gpuslice raster``,
     :func:`gpuslice.allocator.one_malloc_arena`).
 
-    Ctrl-C goes to the whole process group; the workers ignore it (the driver stops them), and SIGTERM unwinds
-    the worker (``SystemExit``) so a half-written temporary output is removed.
+    Ctrl-C and a closed terminal (SIGHUP) go to the whole process group; the workers ignore both (the driver stops
+    them). SIGTERM unwinds the worker's model (``SystemExit``) so a half-written temporary output is removed, then
+    ends the process (:func:`run_model`): the pool would take the ``SystemExit`` for the model's result and wait for
+    the next, so a SIGTERM sent to the whole group (a service manager's stop) left the workers running for ever. A
+    worker whose forkserver dies (the driver gone) gets SIGTERM too (Linux: ``PR_SET_PDEATHSIG``).
     """
     os.environ.update(env or {})
     if one_arena:  # (before the device's threads start)
@@ -88,7 +91,14 @@ def init_worker(env: dict[str, str] | None = None, device: str | None = None, ba
 
         resin_arena()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    _WORKER["local"] = True
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(Exception):
+            import ctypes
+
+            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
     t = time.perf_counter()
     if backend == "opencl":
         with contextlib.suppress(GpusliceError):  # reported by the first task instead
@@ -209,8 +219,11 @@ def run_model(model: Model, opts: BatchOptions, out_root: str | None, data: byte
         # file this worker could not read, its memory, a device: it may not)
         rec["deterministic"] = isinstance(exc, ParameterError) or (
             isinstance(exc, MeshFileError) and not getattr(exc, "os_error", False))
-    except BaseException:  # stopped (Ctrl-C, SIGTERM): none of its files, or all
+    except BaseException as exc:  # stopped (Ctrl-C, SIGTERM): none of its files, or all
         _remove_written(mine, started_ns)
+        if isinstance(exc, SystemExit) and _WORKER.get("local"):  # (a local worker's SIGTERM: the process ends)
+            sys.stdout.flush()
+            os._exit(143)
         raise
     timings["total"] = time.perf_counter() - t0
     rec["timings_s"] = timings

@@ -12,7 +12,7 @@ import sys
 
 import click
 
-from ..batch.options import BatchOptions
+from ..batch.options import BatchOptions, check_path
 from .options import (
     RESIN_DEFAULTS,
     build,
@@ -225,7 +225,10 @@ def _check_report_clear(report: str, inputs, models, out_dir: str) -> None:
     given = {real(os.fspath(x)) for x in inputs if os.path.isfile(os.fspath(x))}  # model and list files named
     if rep in given or any(rep == m.path for m in models):  # (a model's path is resolved by discover)
         fail(f"{report}: --report names an input of the batch; name another file")
+    if os.path.dirname(rep) == root and os.path.basename(rep).startswith(".gpuslice-batch"):
+        # (its manifest or journal: the next run then refused the folder)
+        fail(f"{report}: --report names the batch's own record in {out_dir}; name another file")
     for m in models:
         out = os.path.join(root, m.out)
-        if rep == out or rep.startswith(out + os.sep):
+        if rep == out or rep.startswith(out + os.sep) or rep == os.fspath(check_path(out)):
             fail(f"{report}: --report names the output of {m.src}; name another file")

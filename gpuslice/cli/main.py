@@ -242,12 +242,18 @@ def exit_now(code: int) -> None:
 
 
 def _remove_multiprocessing_tempdir() -> None:
-    """Remove the ``pymp-*`` folder :mod:`multiprocessing` made in ``$TMPDIR`` for this process (a forkserver's
-    socket: ``batch -j N``, the PNG encoder processes), as its exit handler would: :func:`os._exit` skips that handler,
-    and every such command left the folder behind, with its dead socket."""
+    """Do what :mod:`multiprocessing`'s exit handler would, which :func:`os._exit` skips: its finalisers of priority
+    >= 0 (the semaphores of the executors' queues, unregistered from the resource tracker, which otherwise warned of
+    "leaked semaphore objects" on stderr after an interrupted ``batch -j N``), and remove the ``pymp-*`` folder it made
+    in ``$TMPDIR`` for this process (a forkserver's socket: ``batch -j N``, the PNG encoder processes; every such
+    command left it behind, with its dead socket)."""
     process = sys.modules.get("multiprocessing.process")
     if process is None:
         return
+    util = sys.modules.get("multiprocessing.util")
+    if util is not None:
+        with contextlib.suppress(Exception):
+            util._run_finalizers(0)
     tempdir = getattr(process.current_process(), "_config", {}).get("tempdir")
     if tempdir:
         shutil.rmtree(tempdir, ignore_errors=True)

@@ -155,6 +155,10 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
         fail(f"{output}: directory {parent} does not exist")
     check_output_file(report, creates=output)  # (a PNG stack's folder is made by the command)
     check_distinct_outputs(output, report)
+    if report is not None and fmt.folder and Path(report).resolve().is_relative_to(Path(output).resolve()):
+        # (a report named as a layer replaced that layer; any other made the next run refuse the folder)
+        fail(f"{report}: lies inside {output.rstrip('/')}/, which holds only the {fmt.title}'s layers: write the "
+             "report beside it")
     params, placement = slicing_values(kw, RESIN_DEFAULTS)
     check_resin_layers(params)
     options = build(ResinOptions, kw)
@@ -170,10 +174,8 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
 
         procs = enabled()
     bar = _Bar(f"raster {Path(output).name}", progress)
-    # the archive and the report renamed into place together, or neither (a report inside the PNG stack's folder
-    # is written once the folder is in place)
-    inside = report is not None and fmt.png and Path(report).resolve().is_relative_to(Path(output).resolve())
-    with nullcontext() if inside else committed_together():
+    # the archive and the report renamed into place together, or neither
+    with committed_together():
         try:
             with procs:
                 done = run_job(job, progress=bar)

@@ -349,16 +349,23 @@ def test_batch_terminated_exits_with_the_signal(cube, tmp_path, capsys, monkeypa
     assert err.startswith("gpuslice: terminated (SIGTERM): 0 done") and "Traceback" not in err
 
 
-@pytest.mark.parametrize("cmd", ["batch", "raster"])
-def test_a_report_inside_the_output_folder_the_command_makes(cube, tmp_path, cmd):
-    """`batch -o out --report out/r.json` and `raster -o stack/ --report stack/r.json`: the folder does not exist
-    yet, but the command makes it before the report is written (the sweep's first check refused them)."""
+def test_a_report_inside_the_output_folder_the_command_makes(cube, tmp_path):
+    """`batch -o out --report out/r.json`: the folder does not exist yet, but the command makes it before the report
+    is written (the sweep's first check refused them)."""
     out = tmp_path / "out"
-    args = (["batch", str(cube), "-o", str(out), "-q", "-j", "0"] if cmd == "batch" else
-            ["raster", str(cube), "-o", f"{out}/", "--format", "png", "-q", "--no-progress",
-             "--resolution", "600x600"])
-    assert main([*args, "--report", str(out / "r.json")]) == 0
+    assert main(["batch", str(cube), "-o", str(out), "-q", "-j", "0", "--report", str(out / "r.json")]) == 0
     assert (out / "r.json").stat().st_size > 0
+
+
+@pytest.mark.parametrize("name", ["r.json", "cube00000.png"])
+def test_a_report_inside_a_png_stack_is_refused(cube, tmp_path, capsys, name):
+    """`raster -o stack/ --report stack/cube00000.png` replaced layer 0 with the JSON report, exit 0 (an audit of
+    the outputs); `--report stack/r.json` made the next run refuse the folder, which held another file."""
+    out = tmp_path / "stack"
+    assert main(["raster", str(cube), "-o", f"{out}/", "-q", "--no-progress", "--resolution", "600x600",
+                 "--report", str(out / name)]) == 2
+    _one_line_error(capsys, str(out / name), "which holds only the PNG stack's layers")
+    assert not out.exists()
 
 
 @pytest.mark.skipif(sys.platform == "win32", reason="file names of arbitrary bytes")
