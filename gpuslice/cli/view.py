@@ -77,7 +77,7 @@ def view(source: str, output: str | None, raster: bool, printer: str, mask_every
         fail(f"--mask-every must be >= 1, got {mask_every}")
     if src.suffix.lower() == ".npz":
         flags = {i.name: i.flags[0] for cls in (SliceParams, Placement) for i in options_of(cls) if i.flags}
-        given = [flags[k] for k, v in kw.items() if v is not None and k in flags]
+        given = [flags[k] for k, v in kw.items() if v is not None and v is not False and k in flags]  # (flags: True)
         if given:
             fail(f"{source}: a saved result is already sliced; {', '.join(given)} only "
                  f"{'applies' if len(given) == 1 else 'apply'} to meshes")

@@ -12,6 +12,7 @@ import contextvars
 import os
 import secrets
 import shutil
+import stat
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -67,16 +68,25 @@ WRITE_BUFFER = 1 << 22
 def refuse_special(path: str | os.PathLike) -> None:
     """:class:`ParameterError` when ``path`` exists (through symbolic links) and is neither a regular file nor a
     folder: a device such as ``/dev/null``, a FIFO or a socket, which an atomic write would replace by a regular file
-    (for every program on the machine, in ``/dev``'s case)."""
+    (for every program on the machine, in ``/dev``'s case); or a write-protected file (no write permission for
+    anyone, as ``chmod a-w`` leaves it), which the rename would replace without a word where ``cp`` and a shell's
+    ``>`` refuse."""
     p = Path(os.fspath(path))
     try:
         mode = p.stat().st_mode
     except OSError:  # does not exist (or a dangling link, replaced as a file is): nothing to protect
         return
-    import stat
-
     if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
         raise ParameterError(f"{p}: not a regular file (a device, FIFO or socket); gpuslice writes files: name one")
+    if stat.S_ISREG(mode) and not mode & 0o222:
+        raise ParameterError(f"{p}: is write-protected; make it writable (chmod u+w) to replace it, or name another "
+                             "file")
+
+
+def _target(path: Path) -> Path:
+    """Where an output named ``path`` goes: through a symbolic link to the file it names (the rename replaced the
+    link itself with a file and left its target stale), else ``path``."""
+    return Path(os.path.realpath(path)) if path.is_symlink() else path
 
 
 @contextlib.contextmanager
@@ -126,7 +136,7 @@ def atomic_path(path: PathLike, *, fsync: bool = True) -> Iterator[Path]:
     ...     with open(tmp, "wb") as fh:
     ...         fh.write(data)
     """
-    final = Path(os.fspath(path))
+    final = _target(Path(os.fspath(path)))
     directory = final.parent
     if not directory.is_dir():
         raise ParameterError(f"{final}: directory {directory} does not exist")
@@ -153,6 +163,8 @@ def _commit(tmp: Path, final: Path, fsync: bool) -> None:
         else:
             if final.is_dir() and not final.is_symlink():
                 raise ParameterError(f"{final}: is a directory")
+            with contextlib.suppress(OSError):  # a file replaced keeps its permissions (a 0600 output stays private)
+                os.chmod(tmp, stat.S_IMODE(final.stat().st_mode))
             if fsync:
                 _fsync_file(tmp)
             os.replace(tmp, final)

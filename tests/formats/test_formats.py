@@ -475,6 +475,36 @@ def test_atomic_path_errors(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["d"]
 
 
+@pytest.mark.skipif(os.name == "nt", reason="POSIX links and modes")
+def test_atomic_path_through_links_and_over_protected_files(tmp_path):
+    """An audit of the outputs: a symbolic link was replaced by a file and its target left stale (exit 0); a folder
+    reached through a link failed with "Not a directory"; a write-protected file was replaced without a word; a
+    0600 output came back 0644."""
+    (tmp_path / "real").mkdir()
+    target = tmp_path / "real" / "t.bin"
+    target.write_bytes(b"old")
+    link = tmp_path / "l.bin"
+    link.symlink_to(target)
+    atomic_write_bytes(link, b"new")
+    assert link.is_symlink() and target.read_bytes() == b"new"
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "a").write_bytes(b"1")
+    (tmp_path / "dl").symlink_to(tmp_path / "d")
+    with atomic_path(tmp_path / "dl") as tmp:
+        tmp.mkdir()
+        (tmp / "b").write_bytes(b"2")
+    assert (tmp_path / "dl").is_symlink() and sorted(p.name for p in (tmp_path / "d").iterdir()) == ["b"]
+    private = tmp_path / "p.bin"
+    private.write_bytes(b"x")
+    private.chmod(0o600)
+    atomic_write_bytes(private, b"y")
+    assert private.read_bytes() == b"y" and private.stat().st_mode & 0o777 == 0o600
+    private.chmod(0o444)
+    with pytest.raises(ParameterError, match=r"p\.bin: is write-protected"):
+        atomic_write_bytes(private, b"z")
+    assert private.read_bytes() == b"y" and not [p for p in tmp_path.iterdir() if ".tmp-" in p.name]
+
+
 def test_atomic_write_helpers(tmp_path):
     atomic_write_bytes(tmp_path / "b.bin", b"\x00\x01")
     atomic_write_text(tmp_path / "t.txt", "é\r\nx")
