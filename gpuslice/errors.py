@@ -69,8 +69,11 @@ def flatten(text: str, limit: int | None = None) -> str:
 
 def one_line(exc: BaseException) -> str:
     """The one-line message of ``exc`` for a user: a :class:`GpusliceError`'s own message (it names the file and the
-    problem), any other exception's as ``Type: message``; the type name alone when the message is empty."""
+    problem), an :class:`OSError` naming a file as ``file: reason`` (as the command line says it), any other
+    exception's as ``Type: message``; the type name alone when the message is empty."""
     text = flatten(str(exc))
     if isinstance(exc, GpusliceError):
         return text or type(exc).__name__
+    if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
+        return f"{exc.filename}: {flatten(exc.strerror)}"
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__

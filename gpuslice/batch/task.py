@@ -8,6 +8,7 @@ How many worker processes and PoCL threads a machine gets by default: :func:`def
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import signal
 import socket
@@ -71,6 +72,11 @@ def _worker_device(spec: str | None):
         _WORKER[key] = dev
         _WORKER["init_s"] = _WORKER.get("init_s", 0.0) + time.perf_counter() - t
     return _WORKER[key]
+
+
+#: errors writing an output that no other worker would escape: a full disk or quota, a read-only file system, a file
+#: over the size limit (retrying each model on another worker only doubled the failures)
+_OUTPUT_FULL = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG}
 
 
 def init_worker(env: dict[str, str] | None = None, device: str | None = None, backend: str = "opencl",
@@ -218,7 +224,8 @@ def run_model(model: Model, opts: BatchOptions, out_root: str | None, data: byte
         # what the file holds or the options are at fault: another worker would fail the same way, so no retry (a
         # file this worker could not read, its memory, a device: it may not)
         rec["deterministic"] = isinstance(exc, ParameterError) or (
-            isinstance(exc, MeshFileError) and not getattr(exc, "os_error", False))
+            isinstance(exc, MeshFileError) and not getattr(exc, "os_error", False)) or (
+            isinstance(exc, OSError) and exc.errno in _OUTPUT_FULL)  # (the output's disk: every worker's)
     except BaseException as exc:  # stopped (Ctrl-C, SIGTERM): none of its files, or all
         _remove_written(mine, started_ns)
         if isinstance(exc, SystemExit) and _WORKER.get("local"):  # (a local worker's SIGTERM: the process ends)

@@ -77,12 +77,12 @@ def slice_cmd(model: str, output: str | None, fmt_name: str | None, report: str 
     from ..io.report import write_report
     from ..pipeline import Job, run_job
 
+    check_output_file(output, report)  # a folder that is missing: refused now, not after the slicing ("out/": a folder)
     if output is not None:
         format_for(output, fmt_name)  # an unknown suffix fails before any work
     elif fmt_name is not None:
         fail(f"--format {fmt_name} needs -o, the file to write")
     refuse_model_as_output(model, output, report)
-    check_output_file(output, report)  # a folder that is missing: refused now, not after the slicing
     check_distinct_outputs(output, report)
     params, placement = slicing_values(kw)
     with committed_together():  # the layers and the report renamed into place together, or neither

@@ -3,6 +3,7 @@ file reported while the others finish, re-runs skipping finished models, a worke
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import shutil
@@ -352,6 +353,7 @@ def test_only_a_failure_another_attempt_may_not_repeat_is_retried(tmp_path, devi
     models.mkdir()
     shapes.write_stl(shapes.box(), models / "cube.stl")
     shapes.write_stl(shapes.cone(n=12), models / "cone.stl")
+    shapes.write_stl(shapes.box(), models / "full.stl")
     (models / "garbage.stl").write_bytes(b"solid nothing\n  facet normal 0 0 1\n")
     real, calls = gpuslice.pipeline.run_job, []
 
@@ -362,6 +364,8 @@ def test_only_a_failure_another_attempt_may_not_repeat_is_retried(tmp_path, devi
             raise RuntimeError("clEnqueueNDRangeKernel failed: OUT_OF_RESOURCES")
         if name == "cone.stl":
             raise ParameterError(f"{job.model_name}: refused")
+        if name == "full.stl":  # (a full disk: every worker's, so not retried; said as the command line says it)
+            raise OSError(errno.ENOSPC, "No space left on device", job.contours)
         return real(job, **kw)
 
     monkeypatch.setattr(gpuslice.pipeline, "run_job", flaky)
@@ -369,9 +373,11 @@ def test_only_a_failure_another_attempt_may_not_repeat_is_retried(tmp_path, devi
     recs = _by_model(report)
     assert recs["cube.stl"]["status"] == "done" and recs["cube.stl"]["attempts"] == 2
     assert "OUT_OF_RESOURCES" in recs["cube.stl"]["earlier_errors"][0]
-    for name in ("garbage.stl", "cone.stl"):
+    for name in ("garbage.stl", "cone.stl", "full.stl"):
         assert recs[name]["status"] == "failed" and recs[name]["attempts"] == 1
-    assert calls.count("garbage.stl") <= 1 and calls.count("cone.stl") == 1
+    assert calls.count("garbage.stl") <= 1 and calls.count("cone.stl") == 1 and calls.count("full.stl") == 1
+    assert recs["full.stl"]["error"].endswith("full.npz: No space left on device"), recs["full.stl"]["error"]
+    assert "OSError" not in recs["full.stl"]["error"]
     assert report["summary"]["retries"] == 1
     assert not any("deterministic" in r for r in report["models"])
 

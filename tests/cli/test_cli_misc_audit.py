@@ -14,6 +14,9 @@ def test_a_report_path_ending_in_a_slash_is_a_folder(tmp_path, capsys):
     assert main(["slice", str(stl), "-t", "1", "-o", str(tmp_path / "x.npz"), "--report", report]) == 2
     assert "is a folder; name the file to write" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cube.stl"]
+    # `slice -o newdir/` said "unknown output format ''" (an audit of the outputs, twenty-third session)
+    assert main(["slice", str(stl), "-t", "1", "-o", report]) == 2
+    assert "new/: is a folder; name the file to write" in capsys.readouterr().err
 
 
 def test_shape_writes_stl_only(tmp_path, capsys):
