@@ -5,6 +5,7 @@ by :func:`gpuslice.slicing.slicer.slice_mesh`, the slicing stages the bench time
 
 from __future__ import annotations
 
+import contextlib
 import json
 from pathlib import Path
 
@@ -105,6 +106,25 @@ def _table(res) -> None:
 
 
 
+@contextlib.contextmanager
+def _plots_into(path: str):
+    """Make the plot directory (:func:`_make_dir`) and write the plots in the block as one set: renamed into place
+    together at its end, or none of them (a full disk halfway left part of a set, old and new plots mixed); a
+    directory this command made is removed again when the block fails."""
+    from ..io.atomic import committed_together
+
+    made = not Path(path).exists()
+    _make_dir(path)
+    try:
+        with committed_together():
+            yield
+    except BaseException:
+        if made:
+            with contextlib.suppress(OSError):
+                Path(path).rmdir()  # (only when empty)
+        raise
+
+
 def _make_dir(path: str, create: bool = True) -> None:
     """Create the plot directory (as ``mkdir -p`` of one level); its parent must exist. ``create=False`` only checks
     (before the work, so that a failed run leaves no empty directory)."""
@@ -164,8 +184,8 @@ def bench(model, thicknesses, modes, repeat, no_quality, ref_thickness, as_json,
     if plots_dir is not None:
         from ..bench.plots import plot_all
 
-        _make_dir(plots_dir)
-        paths = plot_all(res.results, plots_dir, Path(model).stem)
+        with _plots_into(plots_dir):
+            paths = plot_all(res.results, plots_dir, Path(model).stem)
         click.echo(f"wrote {len(paths)} plot files to {plots_dir}", err=as_json or as_csv)
 
 
@@ -193,11 +213,11 @@ def plot(model, thicknesses, modes, out_dir, layers, **kw) -> None:
     bad = [i for i in idx if not 0 <= i < first.n_layers]
     if bad:
         fail(f"--layers: {bad} out of range (0..{first.n_layers - 1})")
-    _make_dir(out_dir)
     name = Path(model).stem
-    paths = plot_all(results, out_dir, name)
-    if layers:
-        paths += plot_layers(first, idx or default_layers(first), Path(out_dir) / f"{name}_layers_chosen")
+    with _plots_into(out_dir):
+        paths = plot_all(results, out_dir, name)
+        if layers:
+            paths += plot_layers(first, idx or default_layers(first), Path(out_dir) / f"{name}_layers_chosen")
     for lv in (r.meta.get("adaptive") or {} for r in results.values()):
         for x in lv.get("levels", []):
             wins = ", ".join(f"z {w['z_mm'][0]:.4g}..{w['z_mm'][1]:.4g} mm" for w in x["windows"]) or "none"

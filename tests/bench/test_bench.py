@@ -280,6 +280,34 @@ def test_plot_command(sphere_stl, tmp_path, capsys):
     assert main(["plot", str(sphere_stl), "-t", "0.5", "-o", str(tmp_path / "sphere_points.png")]) == 2
 
 
+def test_a_plot_set_that_fails_halfway_leaves_nothing(sphere_stl, tmp_path, monkeypatch, capsys):
+    """A full disk at the third plot left the first two (and the folder plot made): the set is written together,
+    or none of it (an audit of the outputs)."""
+    pytest.importorskip("matplotlib")
+    import errno
+
+    import gpuslice.bench.plots as plots
+
+    real, count = plots._save, []
+
+    def save(fig, stem):
+        count.append(stem)
+        if len(count) == 3:
+            raise OSError(errno.ENOSPC, "No space left on device", str(stem) + ".png")
+        return real(fig, stem)
+
+    monkeypatch.setattr(plots, "_save", save)
+    assert main(["plot", str(sphere_stl), "-t", "0.5", "-o", str(tmp_path / "new")]) == 2
+    assert "No space left on device" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "keep.txt").write_text("x")
+    count.clear()
+    assert main(["plot", str(sphere_stl), "-t", "0.5", "-o", str(old)]) == 2
+    assert sorted(p.name for p in old.iterdir()) == ["keep.txt"]
+
+
 def test_plot_svg_is_reproducible(sphere_stl, tmp_path):
     """The same plot twice gives the same SVG bytes (matplotlib's element ids are salted, not random)."""
     pytest.importorskip("matplotlib")
