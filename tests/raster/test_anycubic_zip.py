@@ -99,6 +99,14 @@ def test_torus_layers_settings_and_tables(tmp_path, torus, gamma, suffix):
     rec = sc["records"]
     assert np.allclose(rec["z"], 0.5 * np.arange(1, n + 1)) and np.allclose(rec["area"], torus.area, atol=1e-3)
     layer, area = polygon_areas(torus)
+    import gpuslice.raster.nanodlp as nanodlp
+
+    chunk = nanodlp.AREA_CHUNK_POINTS
+    try:  # whole loops a few points at a time (memory bounded: a helper's audit), the same areas bit for bit
+        nanodlp.AREA_CHUNK_POINTS = 5
+        assert np.array_equal(polygon_areas(torus)[1], area)
+    finally:
+        nanodlp.AREA_CHUNK_POINTS = chunk
     assert np.array_equal(rec["objects"], np.bincount(layer, minlength=n)) and np.all(rec["objects"] == 1)
     assert np.allclose(rec["largest"], area[np.argsort(layer)], rtol=1e-5)
     assert np.allclose(sc["box"][:2], (-20, -20), atol=0.06) and np.allclose(sc["box"][3:5], (20, 20), atol=0.06)
