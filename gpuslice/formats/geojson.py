@@ -13,7 +13,7 @@ import numpy as np
 from ..errors import MeshFileError
 from ..io.atomic import atomic_path
 from ..ragged import expand_ranges
-from .numbers import checked_result, format_fixed, layer_chunks
+from .numbers import CHUNK_POINTS, checked_result, format_fixed, layer_chunks
 
 if TYPE_CHECKING:
     from ..slicing.result import SliceResult
@@ -53,7 +53,7 @@ def write_geojson(result: SliceResult, path: PathLike, *, decimals: int = 6) -> 
     cum = loop_offsets[layer_offsets]
     with atomic_path(path) as tmp, open(tmp, "wb", buffering=1 << 20) as fh:
         fh.write(b'{"type":"FeatureCollection","features":[')
-        for l0, l1 in layer_chunks(cum):
+        for l0, l1 in layer_chunks(cum, CHUNK_POINTS // 4):  # (~40 bytes of JSON a point)
             rings, ring_poly, poly_layer = polygon_rings(result, l0, l1)
             buf, span = _chunk_text(points, loop_offsets, rings, ring_poly, decimals)
             # each layer's rings are a run of `rings`: ring_layer is non-decreasing

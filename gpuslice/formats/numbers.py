@@ -197,12 +197,13 @@ def point_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
-def layer_chunks(point_counts_cum: np.ndarray) -> Iterator[tuple[int, int]]:
-    """Split layers into runs ``[a, b)`` of about ``CHUNK_POINTS`` points each (at least one layer)."""
+def layer_chunks(point_counts_cum: np.ndarray, points: int = CHUNK_POINTS) -> Iterator[tuple[int, int]]:
+    """Split layers into runs ``[a, b)`` of about ``points`` points each (at least one layer): a writer whose text
+    takes more bytes a point asks for fewer (:func:`format_fixed`'s temporaries are ~40 bytes an output byte)."""
     n_layers = point_counts_cum.size - 1
     a = 0
     while a < n_layers:
-        b = int(np.searchsorted(point_counts_cum, point_counts_cum[a] + CHUNK_POINTS, side="right")) - 1
+        b = int(np.searchsorted(point_counts_cum, point_counts_cum[a] + points, side="right")) - 1
         b = min(max(b, a + 1), n_layers)
         yield a, b
         a = b

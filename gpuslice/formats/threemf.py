@@ -21,6 +21,7 @@ from ..errors import MeshFileError
 from ..io.atomic import atomic_path
 from ..ragged import expand_ranges
 from .numbers import (
+    CHUNK_POINTS,
     checked_result,
     fmt_scalar,
     format_fixed,
@@ -100,7 +101,7 @@ def write_3mf_slices(result: SliceResult, path: PathLike, *, decimals: int = 6) 
                 'requiredextensions="s">\n<resources>\n'
                 f'<s:slicestack id="1" zbottom="{_num(z_bottom)}">\n'.encode()
             )
-            for l0, l1 in layer_chunks(cum):
+            for l0, l1 in layer_chunks(cum, CHUNK_POINTS // 8):  # (~60 bytes of XML a point, formatted twice)
                 _write_chunk(fh, points, loop_offsets, layer_offsets, result.loop_closed, top, l0, l1, decimals)
             fh.write(b"</s:slicestack>\n")
             fh.write(_bbox_object(points, z_bottom, float(top[-1]) if top.size else 0.0).encode())
