@@ -198,6 +198,14 @@ def _too_thin(mesh: Mesh | None, job: Job) -> str:
     return why + ")"
 
 
+def _archive_name(job: Job) -> str:
+    """The name a resin output states (its job name, a PNG stack's file prefix): ``--job-name`` or the model's stem
+    (a file name's bytes that are not UTF-8, kept by Python as surrogates, become U+FFFD)."""
+    from .io.atomic import utf8
+
+    return utf8(job.resin.options.job_name or Path(job.model_name).stem).decode("utf-8")
+
+
 def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | None = None) -> JobResult:
     """Run ``job``: the device, the mesh, the slices, then every output it names (see the module docstring).
 
@@ -228,6 +236,10 @@ def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | Non
             mesh = load_job_mesh(job, dev, timings)
             if job.resin is not None:  # before slicing: a model larger than the printer is refused now
                 _check_printer_fits(job.model_name, mesh, job.resin.spec, job.resin.options.preset)
+                if job.resin.format == "png":  # (and a PNG stack's folder holding other files)
+                    from .raster.pngstack import check_stack_folder
+
+                    check_stack_folder(Path(job.resin.path.rstrip("/\\") or "."), _archive_name(job))
             elif job.checks is not None and job.checks.printer is not None:
                 _check_printer_fits(job.model_name, mesh, job.checks.spec, job.checks.printer)
             stream = _open_contour_stream(job)
@@ -354,7 +366,6 @@ def _check_printer_fits(name: str, mesh: Mesh, spec, preset) -> None:
 
 
 def _write_resin(job: Job, out: JobResult, progress, now) -> None:
-    from .io.atomic import utf8
     from .raster.coverage import choose_backend, iter_tiles
     from .raster.edges import check_fits
     from .raster.outputs import RESIN_FORMATS, ResinTarget
@@ -400,8 +411,7 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
     else:
         layers = iter_tiles(out.result, r.spec, backend=backend, device=dev, bounds=bounds,
                             supersample=r.options.supersample, clip=True)
-    # (a file name's bytes that are not UTF-8, kept by Python as surrogates, become U+FFFD in the archive's fields)
-    name = utf8(r.options.job_name or Path(job.model_name).stem).decode("utf-8")
+    name = _archive_name(job)
     n = out.result.n_layers
     tick = (lambda k: progress(k, n)) if progress is not None else None
     png_by_numpy = RESIN_FORMATS[r.format].png and _png_processes()  # (GPUSLICE_PNG_PROCESSES=1)

@@ -37,13 +37,7 @@ def write_png_stack(
     ``<prefix>NNNNN.png`` files (an earlier run). ``device``: the OpenCL device of the layers' runs, where their
     PNGs are made (``kernels/png.cl``) at ``level`` 1; None: numpy, in processes where the command allows them."""
     out = Path(os.fspath(directory))
-    if out.exists() and not out.is_dir():
-        raise ParameterError(f"{out}: exists and is not a directory")
-    if out.is_dir():  # replaced as a whole: only if it holds nothing but an earlier stack of this name
-        layer = re.compile(re.escape(prefix) + r"\d+\.png")
-        others = [p.name for p in out.iterdir() if not (p.is_file() and layer.fullmatch(p.name))]
-        if others:
-            raise ParameterError(f"{out}: directory holds other files ({others[0]}, ...); give a new or empty one")
+    check_stack_folder(out, prefix)
     enc = PngEncoder(*spec.png_size, level, deflater)
     with atomic_path(out) as tmp:
         tmp.mkdir()
@@ -74,6 +68,19 @@ def write_png_stack(
                            progress=progress, many=group_and_write,
                            chunk=lambda pairs: run_groups(pairs, key=lambda pair: pair[1]))
     return stats
+
+
+def check_stack_folder(out: Path, prefix: str) -> None:
+    """A :class:`ParameterError` unless the folder ``out`` may take a stack named ``prefix``: it does not exist, or
+    holds nothing but an earlier stack of this name (it is replaced as a whole). The pipeline asks before slicing
+    too, so that the refusal comes before the work."""
+    if out.exists() and not out.is_dir():
+        raise ParameterError(f"{out}: exists and is not a directory")
+    if out.is_dir():
+        layer = re.compile(re.escape(prefix) + r"\d+\.png")
+        others = [p.name for p in out.iterdir() if not (p.is_file() and layer.fullmatch(p.name))]
+        if others:
+            raise ParameterError(f"{out}: directory holds other files ({others[0]}, ...); give a new or empty one")
 
 
 def write_target(tiles: Iterable[Tile], target) -> dict[str, float]:

@@ -357,6 +357,23 @@ def test_a_report_inside_the_output_folder_the_command_makes(cube, tmp_path):
     assert (out / "r.json").stat().st_size > 0
 
 
+def test_a_png_stack_folder_holding_other_files_is_refused_before_slicing(cube, tmp_path, capsys, monkeypatch):
+    """The refusal came from the writer, after all the slicing (minutes on a big job): an audit of the outputs."""
+    import gpuslice.pipeline
+
+    out = tmp_path / "stack"
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+
+    def no_slicing(*args, **kwargs):
+        raise AssertionError("sliced before the refusal")
+
+    monkeypatch.setattr(gpuslice.pipeline, "_slice", no_slicing)
+    assert main(["raster", str(cube), "-o", f"{out}/", "-q", "--no-progress", "--resolution", "600x600"]) == 2
+    _one_line_error(capsys, "directory holds other files (keep.txt, ...)")
+    assert sorted(p.name for p in out.iterdir()) == ["keep.txt"]
+
+
 @pytest.mark.parametrize("name", ["r.json", "cube00000.png"])
 def test_a_report_inside_a_png_stack_is_refused(cube, tmp_path, capsys, name):
     """`raster -o stack/ --report stack/cube00000.png` replaced layer 0 with the JSON report, exit 0 (an audit of
