@@ -39,8 +39,10 @@ __all__ = ["BatchRunner", "MANIFEST_NAME", "run_batch"]
 
 #: the manifest in the output folder: the options that shape the outputs
 MANIFEST_NAME = ".gpuslice-batch.json"
-#: tasks submitted ahead per local worker (hides the round trip between two models)
-PREFETCH = 2
+#: tasks a local worker holds (running and queued): one, so that a model never waits behind a long one on a worker
+#: while another worker is idle (two, to hide the round trip between models, measured: 4 models of 0.1-1.5 s on 2
+#: workers 1.19x slower; 26 small ones the same, 0.99x; BENCHMARKS, twenty-third session)
+PREFETCH = 1
 #: a model whose worker died this many times is reported failed instead of re-run again
 MAX_LOST = 2
 
