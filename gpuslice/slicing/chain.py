@@ -255,6 +255,41 @@ def _finish(points, offsets, chain_layer, cclosed, open_ends, max_gap, n_layers,
     return Loops(points, offsets, chain_layer.astype(np.int32), cclosed, repairs, simple)
 
 
+_PAIRS_LISTED = 16  # a layer's free ends with more pairs within max_gap than this many per end: _closest_first
+
+
+def _closest_first(xy: np.ndarray, max_gap: float) -> np.ndarray:
+    """(M, 2) index pairs of ``xy``: the greedy matching, closest pair first, of the points within ``max_gap`` of
+    each other, in rounds that match every pair of mutual nearest neighbours (a locally dominant edge: the greedy
+    matching's, for distances ordered with ties broken by index). Memory and time grow with the points, not with
+    the pairs (a cluster of n points has ~n^2/2 of them)."""
+    from scipy.spatial import cKDTree
+
+    left = np.arange(len(xy))
+    out = []
+    while left.size > 1:
+        k = min(4, left.size)
+        d, nb = cKDTree(xy[left]).query(xy[left], k=k, distance_upper_bound=max_gap)
+        d, nb = d.reshape(left.size, k), nb.reshape(left.size, k)
+        me = np.arange(left.size)[:, None]
+        d = np.where(nb == me, np.inf, d)  # not itself (duplicates may come before it)
+        nb = np.where(np.isfinite(d), nb, left.size)
+        # nearest other by (distance, index)
+        best = np.lexsort((nb, d), axis=1)[:, 0]
+        near = nb[me[:, 0], best]
+        has = near < left.size
+        ext = np.append(near, -1)
+        mutual = has & (ext[np.where(has, near, left.size)] == me[:, 0]) & (me[:, 0] < near)
+        if not mutual.any():
+            break
+        a = np.flatnonzero(mutual)
+        out.append(np.stack([left[a], left[near[a]]], axis=1))
+        gone = np.zeros(left.size, dtype=bool)
+        gone[a] = gone[near[a]] = True
+        left = left[~gone & has]  # ends with nothing left within max_gap stay unmatched
+    return np.concatenate(out) if out else np.empty((0, 2), dtype=np.int64)
+
+
 def _repair(points, offsets, chain_layer, closed, open_idx, head_slot, tail_slot, max_gap, repairs):
     """Join open chains: equal slots first (reversing where needed), then nearest ends within ``max_gap``.
 
@@ -284,14 +319,23 @@ def _repair(points, offsets, chain_layer, closed, open_idx, head_slot, tail_slot
         free = np.flatnonzero(link < 0)
         if free.size > 1 and max_gap > 0:
             xy = np.array([pieces[sel[e // 2]][0 if e % 2 == 0 else -1] for e in free], dtype=np.float64)
-            pairs = cKDTree(xy).query_pairs(max_gap, output_type="ndarray")
-            if pairs.size:
-                d = np.linalg.norm(xy[pairs[:, 0]] - xy[pairs[:, 1]], axis=1)
-                for a, b in pairs[np.argsort(d, kind="stable")]:
+            tree = cKDTree(xy)
+            # the pairs within max_gap, counted without listing them: a cluster of n free ends has ~n^2/2
+            n_pairs = (int(tree.count_neighbors(tree, max_gap)) - free.size) // 2
+            if n_pairs <= _PAIRS_LISTED * free.size:
+                pairs = tree.query_pairs(max_gap, output_type="ndarray")
+                if pairs.size:
+                    d = np.linalg.norm(xy[pairs[:, 0]] - xy[pairs[:, 1]], axis=1)
+                    for a, b in pairs[np.argsort(d, kind="stable")]:
+                        i, j = free[a], free[b]
+                        if link[i] < 0 and link[j] < 0:
+                            link[i], link[j] = j, i
+                            repairs["gap_closed"][lay] += 1
+            else:
+                for a, b in _closest_first(xy, max_gap):
                     i, j = free[a], free[b]
-                    if link[i] < 0 and link[j] < 0:
-                        link[i], link[j] = j, i
-                        repairs["gap_closed"][lay] += 1
+                    link[i], link[j] = j, i
+                    repairs["gap_closed"][lay] += 1
         # walk the links: paths (from a free end) first, then cycles
         used = np.zeros(m, dtype=bool)
         starts = [e for e in range(2 * m) if link[e] < 0] + list(range(0, 2 * m, 2))
