@@ -9,6 +9,7 @@ Ctrl-C (workers stopped, no partial output left, the report written with the unf
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 import click
 
@@ -153,6 +154,9 @@ def batch(inputs, out_dir, pattern, raster_opt, workers, threads, scheduler, tra
         fail(f"--format and --raster: each model gets one output, its --raster {kw['raster']} archive (--format "
              "names a contour format)")
     check_output_file(report, creates=out_dir)  # refused now, not after every model is done
+    parent = Path(out_dir.rstrip("/\\") or ".").resolve().parent
+    if not parent.is_dir():  # (one level made, as every command makes its output: a typo made a whole tree)
+        fail(f"{out_dir}: directory {parent} does not exist")
     opts = _batch_options(kw, raster_opt)
     if opts.raster is not None:
         from ..raster.outputs import source_date

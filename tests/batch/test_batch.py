@@ -737,6 +737,18 @@ def test_folder_outputs_inside_one_another_and_a_report_on_the_output_folder_are
     assert "--report names the output folder" in capsys.readouterr().err and not out.exists()
 
 
+def test_an_output_folder_whose_parent_is_missing_is_refused(tmp_path, capsys):
+    """`batch -o new/a/b` made the whole tree (a typo's too), where every other command refuses a missing parent."""
+    from gpuslice.cli import main
+
+    tree = tmp_path / "m"
+    tree.mkdir()
+    shapes.write_stl(shapes.box(), tree / "a.stl")
+    assert main(["batch", str(tree), "-o", str(tmp_path / "new" / "a" / "b"), "-t", "5", "-j", "0", "-q"]) == 2
+    assert "does not exist" in capsys.readouterr().err and not (tmp_path / "new").exists()
+    assert main(["batch", str(tree), "-o", str(tmp_path / "one"), "-t", "5", "-j", "0", "-q"]) == 0  # (one level)
+
+
 @pytest.mark.parametrize("name", [".gpuslice-batch.done", ".gpuslice-batch.json", "a.npz.check.json"])
 def test_a_report_on_the_batchs_own_records_is_refused(tmp_path, capsys, name):
     """`--report out/.gpuslice-batch.done` replaced the journal (the next run refused the folder), and
