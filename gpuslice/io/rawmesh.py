@@ -142,6 +142,6 @@ def check_coordinates(coords: np.ndarray, name: str) -> None:
     n_big = int((magnitude > MAX_COORDINATE).any(axis=1).sum())
     noun = "facet" if n_big == 1 else "facets"
     raise InvalidGeometryError(
-        f"{name}: coordinates up to {biggest:.2g} overflow float32 arithmetic (limit {MAX_COORDINATE:.0e}; "
-        f"{n_big} {noun} affected)"
+        f"{name}: coordinates up to {biggest:.2g} overflow float32 arithmetic (limit {MAX_COORDINATE:.0e} as "
+        f"given, before any scaling; {n_big} {noun} affected)"
     )
