@@ -99,6 +99,12 @@ def _table(res) -> None:
     ref = ctx.get("reference_thickness_mm")
     click.echo(f"device: {ctx['device']}; volume deviation against a uniform {_fmt(ref)} mm reference"
                if ref else f"device: {ctx['device']}")
+    finer = [r["setting"] for r in res.rows if ref and r.get("thickness_min_mm") is not None
+             and r["thickness_min_mm"] < ref - 1e-12]
+    if finer:  # (the default reference is at most 20,000 layers: a tall part's is coarser than fine settings)
+        click.echo(f"note: the {_fmt(ref)} mm reference is coarser than the thinnest layers of "
+                   f"{'setting' if len(finer) == 1 else 'settings'} {', '.join(finer)}, whose vol dev it cannot "
+                   "judge (give a finer --ref-thickness)")
     for r in res.rows:
         for lv in r.get("roi_windows", []):
             wins = ", ".join(f"z {a:.4g}..{b:.4g} mm" for a, b in lv["windows_mm"]) or "none"

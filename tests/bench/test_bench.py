@@ -196,6 +196,10 @@ def test_cli_bench_table_json_csv(sphere_stl, capsys):
     assert main(args) == 0
     out = capsys.readouterr().out
     assert "0.5 mm" in out and "adaptive roi" in out and "level 0 (1 mm) window" in out
+    assert "note: the" not in out  # (0.05 mm: finer than every setting's layers)
+    assert main([*args[:-1], "0.7"]) == 0  # a reference coarser than 0.5 mm layers (an audit: said nowhere)
+    assert "note: the 0.7 mm reference is coarser than the thinnest layers of settings 0.5 mm, adaptive roi" in \
+        capsys.readouterr().out
     assert main([*args, "--json"]) == 0
     data = json.loads(capsys.readouterr().out)
     assert [r["setting"] for r in data["rows"]] == ["0.5 mm", "1 mm", "adaptive roi"]
