@@ -199,7 +199,8 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
         if report is not None:
             write_report({"layers": n, "raster_backend": stats["raster_backend"], "output": output,
                           "timings_s": timings,
-                          **{k: v for k, v in stats.items() if k != "raster_backend"},
+                          **{k: v.to_json() if k == "checks" else v  # (--check: the check's JSON report)
+                             for k, v in stats.items() if k != "raster_backend"},
                           "display": {"resolution": list(spec.resolution), "pixel": [spec.px, spec.py],
                                       "portrait": spec.portrait, "mirror_x": spec.mirror_x, "mirror_y": spec.mirror_y},
                           "repairs": done.result.meta["repairs"], "open_chains": done.result.meta["open_chains"],

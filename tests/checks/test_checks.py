@@ -659,6 +659,13 @@ def test_raster_check_prints_before_writing(sphere_stl, tmp_path, capsys):
     text = capsys.readouterr().out
     assert "pre-print checks" in text and text.index("pre-print checks") < text.index("wrote")
     assert out.is_file()
+    # with --report too: the check's JSON report inside it (it exited 1, "CheckReport is not JSON serialisable",
+    # writing neither file: a docs audit)
+    report = tmp_path / "r.json"
+    assert main(["raster", str(sphere_stl), "-o", str(out), "-t", "0.5", "--check", "-q", "--report",
+                 str(report)]) == 0
+    j = json.loads(report.read_text())
+    assert j["layers"] > 0 and j["checks"]["max_area_mm2"] > 0 and "islands" in j["checks"]
 
 
 @pytest.mark.parametrize("suffix, printer", [(".sl1", None), (".sl1s", "prusa-sl1s"), (".goo", "elegoo-mars-4")])
