@@ -87,13 +87,19 @@ def _choices() -> str:
 
 
 def format_for(path: str | os.PathLike, name: str | None = None) -> ContourFormat:
-    """The format of ``path`` by its suffix (any case), or the one named ``name`` (``slice --format``: whatever the
-    suffix); :class:`ParameterError` naming ``path`` otherwise."""
+    """The format of ``path`` by its suffix (any case), or the one named ``name`` (``slice --format``: for a suffix
+    no other format owns, as ``raster --format`` does: ``--format cli -o x.svg`` would write CLI text in an .svg);
+    :class:`ParameterError` naming ``path`` otherwise."""
     p = Path(os.fspath(path))
     if name is not None:
         if name not in CONTOUR_FORMATS:
             raise ParameterError(f"{p}: unknown output format '{name}' (use {', '.join(CONTOUR_FORMATS)})")
-        return CONTOUR_FORMATS[name]
+        fmt, kind = CONTOUR_FORMATS[name], p.suffix.lower()
+        owner = next((f for f in CONTOUR_FORMATS.values() if kind and kind in f.suffixes), None)
+        if owner is not None and owner is not fmt:
+            raise ParameterError(f"{p}: a {kind} file is {owner.name.upper()}, and --format {name} writes "
+                                 f"{name.upper()} (name it part{fmt.suffixes[0]}, or leave --format out)")
+        return fmt
     kind = p.suffix.lower()
     for f in CONTOUR_FORMATS.values():
         if kind in f.suffixes:

@@ -294,6 +294,11 @@ def test_slice_format_overrides_the_suffix(tmp_path, capsys):
     assert main(["slice", str(stl), "-t", "0.5", "--format", "svg"]) == 2  # nothing to write it to
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--format svg needs -o" in err
+    # a suffix another format owns: CLI text in an .svg (a docs audit), refused as raster refuses --format goo x.ctb
+    assert main(["slice", str(stl), "-t", "0.5", "-o", str(tmp_path / "x.svg"), "--format", "cli"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "a .svg file is SVG, and --format cli writes CLI" in err and not (tmp_path / "x.svg").exists()
+    assert main(["slice", str(stl), "-t", "0.5", "-q", "-o", str(tmp_path / "x.SVG"), "--format", "svg"]) == 0
 
 
 def test_polygons_shapely_names_the_layers_it_could_not_make_valid():
