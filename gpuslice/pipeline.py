@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from .errors import ParameterError
 from .mesh.mesh import Placement
 from .slicing.params import SliceParams
 
@@ -48,8 +49,6 @@ class ResinOutput:
     settings: PrintSettings | None = None
 
     def __post_init__(self) -> None:
-        from .errors import ParameterError
-
         try:
             self.options.check_format(self.format, self.spec)  # a printer that cannot read it, or another display
         except ParameterError as exc:
@@ -130,6 +129,11 @@ class Job:
     portable: bool = False
     saved_result: bool = False
     date: Any = None
+
+    def __post_init__(self) -> None:
+        if self.placement.center and any(getattr(o.spec, "keep_xy", False) for o in (self.resin, self.checks) if o):
+            raise ParameterError("--center moves the model's X/Y to the origin, and --keep-xy places it on the display "
+                                 "by its own X/Y: give one of them", param=("center", "keep_xy"))
 
     @property
     def model_name(self) -> str:
@@ -250,8 +254,6 @@ def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | Non
                 release_scratch(dev)
         out = JobResult(mesh, result, dev, timings, stats)
         if result.n_layers == 0:  # (also with no output: a summary or a report of no layers, exit 0, hid it)
-            from .errors import ParameterError
-
             raise ParameterError(f"{job.model_name}: no layers to write {_too_thin(mesh, job)}")
         if job.contours is not None:
             t = time.perf_counter()
@@ -354,7 +356,6 @@ def _bounds(mesh: Mesh | None) -> tuple[float, float, float, float] | None:
 def _check_printer_fits(name: str, mesh: Mesh, spec, preset) -> None:
     """:class:`ParameterError` when the placed mesh's XY box leaves the display ``spec`` or its height exceeds the
     printer ``preset``'s build height (the exact per-layer check follows after slicing: ``raster.edges.check_fits``)."""
-    from .errors import ParameterError
     from .raster.edges import check_points_fit
 
     b = mesh.bounds
@@ -381,8 +382,6 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
         dev = get_device(job.params.device)
     bounds = _bounds(out.mesh)
     if out.result.n_layers == 0:
-        from .errors import ParameterError
-
         raise ParameterError(f"{job.model_name}: no layers to write {_too_thin(out.mesh, job)}")
     check_fits(out.result, r.spec, bounds, name=job.model_name)
     from .raster.settings import MAX_PRINT_TIME_S, print_time_s
@@ -390,13 +389,9 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
     settings = r.settings if r.settings is not None else r.options.settings()
     t_print = print_time_s(settings, out.result.n_layers)
     if t_print > MAX_PRINT_TIME_S:
-        from .errors import ParameterError
-
         raise ParameterError(f"{r.path}: {out.result.n_layers} layers at these settings would print for "
                              f"{t_print / 3.156e7:.0f} years, more than an archive's print time holds")
     if k > 1 and backend != "opencl":
-        from .errors import ParameterError
-
         raise ParameterError(f"z_samples needs the OpenCL rasteriser, not {backend}", param="z_samples")
     if backend == "opencl":  # runs all the way to the PNGs (raster/layers.py: tiles only for another --png-level)
         from .raster.layers import iter_run_layers

@@ -205,7 +205,8 @@ class BatchRunner:
         ctx = mp_context()
         # the whole environment: a forkserver started earlier carries the environment of that moment
         env = {**os.environ, **pocl_thread_env(threads)}
-        init_args = (env, self.opts.params.device, self.opts.params.backend, self.opts.raster is not None)
+        init_args = (env, self.opts.params.device, self.opts.params.backend, self.opts.raster is not None,
+                     os.getpid())
 
         def new_executor():
             return ProcessPoolExecutor(1, mp_context=ctx, initializer=init_worker, initargs=init_args)
@@ -252,7 +253,7 @@ class BatchRunner:
                         task = slot.inflight.pop(fut)
                         try:
                             rec = fut.result()
-                        except BrokenProcessPool:
+                        except (BrokenProcessPool, SystemExit):  # (a worker stopped by SIGTERM mid-model: lost)
                             broken = True
                             again = self._lost(task, slot.name)
                             if again is not None:

@@ -80,7 +80,7 @@ _OUTPUT_FULL = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG}
 
 
 def init_worker(env: dict[str, str] | None = None, device: str | None = None, backend: str = "opencl",
-                one_arena: bool = False) -> None:
+                one_arena: bool = False, driver: int | None = None) -> None:
     """Initializer of a local worker process: PoCL threads, signals, the OpenCL device and kernels (built once);
     ``one_arena``: its threads share one malloc arena (a batch of resin outputs: as ``gpuslice raster``,
     :func:`gpuslice.allocator.one_malloc_arena`).
@@ -89,7 +89,8 @@ def init_worker(env: dict[str, str] | None = None, device: str | None = None, ba
     them). SIGTERM unwinds the worker's model (``SystemExit``) so a half-written temporary output is removed, then
     ends the process (:func:`run_model`): the pool would take the ``SystemExit`` for the model's result and wait for
     the next, so a SIGTERM sent to the whole group (a service manager's stop) left the workers running for ever. A
-    worker whose forkserver dies (the driver gone) gets SIGTERM too (Linux: ``PR_SET_PDEATHSIG``).
+    worker whose ``driver`` (its pid) is gone (killed: SIGKILL, the OOM killer) sends itself SIGTERM within a second
+    (:func:`_watch_driver`): the forkserver between them outlives the driver while its workers hold its pipe.
     """
     os.environ.update(env or {})
     if one_arena:  # (before the device's threads start)
@@ -100,16 +101,29 @@ def init_worker(env: dict[str, str] | None = None, device: str | None = None, ba
     signal.signal(signal.SIGHUP, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     _WORKER["local"] = True
-    if sys.platform.startswith("linux"):
-        with contextlib.suppress(Exception):
-            import ctypes
+    if driver is not None:
+        import threading
 
-            ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
+        threading.Thread(target=_watch_driver, args=(driver,), name="gpuslice-driver-watch", daemon=True).start()
     t = time.perf_counter()
     if backend == "opencl":
         with contextlib.suppress(GpusliceError):  # reported by the first task instead
             _worker_device(device)
     _WORKER["started"] = time.perf_counter() - t
+
+
+def _watch_driver(pid: int, every: float = 1.0) -> None:
+    """Send this worker SIGTERM once the process ``pid`` (the batch's driver) no longer exists (polled every
+    ``every`` seconds; a worker's own SIGTERM handling then removes its temporaries and ends it)."""
+    while True:
+        time.sleep(every)
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            os.kill(os.getpid(), signal.SIGTERM)
+            return
+        except OSError:  # (exists, but not ours to signal: still there)
+            continue
 
 
 def connect(address: str):
@@ -221,11 +235,12 @@ def run_model(model: Model, opts: BatchOptions, out_root: str | None, data: byte
         _remove_written(mine, started_ns)
         msg = one_line(exc)
         rec["error"] = msg if model.src in msg or model.rel in msg else f"{model.src}: {msg}"
-        # what the file holds or the options are at fault: another worker would fail the same way, so no retry (a
-        # file this worker could not read, its memory, a device: it may not)
-        rec["deterministic"] = isinstance(exc, ParameterError) or (
-            isinstance(exc, MeshFileError) and not getattr(exc, "os_error", False)) or (
-            isinstance(exc, OSError) and exc.errno in _OUTPUT_FULL)  # (the output's disk: every worker's)
+        # what the file holds or the options are at fault, or the output folder's disk: another worker would fail
+        # the same way, so no retry (a file this worker could not read, its memory, a device, its own temporary
+        # folder when outputs travel as bytes: it may not)
+        full = isinstance(exc, OSError) and exc.errno in _OUTPUT_FULL and out_root is not None
+        rec["deterministic"] = full or isinstance(exc, ParameterError) or (
+            isinstance(exc, MeshFileError) and not getattr(exc, "os_error", False))
     except BaseException as exc:  # stopped (Ctrl-C, SIGTERM): none of its files, or all
         _remove_written(mine, started_ns)
         if isinstance(exc, SystemExit) and _WORKER.get("local"):  # (a local worker's SIGTERM: the process ends)

@@ -163,8 +163,8 @@ def _commit(tmp: Path, final: Path, fsync: bool) -> None:
         else:
             if final.is_dir() and not final.is_symlink():
                 raise ParameterError(f"{final}: is a directory")
-            with contextlib.suppress(OSError):  # a file replaced keeps its permissions (a 0600 output stays private)
-                os.chmod(tmp, stat.S_IMODE(final.stat().st_mode))
+            with contextlib.suppress(OSError):  # a file replaced keeps its permissions (a 0600 output stays private;
+                os.chmod(tmp, final.stat().st_mode & 0o777)  # not setuid, setgid or sticky bits)
             if fsync:
                 _fsync_file(tmp)
             os.replace(tmp, final)

@@ -26,7 +26,12 @@ _KEYWORD = re.compile(rb"(?:ST)?C?N?(4?)(n?)OFF")
 
 
 def _content_lines(data: bytes) -> list[bytes]:
-    """The file's lines without comments, blank ones left out."""
+    """The file's lines without comments, blank ones left out (a UTF-8 byte-order mark dropped; CR, CRLF or LF line
+    ends)."""
+    if data.startswith(b"\xef\xbb\xbf"):
+        data = data[3:]
+    if b"\r" in data:
+        data = data.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
     if b"#" in data:
         data = re.sub(rb"#[^\n]*", b"", data)
     return [line for line in data.split(b"\n") if line.strip()]

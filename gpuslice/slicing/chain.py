@@ -262,14 +262,17 @@ def _closest_first(xy: np.ndarray, max_gap: float) -> np.ndarray:
     """(M, 2) index pairs of ``xy``: the greedy matching, closest pair first, of the points within ``max_gap`` of
     each other, in rounds that match every pair of mutual nearest neighbours (a locally dominant edge: the greedy
     matching's, for distances ordered with ties broken by index). Memory and time grow with the points, not with
-    the pairs (a cluster of n points has ~n^2/2 of them)."""
+    the pairs (a cluster of n points has ~n^2/2 of them). A round that matches under a twentieth of the points left
+    (a chain of ends whose gaps shrink along it matches one pair a round: quadratic, a review found) hands the rest
+    to the listed pairs' walk, the dense clusters gone by then."""
     from scipy.spatial import cKDTree
 
     left = np.arange(len(xy))
     out = []
+    reach = float(np.nextafter(max_gap, np.inf))  # (the tree's bound is strict; the listed pairs take d <= max_gap)
     while left.size > 1:
         k = min(4, left.size)
-        d, nb = cKDTree(xy[left]).query(xy[left], k=k, distance_upper_bound=max_gap)
+        d, nb = cKDTree(xy[left]).query(xy[left], k=k, distance_upper_bound=reach)
         d, nb = d.reshape(left.size, k), nb.reshape(left.size, k)
         me = np.arange(left.size)[:, None]
         d = np.where(nb == me, np.inf, d)  # not itself (duplicates may come before it)
@@ -286,8 +289,26 @@ def _closest_first(xy: np.ndarray, max_gap: float) -> np.ndarray:
         out.append(np.stack([left[a], left[near[a]]], axis=1))
         gone = np.zeros(left.size, dtype=bool)
         gone[a] = gone[near[a]] = True
+        few = 20 * a.size < left.size
         left = left[~gone & has]  # ends with nothing left within max_gap stay unmatched
+        if few and left.size > 1:
+            out.append(_greedy_listed(xy, left, max_gap))
+            break
     return np.concatenate(out) if out else np.empty((0, 2), dtype=np.int64)
+
+
+def _greedy_listed(xy: np.ndarray, left: np.ndarray, max_gap: float) -> np.ndarray:
+    """The greedy matching of the points ``left`` of ``xy`` within ``max_gap``: every pair listed, closest first."""
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(xy[left]).query_pairs(max_gap, output_type="ndarray")
+    d = np.linalg.norm(xy[left[pairs[:, 0]]] - xy[left[pairs[:, 1]]], axis=1)
+    free, out = np.ones(left.size, dtype=bool), []
+    for a, b in pairs[np.argsort(d, kind="stable")].tolist():
+        if free[a] and free[b]:
+            free[a] = free[b] = False
+            out.append((left[a], left[b]))
+    return np.asarray(out, dtype=np.int64).reshape(-1, 2)
 
 
 def _repair(points, offsets, chain_layer, closed, open_idx, head_slot, tail_slot, max_gap, repairs):

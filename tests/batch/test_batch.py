@@ -567,6 +567,36 @@ def test_cli_ctrl_c_stops_cleanly(tmp_path, device, sig, code, said):
         pytest.fail("processes of the interrupted batch are still running")
 
 
+def test_workers_of_a_killed_driver_end(tmp_path, device):
+    """The driver killed outright (SIGKILL, the OOM killer): its workers, idle on their queues, and the forkserver
+    they kept alive ran on for ever (a review), holding the caller's pipes. Each worker watches the driver."""
+    models = tmp_path / "many"
+    models.mkdir()
+    tri = shapes.torus(n_major=96, n_minor=48)
+    for k in range(40):
+        shapes.write_stl(tri, models / f"t{k:02d}.stl")
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "gpuslice.cli", "batch", str(models), "-o", str(out), "-t", "0.02", "-j", "2",
+           "--backend", "numpy", "-q"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not [p for p in out.glob("*.npz") if not p.name.startswith(".")]:
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=10)
+    deadline = time.monotonic() + 15
+    while time.monotonic() < deadline:
+        try:
+            os.killpg(proc.pid, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.2)
+    else:
+        os.killpg(proc.pid, signal.SIGKILL)
+        pytest.fail("processes of the killed batch's group are still running")
+    assert not list(out.glob(".*tmp-*"))  # (the workers removed their temporaries on the way out)
+
+
 @pytest.mark.parametrize("kind", ["sl1", "png"])
 def test_raster_batch(tree, tmp_path, monkeypatch, kind):
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")

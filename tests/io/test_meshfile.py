@@ -407,7 +407,8 @@ def test_ascii_text_outside_solid(tmp_path: Path) -> None:
     ("-inf", r"1 facet has NaN or infinite vertex coordinates"),
     ("1e400", r"1 facet has NaN or infinite vertex coordinates"),
     ("3.4e38", r"coordinates up to 3\.4e\+38 overflow float32 arithmetic"),
-    ("-1e30", r"coordinates up to 1e\+30 overflow float32 arithmetic \(limit 1e\+18; 1 facet affected\)"),
+    ("-1e30", r"coordinates up to 1e\+30 overflow float32 arithmetic \(limit 1e\+18 as given, before any scaling; "
+              r"1 facet affected\)"),
 ])
 def test_ascii_bad_coordinates(tmp_path: Path, value: str, match: str) -> None:
     lines = _facets_text(3)

@@ -38,7 +38,10 @@ def volume(mesh) -> float:
     off(head="COFF\n{nv} {nf} 0\n", vertex="{} {} {} 1 0 0 1"),  # a colour after each vertex
     off(head="NOFF\n{nv} {nf}\n", vertex="{} {} {} 0 0 1"),  # normals; no edge count
     off(CUBE_Q).replace(b"\n", b"\r\n"),
-], ids=["triangles", "quads", "comments", "rgb", "rgba-comment", "one-line", "no-keyword", "coff", "noff", "crlf"])
+    off(CUBE_Q).replace(b"\n", b"\r"),  # (old Mac line ends: "cut short?", a review found)
+    b"\xef\xbb\xbf" + off(),  # (a UTF-8 byte-order mark)
+], ids=["triangles", "quads", "comments", "rgb", "rgba-comment", "one-line", "no-keyword", "coff", "noff", "crlf",
+        "cr", "bom"])
 def test_a_cube_in_every_layout_is_the_whole_cube(data):
     mesh = load_mesh(data, name="c.off")
     assert mesh.n_faces == 12 and np.allclose(np.ptp(mesh.vertices, axis=0), 10.0)

@@ -67,3 +67,14 @@ def test_a_resin_job_centres_a_far_model_itself(tmp_path):
     assert len(stacks[0]) == len(stacks[1]) == 20
     for a, b in zip(*stacks, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_center_and_keep_xy_are_refused_together(tmp_path, capsys):
+    """--keep-xy places the model by its own X/Y, which --center moves (a review: accepted, and a later error called
+    the centred coordinates the model's own)."""
+    path = tmp_path / "c.obj"
+    cylinder(0.0).export(path)
+    assert main(["raster", str(path), "--center", "--keep-xy", "--resolution", "400x300", "--pixel", "0.05", "-q",
+                 "--no-progress", "-o", str(tmp_path / "x.goo")]) == 2
+    assert "--center moves the model's X/Y to the origin, and --keep-xy" in capsys.readouterr().err
+    assert not (tmp_path / "x.goo").exists()

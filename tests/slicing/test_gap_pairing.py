@@ -35,6 +35,20 @@ def test_closest_first_is_the_greedy_matching(seed):
     assert got == greedy(xy, 2.0)
 
 
+def test_a_chain_of_shrinking_gaps_is_matched_greedily():
+    """Ends along a line whose gaps shrink: one mutual pair a round, quadratic (a review); the rest goes to the
+    listed pairs' walk once a round matches little, with the same matching."""
+    rng = np.random.default_rng(3)
+    n = 1500
+    gaps = 0.99 - np.arange(n) * (0.4 / n)
+    chain = np.c_[np.r_[0.0, np.cumsum(gaps)], np.zeros(n + 1)]
+    xy = np.r_[chain, rng.random((300, 2)) * 0.5 + [0.0, 50.0]]
+    got = {tuple(sorted(map(int, p))) for p in _closest_first(xy, 1.0)}
+    assert got == greedy(xy, 1.0)
+    edge = np.array([[0.0, 0.0], [2.0, 0.0]])  # exactly max_gap apart: joined, as the listed pairs join them
+    assert _closest_first(edge, 2.0).tolist() == [[0, 1]]
+
+
 def test_thousands_of_loose_ends_in_one_layer():
     """2,000 separate sliver triangles in a 1.9 mm square: 4,000 free ends a layer, all within the default 2 mm gap
     of each other (67 s of chaining before, most of it listing and walking ~8 million pairs)."""

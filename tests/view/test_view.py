@@ -91,6 +91,19 @@ def test_browser_pages_without_polygons(browser, tmp_path):
     v.close()
 
 
+def test_the_written_page_is_the_built_page(torus, tmp_path):
+    """write_view streams the page as its JSON is encoded (memory: a helper's audit); it is build_view_html's page,
+    byte for byte, with masks, a title to escape and a name that is not UTF-8 (as Python keeps it)."""
+    from gpuslice.io.atomic import utf8
+
+    masks = {0: b"\x89PNG fake <b>", 3: b"x" * 100}
+    for title in ('</script><b>"x"', "part-\udcfe"):
+        path = tmp_path / "p.html"
+        size = write_view(torus, path, title=title, masks=masks)
+        assert path.read_bytes() == utf8(build_view_html(torus, title=title, masks=masks))
+        assert size == path.stat().st_size
+
+
 def test_page_is_self_contained_and_escapes_the_title(torus):
     page = build_view_html(torus)
     assert not re.search(r"(?i)https?:|//[a-z0-9.-]+\.[a-z]{2,}/|<link|<script[^>]*\ssrc=|@import|url\(", page)
