@@ -37,8 +37,8 @@ __all__ = ["Mesh", "Placement", "load_mesh", "mesh_from_triangles", "mesh_from_a
 
 #: below this many facets the numpy weld is faster than a kernel launch round trip
 DEVICE_WELD_MIN_FACETS = 20_000
-#: X/Y beyond this (mm) are "far from the origin": float32 coordinates there lie more than 0.5 µm apart, so the
-#: crossings lose precision the model had (a float64 source) or need not lose (a resin job centres the part anyway)
+#: X/Y beyond this (mm) are "far from the origin": float32 coordinates there lie 2^-11 mm (0.49 µm) or more apart,
+#: so the crossings lose precision the model had (a float64 source) or need not lose (a resin job centres the part)
 FAR_XY_MM = 4096.0
 
 
