@@ -152,8 +152,8 @@ def _remove_written(paths: list[Path], since_ns: int) -> None:
 
     for p in paths:
         with contextlib.suppress(OSError):
-            if p.stat().st_mtime_ns >= since_ns:
-                remove_path(p)
+            if p.stat().st_mtime_ns >= since_ns:  # (through a link: the file written, not the user's link)
+                remove_path(Path(os.path.realpath(p)) if p.is_symlink() else p)
 
 
 def check_summary(report) -> dict[str, Any]:

@@ -382,6 +382,31 @@ def test_only_a_failure_another_attempt_may_not_repeat_is_retried(tmp_path, devi
     assert not any("deterministic" in r for r in report["models"])
 
 
+def test_a_failed_models_output_through_a_link(tmp_path, device, monkeypatch):
+    """An output path that is a symbolic link is written through it; when the model then fails, the file written is
+    removed, not the user's link (a review: the link went and the new file stayed)."""
+    import gpuslice.pipeline
+
+    models = tmp_path / "models"
+    models.mkdir()
+    shapes.write_stl(shapes.box(), models / "cube.stl")
+    out, target = tmp_path / "out", tmp_path / "elsewhere" / "t.npz"
+    out.mkdir()
+    target.parent.mkdir()
+    (out / "cube.npz").symlink_to(target)
+    real = gpuslice.pipeline.run_job
+
+    def written_then_failed(job, **kw):
+        real(job, **kw)
+        assert target.is_file()  # (written through the link)
+        raise RuntimeError("failed after writing")
+
+    monkeypatch.setattr(gpuslice.pipeline, "run_job", written_then_failed)
+    report = run_batch([models], out, OPTS, workers=0, force=True)
+    assert _by_model(report)["cube.stl"]["status"] == "failed"
+    assert (out / "cube.npz").is_symlink() and not target.exists()
+
+
 def test_a_file_a_worker_cannot_read_is_tried_on_another(tmp_path, device):
     """A model the worker could not read (here a link to nowhere; on a cluster, a mount one worker lacks) is where
     it is read, not what it holds: tried once more, on the other worker (a review: every MeshFileError was taken
