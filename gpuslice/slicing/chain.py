@@ -343,20 +343,12 @@ def _repair(points, offsets, chain_layer, closed, open_idx, head_slot, tail_slot
             tree = cKDTree(xy)
             # the pairs within max_gap, counted without listing them: a cluster of n free ends has ~n^2/2
             n_pairs = (int(tree.count_neighbors(tree, max_gap)) - free.size) // 2
-            if n_pairs <= _PAIRS_LISTED * free.size:
-                pairs = tree.query_pairs(max_gap, output_type="ndarray")
-                if pairs.size:
-                    d = np.linalg.norm(xy[pairs[:, 0]] - xy[pairs[:, 1]], axis=1)
-                    for a, b in pairs[np.argsort(d, kind="stable")]:
-                        i, j = free[a], free[b]
-                        if link[i] < 0 and link[j] < 0:
-                            link[i], link[j] = j, i
-                            repairs["gap_closed"][lay] += 1
-            else:
-                for a, b in _closest_first(xy, max_gap):
-                    i, j = free[a], free[b]
-                    link[i], link[j] = j, i
-                    repairs["gap_closed"][lay] += 1
+            matched = (_greedy_listed(xy, np.arange(free.size), max_gap) if n_pairs <= _PAIRS_LISTED * free.size
+                       else _closest_first(xy, max_gap))
+            for a, b in matched.tolist():
+                i, j = free[a], free[b]
+                link[i], link[j] = j, i
+            repairs["gap_closed"][lay] += len(matched)
         # walk the links: paths (from a free end) first, then cycles
         used = np.zeros(m, dtype=bool)
         starts = [e for e in range(2 * m) if link[e] < 0] + list(range(0, 2 * m, 2))
