@@ -19,6 +19,7 @@ from .options import (
     build,
     check_output_file,
     check_resin_layers,
+    check_writable,
     click_options,
     fail,
     slicing_options,
@@ -157,6 +158,7 @@ def batch(inputs, out_dir, pattern, raster_opt, workers, threads, scheduler, tra
     parent = Path(out_dir.rstrip("/\\") or ".").resolve().parent
     if not parent.is_dir():  # (one level made, as every command makes its output: a typo made a whole tree)
         fail(f"{out_dir}: directory {parent} does not exist")
+    check_writable(out_dir, Path(out_dir) if Path(out_dir).is_dir() else parent)
     opts = _batch_options(kw, raster_opt)
     if opts.raster is not None:
         from ..raster.outputs import source_date

@@ -114,6 +114,16 @@ def check_output_file(*paths: str | None, creates: str | None = None) -> None:
             fail(f"{out}: {parent} is a file, not a directory")
         if not parent.is_dir():
             fail(f"{out}: directory {parent} does not exist")
+        check_writable(out, parent)
+
+
+def check_writable(out: str, folder) -> None:
+    """A one-line error, before any work, when ``folder`` (where ``out`` goes) cannot be written: a read-only file
+    system or no permission (it failed only when the writing started, after the slicing)."""
+    import os
+
+    if not os.access(folder, os.W_OK | os.X_OK):
+        fail(f"{out}: directory {folder} is not writable (read-only, or no permission)")
 
 
 def check_distinct_outputs(output: str | None, report: str | None) -> None:

@@ -60,3 +60,28 @@ def test_mean_cusp_of_slanted_facets_without_area_is_zero_not_nan():
     slopes = (np.array([0.0]), np.array([2.0]), np.array([0.5]))
     value = mean_cusp(mesh, schedule, slopes=slopes)
     assert value == 0.0 and json.loads(json.dumps({"mean_cusp_mm": value})) == {"mean_cusp_mm": 0.0}
+
+
+def test_an_unwritable_output_folder_is_refused_before_the_work(tmp_path, capsys, monkeypatch):
+    """A read-only destination failed only when the writing started, after all the slicing (an audit of the
+    outputs). The folder is made unwritable here by os.access's answer (the tests may run as root)."""
+    import os
+
+    import gpuslice.pipeline
+
+    stl = tmp_path / "cube.stl"
+    shapes.write_stl(shapes.box(), stl)
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode, **kw: False if str(p) == str(ro) and mode & os.W_OK
+                        else real(p, mode, **kw))
+    monkeypatch.setattr(gpuslice.pipeline, "run_job", lambda *a, **k: (_ for _ in ()).throw(AssertionError("work")))
+    for args in (["slice", str(stl), "-t", "1", "-o", str(ro / "x.svg")],
+                 ["raster", str(stl), "-t", "1", "--resolution", "400x300", "-o", str(ro / "x.goo")],
+                 ["slice", str(stl), "-t", "1", "-o", str(tmp_path / "x.svg"), "--report", str(ro / "r.json")],
+                 ["batch", str(stl), "-t", "1", "-o", str(ro), "-j", "0"]):
+        assert main(args) == 2, args
+        err = capsys.readouterr().err
+        assert f"directory {ro} is not writable" in err, err
+    assert not list(ro.iterdir())
