@@ -210,6 +210,21 @@ def _archive_name(job: Job) -> str:
     return utf8(job.resin.options.job_name or Path(job.model_name).stem).decode("utf-8")
 
 
+def _check_resin_early(job: Job) -> None:
+    """Before slicing: a PNG stack's folder holding other files, and settings the format cannot store for layers
+    the options make uniform (``.cxdlpv4``'s bottom values; adaptive layers are checked by the writer)."""
+    from .raster.outputs import RESIN_FORMATS
+
+    r, p = job.resin, job.params
+    if r.format == "png":
+        from .raster.pngstack import check_stack_folder
+
+        check_stack_folder(Path(r.path.rstrip("/\\") or "."), _archive_name(job))
+    if p.adaptive is None:
+        RESIN_FORMATS[r.format].check_layers(r.path, r.settings or r.options.settings(),
+                                             np.array([p.first_layer or p.thickness, p.thickness]))
+
+
 def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | None = None) -> JobResult:
     """Run ``job``: the device, the mesh, the slices, then every output it names (see the module docstring).
 
@@ -238,14 +253,13 @@ def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | Non
                 _prestart_encoders(job.resin)
             dev = prepare_device(job.params, device, timings)
             mesh = load_job_mesh(job, dev, timings)
-            if job.resin is not None:  # before slicing: a model larger than the printer is refused now
-                _check_printer_fits(job.model_name, mesh, job.resin.spec, job.resin.options.preset)
-                if job.resin.format == "png":  # (and a PNG stack's folder holding other files)
-                    from .raster.pngstack import check_stack_folder
+            from .raster.edges import check_printer_fits
 
-                    check_stack_folder(Path(job.resin.path.rstrip("/\\") or "."), _archive_name(job))
+            if job.resin is not None:  # before slicing: a model larger than the printer is refused now
+                check_printer_fits(job.model_name, mesh, job.resin.spec, job.resin.options.preset, _bounds(mesh))
+                _check_resin_early(job)
             elif job.checks is not None and job.checks.printer is not None:
-                _check_printer_fits(job.model_name, mesh, job.checks.spec, job.checks.printer)
+                check_printer_fits(job.model_name, mesh, job.checks.spec, job.checks.printer, _bounds(mesh))
             stream = _open_contour_stream(job)
             result = _slice(job, mesh, dev, timings, stream)
             if job.resin is not None:  # the slicer's scratch memory back before the layers' (peak RSS: issue 18)
@@ -351,19 +365,6 @@ def _bounds(mesh: Mesh | None) -> tuple[float, float, float, float] | None:
         return None
     b = mesh.bounds
     return float(b[0, 0]), float(b[0, 1]), float(b[1, 0]), float(b[1, 1])
-
-
-def _check_printer_fits(name: str, mesh: Mesh, spec, preset) -> None:
-    """:class:`ParameterError` when the placed mesh's XY box leaves the display ``spec`` or its height exceeds the
-    printer ``preset``'s build height (the exact per-layer check follows after slicing: ``raster.edges.check_fits``)."""
-    from .raster.edges import check_points_fit
-
-    b = mesh.bounds
-    if spec is not None:
-        check_points_fit(b[:, :2].astype(np.float64), spec, _bounds(mesh), name)  # the XY box's corners
-    if preset is not None and preset.build_height > 0 and mesh.height > preset.build_height + 1e-6:
-        raise ParameterError(f"{name}: the model is {mesh.height:.2f} mm tall, more than the "
-                             f"{preset.name}'s build height ({preset.build_height:g} mm)")
 
 
 def _write_resin(job: Job, out: JobResult, progress, now) -> None:

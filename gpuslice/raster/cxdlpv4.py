@@ -43,7 +43,7 @@ for the bottom and the normal layers (the bottom layers' own are only in the per
 follows only with the per-layer switch on), so bottom values that differ need ``--per-layer-settings`` (off by
 default: some firmware misbehaves with it) where the switch does not turn on by itself, as it does for layers of
 several thicknesses (:func:`gpuslice.raster.settings.per_layer_mode`); refused once the layers' thicknesses are
-known, before the file is opened.
+known: before the slicing where the options fix them (uniform layers), else before the file is opened.
 """
 
 from __future__ import annotations
@@ -66,7 +66,7 @@ from .layers import RunLayer, batch_pixel_runs, pixel_runs, run_groups
 from .png import encode_all
 from .settings import header_layer_height, layer_table, per_layer_mode, print_time_s, ramp_layers, resin_ml
 
-__all__ = ["MAGIC", "PREVIEWS", "VERSION", "refuse_settings", "write_cxdlpv4", "write_target"]
+__all__ = ["MAGIC", "PREVIEWS", "VERSION", "refuse_layers", "refuse_settings", "write_cxdlpv4", "write_target"]
 
 MAGIC = b"CXSW3DV2\0"
 VERSION = 4
@@ -82,11 +82,9 @@ _PER_LAYER_ONLY = ("retract_speed", "retract_height2", "retract_speed2", "wait_b
                    "wait_after_lift")
 
 
-def refuse_settings(path, name: str, options, settings, spec=None, thickness_mm=None) -> None:
+def refuse_settings(path, name: str, options, settings, spec=None) -> None:
     """``.cxdlpv4``'s settings check (:meth:`gpuslice.raster.outputs.ResinFormat.check_settings`), before any work: a
-    Halot preset (its model code); and, once the layers' thicknesses ``thickness_mm`` are known (the writer's
-    check), bottom-layer values only per-layer records hold when the per-layer switch stays off (module docstring:
-    it turns on by itself for layers of several thicknesses)."""
+    Halot preset (its model code) and a display its fields hold."""
     if not _model_code(options):
         raise ParameterError(f"{path}: a .cxdlpv4 file carries its printer's model code, which the printer checks: "
                              "give a Creality Halot --printer preset (gpuslice printers lists them)")
@@ -94,7 +92,13 @@ def refuse_settings(path, name: str, options, settings, spec=None, thickness_mm=
         cols, rows = spec.png_size
         if cols > 0xFFFF or rows > 0xFFFF:
             raise ParameterError(f"{path}: a .cxdlpv4 file holds at most 65535x65535 pixels, not {cols}x{rows}")
-    if thickness_mm is None or per_layer_mode(settings, thickness_mm):
+
+
+def refuse_layers(path, settings, thickness_mm) -> None:
+    """``.cxdlpv4``'s check for layers of ``thickness_mm`` (:meth:`gpuslice.raster.outputs.ResinFormat.check_layers`):
+    bottom-layer values only per-layer records hold, when the per-layer switch stays off (module docstring: it turns
+    on by itself for layers of several thicknesses)."""
+    if per_layer_mode(settings, thickness_mm):
         return
     b, n = settings.group(True), settings.group(False)
     for key in _PER_LAYER_ONLY:
@@ -219,6 +223,7 @@ def _settings_blocks(s, ml: float, anti_alias: int, now, bottom_layers: int, per
 
 def write_target(layers: Iterable[Tile | RunLayer], target) -> dict[str, Any]:
     """The registry's writer (:mod:`gpuslice.raster.outputs`): a ``.cxdlpv4`` file for the Halot the preset names."""
-    refuse_settings(target.path, "cxdlpv4", target.options, target.settings, target.spec, target.result.thickness)
+    refuse_settings(target.path, "cxdlpv4", target.options, target.settings, target.spec)
+    refuse_layers(target.path, target.settings, target.result.thickness)
     preset = target.options.preset
     return write_cxdlpv4(layers, target, code=_model_code(target.options), z_travel=float(preset.build_height))

@@ -18,8 +18,8 @@ from ..ragged import expand_ranges
 from ..slicing.result import SliceResult
 from .spec import RasterSpec
 
-__all__ = ["LayerEdges", "box_tiles", "check_fits", "check_points_fit", "iter_layer_edges", "layer_edges",
-           "merge_layer_groups", "merge_tiles", "result_bounds", "splice_layers", "z_sample_planes"]
+__all__ = ["LayerEdges", "box_tiles", "check_fits", "check_points_fit", "check_printer_fits", "iter_layer_edges",
+           "layer_edges", "merge_layer_groups", "merge_tiles", "result_bounds", "splice_layers", "z_sample_planes"]
 
 
 @dataclass
@@ -71,6 +71,17 @@ def check_points_fit(xy: np.ndarray, spec: RasterSpec, bounds, name: str = "mode
         by_px = f" (it reaches {over:.3g} pixels past an edge)" if over < 1 and not where else ""
         raise ParameterError(f"{name}: the model ({w:.2f} x {h:.2f} mm) does not fit on the display "
                              f"({bx:.2f} x {by:.2f} mm) at this placement{where}{by_px}")
+
+
+def check_printer_fits(name: str, mesh, spec: RasterSpec | None, preset, bounds) -> None:
+    """:class:`ParameterError` when the placed ``mesh``'s XY box leaves the display ``spec`` (placed by ``bounds``)
+    or its height exceeds the printer ``preset``'s build height, before slicing (the exact per-layer check follows
+    after it: :func:`check_fits`)."""
+    if spec is not None:
+        check_points_fit(mesh.bounds[:, :2].astype(np.float64), spec, bounds, name)  # the XY box's corners
+    if preset is not None and preset.build_height > 0 and mesh.height > preset.build_height + 1e-6:
+        raise ParameterError(f"{name}: the model is {mesh.height:.2f} mm tall, more than the "
+                             f"{preset.name}'s build height ({preset.build_height:g} mm)")
 
 
 def check_fits(result: SliceResult, spec: RasterSpec, bounds=None, name: str = "model",

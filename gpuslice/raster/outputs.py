@@ -91,6 +91,10 @@ class ResinFormat:
     #: one-line :class:`~gpuslice.errors.ParameterError`; called as ``f(path, name, options, settings, spec)``);
     #: None: it stores all
     settings_check: str | None = None
+    #: ``"module:function"`` that refuses settings the format cannot store for layers of these thicknesses (mm):
+    #: ``f(path, settings, thickness_mm)``; called before slicing where the options fix them (uniform layers) and
+    #: by the writer. None: none
+    layers_check: str | None = None
     #: ``"module:function"`` giving the print time (s) the archive itself states, where its printer moves otherwise
     #: than :func:`~gpuslice.raster.settings.print_time_s`'s lifts and retracts (the SL1 family tilts its vat):
     #: ``f(settings, n_layers)``; the pre-print checks then state the same time. None: the settings' own
@@ -112,6 +116,12 @@ class ResinFormat:
         if self.settings_check is not None:
             module, func = self.settings_check.split(":")
             getattr(importlib.import_module(f"{__package__}.{module}"), func)(path, self.name, options, settings, spec)
+
+    def check_layers(self, path, settings, thickness_mm) -> None:
+        """Refuse ``settings`` this format cannot store for layers of ``thickness_mm`` (mm), naming ``path``."""
+        if self.layers_check is not None:
+            module, func = self.layers_check.split(":")
+            getattr(importlib.import_module(f"{__package__}.{module}"), func)(path, settings, thickness_mm)
 
     @property
     def suffix(self) -> str:
@@ -165,7 +175,7 @@ RESIN_FORMATS: dict[str, ResinFormat] = {
                     settings_check="cxdlp:refuse_settings"),
         ResinFormat("cxdlpv4", (".cxdlpv4",), "cxdlpv4:write_target", "Creality Halot Mage CXDLP v4 file (another "
                     "layout than .cxdlp: 7-bit RLE layers with their own settings, RGB15 previews)", "CXDLP v4 file",
-                    settings_check="cxdlpv4:refuse_settings"),
+                    settings_check="cxdlpv4:refuse_settings", layers_check="cxdlpv4:refuse_layers"),
         ResinFormat("jxs", (".jxs",), "jxs:write_target", "UniFormation GKone JXS archive (RGB-packed PNG layers, "
                     "config.ini, control.json with the print program)", "JXS archive",
                     settings_check="jxs:refuse_settings", print_time="jxs:stated_print_time"),

@@ -19,7 +19,7 @@ from gpuslice.cli import main
 from gpuslice.errors import ParameterError
 from gpuslice.mesh import shapes
 from gpuslice.raster import PrintSettings, ResinOptions, iter_tiles, masks
-from gpuslice.raster.cxdlpv4 import refuse_settings, write_target
+from gpuslice.raster.cxdlpv4 import refuse_layers, refuse_settings, write_target
 from gpuslice.raster.layers import iter_run_layers
 from gpuslice.raster.outputs import ResinTarget, resin_format_for
 from gpuslice.raster.printers import PRINTERS
@@ -125,8 +125,9 @@ def test_bottom_values_only_per_layer_records_hold_are_refused_unless_per_layer(
                                                  "layers unless per-layer settings are on"):
             write_target(iter([]), target(tmp_path / "x.cxdlpv4", torus, opts, s))
         per_layer = PrintSettings(**{**SETTINGS.__dict__, **change, "per_layer_settings": True})
-        refuse_settings(tmp_path / "x.cxdlpv4", "cxdlpv4", opts, per_layer, None, torus.thickness)  # (records)
-        refuse_settings(tmp_path / "x.cxdlpv4", "cxdlpv4", opts, s)  # (thicknesses unknown: the writer decides)
+        refuse_layers(tmp_path / "x.cxdlpv4", per_layer, torus.thickness)  # (held: per-layer records)
+        refuse_settings(tmp_path / "x.cxdlpv4", "cxdlpv4", opts, s)  # (the layers are another check's)
+        refuse_layers(tmp_path / "x.cxdlpv4", s, np.array([0.5, 1.0]))  # (several thicknesses: the switch is on)
     for options in (ResinOptions(), ResinOptions(printer="generic-4k")):
         with pytest.raises(ParameterError, match="x.cxdlpv4: a .cxdlpv4 file carries its printer's model code"):
             refuse_settings(tmp_path / "x.cxdlpv4", "cxdlpv4", options, SETTINGS)
@@ -249,3 +250,23 @@ def test_cli_writes_a_mage_file_and_refuses_without_a_preset(tmp_path, device, c
     assert main([*base, "--printer", "creality-halot-one", "-o", str(tmp_path / "c.cxdlpv4")]) == 2
     assert "c.cxdlpv4" in capsys.readouterr().err  # (the Halot One reads .cxdlp, not v4)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.cxdlpv4", "torus.stl"]
+
+
+def test_bottom_values_of_uniform_layers_are_refused_before_slicing(tmp_path, monkeypatch, capsys):
+    """Uniform layers (no --adaptive, no other --first-layer) keep the per-layer switch off: the refusal comes
+    before the slicing, as it did before the writer learnt to take layers of several thicknesses (a review)."""
+    import gpuslice.pipeline
+
+    stl = tmp_path / "cube.stl"
+    assert main(["shape", "cube", "-o", str(stl)]) == 0
+
+    def no_slicing(*args, **kwargs):
+        raise AssertionError("sliced before the refusal")
+
+    monkeypatch.setattr(gpuslice.pipeline, "_slice", no_slicing)
+    capsys.readouterr()
+    out = tmp_path / "x.cxdlpv4"
+    assert main(["raster", str(stl), "--printer", preset_file(tmp_path), "-t", "0.5", "-q", "--no-progress",
+                 "--bottom-retract-speed", "120", "-o", str(out)]) == 2
+    assert "holds one --retract-speed for bottom and normal layers" in capsys.readouterr().err
+    assert not out.exists()
