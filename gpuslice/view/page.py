@@ -175,11 +175,29 @@ def raster_masks(
     return MaskLayers(png, origin, to_mm, label, tuple(blank))
 
 
-def build_view_html(result: SliceResult, **kwargs: Any) -> str:
-    """The viewer page for ``result`` as one HTML string (UTF-8, self-contained, no network); the keyword arguments
-    are :func:`_page`'s (``title``, ``masks``, ``mask_label``, ``checks``). :func:`write_view` writes the same page
-    without holding it whole."""
-    head, data, tail = _page(result, **kwargs)
+def build_view_html(
+    result: SliceResult,
+    *,
+    title: str | None = None,
+    masks: MaskLayers | Mapping[int, bytes] | None = None,
+    mask_label: str = "",
+    checks: Any = None,
+) -> str:
+    """The viewer page for ``result`` as one HTML string (UTF-8, self-contained, no network; :func:`write_view`
+    writes the same page without holding it whole).
+
+    title : shown in the header and the window title (default: the sliced file's name from ``result.meta``).
+    masks : optional resin masks for some or all layers: a :class:`MaskLayers` (drawn under the contours, in place,
+        and beside them; see :func:`raster_masks`) or a plain ``{layer index: PNG bytes}`` (beside them only). The
+        page shows the current layer's mask or says there is none for it. ``mask_label`` (e.g.
+        ``"1920×1080 px, 0.05 mm"``) is shown with it (default: the :class:`MaskLayers` label).
+    checks : a :class:`gpuslice.checks.CheckReport`: its islands and cavities are marked on their layers (islands
+        red, traps purple, suction cups orange) and listed, each a link to its layer.
+
+    Raises :class:`~gpuslice.errors.ParameterError` for a result with more than :data:`MAX_VIEW_POINTS` points or
+    a mask for a layer that does not exist.
+    """
+    head, data, tail = _page(result, title=title, masks=masks, mask_label=mask_label, checks=checks)
     return head + "".join(_json_chunks(data)) + tail
 
 
@@ -198,19 +216,8 @@ def _page(
     mask_label: str = "",
     checks: Any = None,
 ) -> tuple[str, dict[str, Any], str]:
-    """The viewer page for ``result``: the HTML before its data, the data (JSON-ready), the HTML after.
-
-    title : shown in the header and the window title (default: the sliced file's name from ``result.meta``).
-    masks : optional resin masks for some or all layers: a :class:`MaskLayers` (drawn under the contours, in place,
-        and beside them; see :func:`raster_masks`) or a plain ``{layer index: PNG bytes}`` (beside them only). The
-        page shows the current layer's mask or says there is none for it. ``mask_label`` (e.g.
-        ``"1920×1080 px, 0.05 mm"``) is shown with it (default: the :class:`MaskLayers` label).
-    checks : a :class:`gpuslice.checks.CheckReport`: its islands and cavities are marked on their layers (islands
-        red, traps purple, suction cups orange) and listed, each a link to its layer.
-
-    Raises :class:`~gpuslice.errors.ParameterError` for a result with more than :data:`MAX_VIEW_POINTS` points or
-    a mask for a layer that does not exist.
-    """
+    """The viewer page for ``result`` (:func:`build_view_html`'s arguments): the HTML before its data, the data
+    (JSON-ready), the HTML after."""
     meta = result.meta
     if title is None:
         title = Path(str(meta.get("file", "gpuslice result"))).name
