@@ -23,6 +23,7 @@ from ..errors import MeshFileError
 __all__ = ["read_off"]
 
 _KEYWORD = re.compile(rb"(?:ST)?C?N?(4?)(n?)OFF")
+_INTEGER = re.compile(rb"[+-]?[0-9]+")  # (Python's int() also takes "1_000" and other digits: not OFF's)
 
 
 def _content_lines(data: bytes) -> list[bytes]:
@@ -64,18 +65,15 @@ def read_off(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray]:
             tokens, head = lines[1].split(), 2
     elif tokens[0].upper().endswith(b"OFF"):
         raise fail(f"unknown keyword {tokens[0].decode(errors='replace')!r}")
-    try:
-        counts = [int(t) for t in tokens[:3]]
-    except ValueError:
-        counts = []
+    counts = [int(t) for t in tokens[:3]] if all(_INTEGER.fullmatch(t) for t in tokens[:3]) else []
     if len(counts) < 2 or min(counts) < 0:
         raise fail(f"the counts line {b' '.join(tokens).decode(errors='replace')!r} is not vertex, face "
                    "(and edge) counts")
     nv, nf = counts[0], counts[1]
     body = lines[head:]
-    if len(body) < nv + nf:
+    if len(body) != nv + nf:  # (more: a face the count leaves out would be dropped, the mesh left open)
         raise MeshFileError(f"{name}: the OFF header declares {nv} vertices and {nf} faces, the file holds "
-                            f"{len(body)} lines after it (cut short?)")
+                            f"{len(body)} lines after it ({'cut short?' if len(body) < nv + nf else 'a wrong count?'})")
     vertices = _numbers(body[:nv], float, 3, "vertex", fail)
     rows = body[nv : nv + nf]
     try:  # (the usual file: every face a triangle; anything after its three indices is a colour)
@@ -112,11 +110,10 @@ def _polygons(rows: list[bytes], fail) -> np.ndarray:
     tris: list[tuple[int, int, int]] = []
     for k, row in enumerate(rows):
         parts = row.split()
-        try:
-            n = int(parts[0])
-            idx = [int(p) for p in parts[1 : n + 1]]
-        except ValueError:
-            n, idx = -1, []
+        n = int(parts[0]) if _INTEGER.fullmatch(parts[0]) else -1
+        if n >= 0 and not all(_INTEGER.fullmatch(p) for p in parts[1 : n + 1]):
+            n = -1
+        idx = [int(p) for p in parts[1 : n + 1]] if n >= 0 else []
         text = row.strip().decode(errors="replace")[:40]
         if n < 0 or len(idx) < n:
             raise fail(f"face line {k + 1} ({text!r}) lists fewer vertex indices than its count {parts[0].decode()}"
