@@ -208,14 +208,7 @@ def _json_chunks(data: dict[str, Any]) -> Iterator[str]:
         yield chunk.replace("<", "\\u003c").replace(">", "\\u003e")
 
 
-def _page(
-    result: SliceResult,
-    *,
-    title: str | None = None,
-    masks: MaskLayers | Mapping[int, bytes] | None = None,
-    mask_label: str = "",
-    checks: Any = None,
-) -> tuple[str, dict[str, Any], str]:
+def _page(result: SliceResult, title=None, masks=None, mask_label: str = "", checks=None) -> tuple[str, dict, str]:
     """The viewer page for ``result`` (:func:`build_view_html`'s arguments): the HTML before its data, the data
     (JSON-ready), the HTML after."""
     meta = result.meta

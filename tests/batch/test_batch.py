@@ -581,15 +581,21 @@ def test_cli_ctrl_c_stops_cleanly(tmp_path, device, sig, code, said):
         SliceResult.load(p)  # every output there is complete
     report = json.loads(rep.read_text())
     assert report["summary"]["interrupted"] and report["summary"]["not_run"] > 0
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline:  # the whole group, workers and forkserver included, goes away
-        try:
-            os.killpg(proc.pid, 0)
-        except ProcessLookupError:
-            break
-        time.sleep(0.1)
-    else:
+    if not _group_ends(proc.pid, 10):  # the whole group, workers and forkserver included, goes away
         pytest.fail("processes of the interrupted batch are still running")
+
+
+def _group_ends(pgid: int, seconds: float) -> bool:
+    """Whether every process of the group ``pgid`` is gone within ``seconds`` (those left are killed)."""
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        try:
+            os.killpg(pgid, 0)
+        except ProcessLookupError:
+            return True
+        time.sleep(0.1)
+    os.killpg(pgid, signal.SIGKILL)
+    return False
 
 
 def test_workers_of_a_killed_driver_end(tmp_path, device):
@@ -609,15 +615,7 @@ def test_workers_of_a_killed_driver_end(tmp_path, device):
         time.sleep(0.05)
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait(timeout=10)
-    deadline = time.monotonic() + 15
-    while time.monotonic() < deadline:
-        try:
-            os.killpg(proc.pid, 0)
-        except ProcessLookupError:
-            break
-        time.sleep(0.2)
-    else:
-        os.killpg(proc.pid, signal.SIGKILL)
+    if not _group_ends(proc.pid, 15):
         pytest.fail("processes of the killed batch's group are still running")
     assert not list(out.glob(".*tmp-*"))  # (the workers removed their temporaries on the way out)
 
