@@ -27,9 +27,16 @@ from typing import Any
 
 from ..errors import BatchError, one_line
 from ..io.atomic import atomic_write_tree, remove_path
-from . import journal as _journal
 from .discover import Model, discover
-from .journal import JOURNAL_NAME, forget_journal, read_journal, record_finished, record_written_since, unchanged
+from .journal import (
+    JOURNAL_NAME,
+    forget_journal,
+    read_journal,
+    record_finished,
+    record_written_since,
+    remove_journaled,
+    unchanged,
+)
 from .options import BatchOptions, check_path, same_options
 from .pool import Slot, helpers_ignoring_sighup, mp_context, stop_slots
 from .report import checks_summary
@@ -157,7 +164,7 @@ class BatchRunner:
         if rec["status"] == "done":
             record_finished(self.out_dir, self._files(index))
         elif self.force:  # a redo that failed: its old files (a batch's, as journaled) would be skipped next time
-            _journal.remove_journaled(self.out_dir, self._files(index), self._made)
+            remove_journaled(self.out_dir, self._files(index), self._made)
         rec["input"] = m.src
         if task is not None:
             rec["attempts"] = task.attempt

@@ -18,6 +18,7 @@ from .options import (
     RESIN_DEFAULTS,
     build,
     check_output_file,
+    check_output_place,
     check_resin_layers,
     check_writable,
     click_options,
@@ -155,10 +156,9 @@ def batch(inputs, out_dir, pattern, raster_opt, workers, threads, scheduler, tra
         fail(f"--format and --raster: each model gets one output, its --raster {kw['raster']} archive (--format "
              "names a contour format)")
     check_output_file(report, creates=out_dir)  # refused now, not after every model is done
-    parent = Path(out_dir.rstrip("/\\") or ".").resolve().parent
-    if not parent.is_dir():  # (one level made, as every command makes its output: a typo made a whole tree)
-        fail(f"{out_dir}: directory {parent} does not exist")
-    check_writable(out_dir, Path(out_dir) if Path(out_dir).is_dir() else parent)
+    check_output_place(out_dir)
+    if Path(out_dir).is_dir():  # (its outputs are written inside it)
+        check_writable(out_dir, out_dir)
     opts = _batch_options(kw, raster_opt)
     if opts.raster is not None:
         from ..raster.outputs import source_date

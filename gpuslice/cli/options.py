@@ -117,6 +117,18 @@ def check_output_file(*paths: str | None, creates: str | None = None) -> None:
         check_writable(out, parent)
 
 
+def check_output_place(out: str) -> None:
+    """A one-line error, before any work, when the folder ``out`` is made or replaced in (a PNG stack, a batch's
+    output folder) does not exist or cannot be written: one level is made, as every command makes its output (a
+    typo's whole tree was made)."""
+    from pathlib import Path
+
+    parent = Path(out.rstrip("/\\") or ".").resolve().parent
+    if not parent.is_dir():
+        fail(f"{out}: directory {parent} does not exist")
+    check_writable(out, parent)
+
+
 def check_writable(out: str, folder) -> None:
     """A one-line error, before any work, when ``folder`` (where ``out`` goes) cannot be written: a read-only file
     system or no permission (it failed only when the writing started, after the slicing)."""

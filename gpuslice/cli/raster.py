@@ -18,8 +18,8 @@ from .options import (
     build,
     check_distinct_outputs,
     check_output_file,
+    check_output_place,
     check_resin_layers,
-    check_writable,
     click_options,
     fail,
     open_chains_warning,
@@ -151,10 +151,7 @@ def raster(model: str, output: str, fmt_name: str | None, progress: bool | None,
     t_start = time.perf_counter()
     fmt = resin_format_for(output, fmt_name)
     refuse_model_as_output(model, output, report)
-    parent = Path(output.rstrip("/\\") or ".").resolve().parent
-    if not parent.is_dir():
-        fail(f"{output}: directory {parent} does not exist")
-    check_writable(output, parent)
+    check_output_place(output)
     check_output_file(report, creates=output)  # (a PNG stack's folder is made by the command)
     check_distinct_outputs(output, report)
     if report is not None and fmt.folder and Path(report).resolve().is_relative_to(Path(output).resolve()):

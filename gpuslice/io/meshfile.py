@@ -53,6 +53,8 @@ UNITS_3MF_MM = {"micron": 0.001, "millimeter": 1.0, "centimeter": 10.0, "inch": 
 ZIP_MAX_RATIO = 200
 ZIP_RATIO_FLOOR = 64 << 20
 _INFLATE_CHUNK = 1 << 20
+#: the formats trimesh reads from the file's name (the others' bytes are read by gpuslice, for its own checks)
+_BY_NAME = ("ply", "3mf")
 
 
 def read_mesh_file(path: str | os.PathLike[str]) -> RawMesh:
@@ -95,7 +97,7 @@ def read_mesh_file(path: str | os.PathLike[str]) -> RawMesh:
         if not (stat.S_ISREG(mode) or stat.S_ISFIFO(mode)):  # /dev/zero would be read until memory runs out
             raise MeshFileError(f"{name}: not a regular file (a device or a socket)")
         ext = os.path.splitext(name)[1].lower()
-        if ext in NON_STL_EXTENSIONS and not stat.S_ISFIFO(mode):  # (trimesh opens the file itself)
+        if NON_STL_EXTENSIONS.get(ext) in _BY_NAME and not stat.S_ISFIFO(mode):  # (trimesh opens the file itself)
             return _read_non_stl(name, NON_STL_EXTENSIONS[ext])
         with open(name, "rb") as fh:  # (a FIFO's bytes read here: trimesh takes only a regular file by name)
             data = fh.read()
@@ -261,28 +263,18 @@ def _obj_zero_line(data: bytes) -> int | None:
     return None
 
 
-def _read_bytes(name: str) -> bytes:
-    """The bytes of the file ``name`` (a one-line error for an OS error)."""
-    try:
-        with open(name, "rb") as fh:
-            return fh.read()
-    except OSError as exc:
-        raise _file_error(name, exc) from None
-
-
 def _read_non_stl(name: str, file_type: str, data: bytes | None = None) -> RawMesh:
     """Read OBJ / PLY / 3MF with trimesh (imported here: it is slow to import) and OFF with :mod:`.off`, from the
-    file ``name`` or from its bytes ``data`` (no temporary file); a 3MF is inflated first under
-    :func:`zip_inflate_limit`."""
+    file ``name`` (PLY and 3MF: :data:`_BY_NAME`) or from its bytes ``data`` (no temporary file; OBJ and OFF are
+    always given theirs); a 3MF is inflated first under :func:`zip_inflate_limit`."""
     if file_type == "off":  # (not trimesh's reader: it dropped faces silently, module .off)
-        vertices, faces = read_off(_read_bytes(name) if data is None else data, name)
+        vertices, faces = read_off(data, name)
         return _raw_mesh(name, file_type, _triangles(name, "OFF", vertices, faces, None), None)
     try:
         import trimesh
     except ImportError as exc:  # pragma: no cover - trimesh is a dependency
         raise MeshFileError(f"{name}: reading {file_type.upper()} files needs trimesh ({exc})") from None
-    if file_type == "obj":  # (read here once: trimesh takes an OBJ face's vertex 0, which does not exist, as 1)
-        data = _read_bytes(name) if data is None else data
+    if file_type == "obj":  # (trimesh takes an OBJ face's vertex 0, which does not exist, as vertex 1)
         if (line := _obj_zero_line(data)) is not None:
             raise MeshFileError(f"{name}: line {line}: an OBJ face names vertex 0 (OBJ counts vertices from 1)")
     source: str | io.BytesIO = name if data is None else io.BytesIO(data)

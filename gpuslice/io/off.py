@@ -42,7 +42,7 @@ def read_off(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray]:
     """Vertices ``(V, 3)`` float64 (file units) and triangles ``(F, 3)`` int64 (indices into the vertices, not
     yet checked against their count) of the ASCII OFF file ``data``; a :class:`MeshFileError` naming ``name``
     for a binary OFF, a 4-D or n-D one, a bad counts line, a vertex or face line that is short or not numbers, a
-    face of fewer than 3 vertices, or fewer lines than the counts declare (cut short)."""
+    face of fewer than 3 vertices, or other than as many lines as the counts declare."""
 
     def fail(reason: str) -> MeshFileError:
         return MeshFileError(f"{name}: cannot read OFF file: {reason}")
@@ -75,7 +75,7 @@ def read_off(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray]:
         raise MeshFileError(f"{name}: the OFF header declares {nv} vertices and {nf} faces, the file holds "
                             f"{len(body)} lines after it ({'cut short?' if len(body) < nv + nf else 'a wrong count?'})")
     vertices = _numbers(body[:nv], float, 3, "vertex", fail)
-    rows = body[nv : nv + nf]
+    rows = body[nv:]
     try:  # (the usual file: every face a triangle; anything after its three indices is a colour)
         first = np.loadtxt(rows, dtype=np.int64, usecols=(0, 1, 2, 3), ndmin=2) if nf else np.zeros((0, 4), int)
     except (ValueError, OverflowError):  # (an index past int64: found by the line below)

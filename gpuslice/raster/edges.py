@@ -19,7 +19,8 @@ from ..slicing.result import SliceResult
 from .spec import RasterSpec
 
 __all__ = ["LayerEdges", "box_tiles", "check_fits", "check_points_fit", "check_printer_fits", "iter_layer_edges",
-           "layer_edges", "merge_layer_groups", "merge_tiles", "result_bounds", "splice_layers", "z_sample_planes"]
+           "layer_edges", "merge_layer_groups", "merge_tiles", "pixel_box", "result_bounds", "splice_layers",
+           "z_sample_planes"]
 
 
 @dataclass
@@ -43,17 +44,23 @@ def result_bounds(result: SliceResult) -> tuple[float, float, float, float] | No
     return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
 
 
+def pixel_box(xy: np.ndarray, spec: RasterSpec, bounds) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) pixel coordinates (u, v) of the points ``xy`` ((n > 0, 2) mm) on ``spec``'s display, placed by
+    ``bounds``: from the four corners of their box alone, since u and v each move with one of x and y
+    (:meth:`RasterSpec.affine`) through correctly rounded steps that never reverse an order (exact, not a bound)."""
+    (x0, y0), (x1, y1) = point_bounds(xy)
+    corners = np.array([[x0, y0], [x0, y1], [x1, y0], [x1, y1]], np.float64)
+    return point_bounds(spec.to_pixels(corners, bounds))
+
+
 def check_points_fit(xy: np.ndarray, spec: RasterSpec, bounds, name: str = "model") -> None:
     """Raise :class:`ParameterError` naming ``name`` when any of the model points ``xy`` ((n, 2) mm, placed on the
     display by ``bounds`` as :meth:`RasterSpec.offset_for` does) lands outside the display."""
     xy = np.asarray(xy)
     if xy.shape[0] == 0:
         return
-    # the pixel box of the points' box corners is that of the points: u and v each move with one of x and y
-    # (RasterSpec.affine), through correctly rounded steps that never reverse an order (exact, not a bound)
     (x0, y0), (x1, y1) = point_bounds(xy)
-    corners = np.array([[x0, y0], [x0, y1], [x1, y0], [x1, y1]], np.float64)
-    lo, hi = point_bounds(spec.to_pixels(corners, bounds))
+    lo, hi = pixel_box(xy, spec, bounds)
     # two float32 steps of the largest coordinate, in pixels: a part exactly the display's size (whose float32
     # points lie a step over it, as 68.04 rounds up) fits; what lies past the edge by that much is not drawn
     ulp = float(np.spacing(np.float32(max(abs(x0), abs(x1), abs(y0), abs(y1)))))

@@ -50,8 +50,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import ParameterError
-from ..formats.numbers import point_bounds
 from ..io.atomic import WRITE_BUFFER, atomic_path
+from ..slicing.rings import signed_areas
 from .coverage import Tile
 from .layers import RunLayer, encode_png, pixel_runs, run_groups
 from .png import PngEncoder, encode_all
@@ -71,7 +71,8 @@ AREA_CHUNK_POINTS = 1 << 20
 
 
 def _signed_areas(result) -> np.ndarray:
-    """Each loop's shoelace area (mm², counter-clockwise positive), a chunk of whole loops of about
+    """Each loop's shoelace area (mm², counter-clockwise positive; :func:`gpuslice.slicing.rings.signed_areas`), a
+    chunk of whole loops of about
     :data:`AREA_CHUNK_POINTS` points at a time (all of them at once made float64 copies of every point: 1 GB at
     24,000 layers, where the contours held 170 MB)."""
     po = np.asarray(result.loop_offsets, np.int64)
@@ -80,15 +81,8 @@ def _signed_areas(result) -> np.ndarray:
     r0 = 0
     while r0 < n_loops:
         r1 = min(n_loops, max(r0 + 1, int(np.searchsorted(po, po[r0] + AREA_CHUNK_POINTS, side="right")) - 1))
-        p0, p1 = int(po[r0]), int(po[r1])
-        n = np.diff(po[r0 : r1 + 1])
-        pts = np.asarray(result.points[p0:p1], np.float64)
-        owner = np.repeat(np.arange(r1 - r0, dtype=np.int64), n)
-        nxt = np.arange(1, p1 - p0 + 1, dtype=np.int64)
-        ne = n > 0
-        nxt[po[r0 + 1 : r1 + 1][ne] - p0 - 1] = po[r0:r1][ne] - p0
-        cross = pts[:, 0] * pts[nxt, 1] - pts[nxt, 0] * pts[:, 1] if pts.size else np.zeros(0)
-        signed[r0:r1] = 0.5 * np.bincount(owner, weights=cross, minlength=r1 - r0)
+        p0 = int(po[r0])
+        signed[r0:r1] = signed_areas(np.asarray(result.points[p0 : po[r1]]), po[r0 : r1 + 1] - p0)
         r0 = r1
     return signed
 
@@ -153,7 +147,7 @@ def write_nanodlp(
     None: the result's). ``device``: the OpenCL device of the layers' runs, where their PNGs are made
     (``kernels/png.cl``) at ``level`` 1 (None: numpy). Returns the layer count and PNG bytes."""
     from .. import __version__
-    from .edges import result_bounds
+    from .edges import pixel_box, result_bounds
 
     p = Path(os.fspath(path))
     n = result.n_layers
@@ -166,10 +160,8 @@ def write_nanodlp(
     stamp = int(when.replace(tzinfo=_dt.timezone.utc).timestamp())
     # the part's box: display frame (PNG orientation) from the display's centre, mm
     box = {"XMin": 0.0, "XMax": 0.0, "YMin": 0.0, "YMax": 0.0}
-    if result.points.shape[0]:  # (the box's corners: u and v each move with one of x and y, monotonically)
-        (x0, y0), (x1, y1) = point_bounds(result.points)
-        corners = np.array([[x0, y0], [x0, y1], [x1, y0], [x1, y1]], np.float64)
-        lo, hi = point_bounds(spec.to_pixels(corners, bounds if bounds is not None else result_bounds(result)))
+    if result.points.shape[0]:  # (from the points' box: no copy of every point in pixels)
+        lo, hi = pixel_box(result.points, spec, bounds if bounds is not None else result_bounds(result))
         box = {"XMin": round((lo[0] - cols / 2) * pitch[0], 4), "XMax": round((hi[0] - cols / 2) * pitch[0], 4),
                "YMin": round((lo[1] - rows / 2) * pitch[1], 4), "YMax": round((hi[1] - rows / 2) * pitch[1], 4)}
     z_max = float(result.bottom[-1] + th[-1]) if n else 0.0
