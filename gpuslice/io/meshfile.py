@@ -3,8 +3,9 @@
 The slicer works on a triangle soup: an ``(F, 3, 3)`` float32 array holding the three corners of every facet in file
 order and file units (STL, OBJ, PLY and OFF have no units; for 3D printing they are millimetres by convention),
 except a 3MF, whose model declares its unit (micron to meter): it is read in millimetres (:data:`UNITS_3MF_MM`).
-Files named ``.obj``, ``.ply`` or ``.3mf`` are read through :mod:`trimesh` (imported lazily), ``.off`` by
-:mod:`gpuslice.io.off`; every other file is parsed as STL, binary or ASCII (:mod:`gpuslice.io.stl`).
+Files named ``.ply`` or ``.3mf`` are read through :mod:`trimesh` (imported lazily), ``.obj`` by
+:mod:`gpuslice.io.obj`, ``.off`` by :mod:`gpuslice.io.off` (their polygon faces cut into triangles by
+:mod:`gpuslice.io.polygons`); every other file is parsed as STL, binary or ASCII (:mod:`gpuslice.io.stl`).
 :func:`read_mesh_source` also reads a file's bytes sent elsewhere (a batch worker). Every problem a user can cause
 raises a :class:`~gpuslice.errors.MeshFileError` (or a subclass) whose message is one line naming the file and the
 problem.
@@ -24,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EmptyMeshError, GpusliceError, MeshFileError, flatten
+from .obj import read_obj
 from .off import read_off
 from .rawmesh import BINARY_STL_RECORD, MAX_COORDINATE, NON_STL_EXTENSIONS, RawMesh, check_coordinates
 from .stl import _os_reason, read_stl_bytes
@@ -60,9 +62,10 @@ _BY_NAME = ("ply", "3mf")
 def read_mesh_file(path: str | os.PathLike[str]) -> RawMesh:
     """Read a mesh file into a :class:`RawMesh`.
 
-    Files named ``.obj``, ``.ply`` or ``.3mf`` (any case) are read with
+    Files named ``.ply`` or ``.3mf`` (any case) are read with
     ``trimesh.load(path, force="mesh", process=False)`` (all objects of the file merged, vertices not merged,
-    nothing repaired), ``.off`` with :func:`gpuslice.io.off.read_off`; every other name, ``.stl`` or not, goes
+    nothing repaired), ``.obj`` with :func:`gpuslice.io.obj.read_obj` (all objects merged too), ``.off`` with
+    :func:`gpuslice.io.off.read_off`; every other name, ``.stl`` or not, goes
     through :func:`read_stl_bytes`, which tells binary from ASCII STL and recognises common non-STL files.
 
     Parameters
@@ -231,52 +234,43 @@ def _short_text(name: str, file_type: str, data: bytes | None) -> str | None:
     return None
 
 
-def _triangles(name: str, kind: str, vertices: np.ndarray, faces: np.ndarray, short: str | None) -> np.ndarray:
-    """(F, 3, 3) float64 corners of the faces trimesh read, or a one-line :class:`MeshFileError` for what it let
+def _triangles(name: str, kind: str, vertices: np.ndarray, faces: np.ndarray, short: str | None,
+               counts: np.ndarray | None = None) -> np.ndarray:
+    """(F, 3, 3) float64 corners of the faces read, or a one-line :class:`MeshFileError` for what a reader let
     through: vertices without three coordinates (an OBJ ``v 0 10``), a face naming a vertex that is not there (a
-    negative index: numpy would take another vertex), an ASCII PLY or OFF file cut short (``short``)."""
+    negative index: numpy would take another vertex), an ASCII PLY or OFF file cut short (``short``).
+
+    ``faces``: (F, 3) triangles (trimesh's), or with ``counts`` (vertices per face) polygons' flat vertex indices,
+    cut into triangles by :func:`gpuslice.io.polygons.triangulate` (a concave face inside its outline)."""
     if vertices.ndim != 2 or vertices.shape[1] != 3:
         raise MeshFileError(f"{name}: {kind} vertices with {vertices.shape[-1] if vertices.ndim == 2 else '?'} "
                             "coordinates, not x y z (a vertex line short of a number?)")
-    faces = np.asarray(faces, np.int64).reshape(-1, 3) if faces.size else np.zeros((0, 3), np.int64)
+    faces = np.asarray(faces, np.int64).reshape(-1 if counts is not None else (-1, 3))
     bad = (faces < 0) | (faces >= len(vertices))
     if bad.any():
         raise MeshFileError(f"{name}: a {kind} face names vertex {int(faces[bad][0])}, but the file has "
                             f"{len(vertices)} vertices (counted from 0; an index out of range)")
     if short is not None:
         raise MeshFileError(f"{name}: {short}")
+    if counts is not None:
+        from .polygons import triangulate
+
+        with np.errstate(all="ignore"):  # (NaN or infinite coordinates: refused below, without numpy's warnings)
+            faces = triangulate(vertices, counts, faces)[0]
     return vertices[faces]
 
 
-#: a token 0 (or 0/..., a vertex index 0 where the line is a face: ``f 0 2 3``); OBJ's indices count from 1
-_ZERO_TOKEN = re.compile(rb"[ \t][+-]?0+(?=[/ \t\r\n#]|\Z)")
-
-
-def _obj_zero_line(data: bytes) -> int | None:
-    """The line number (from 1) of the first OBJ face line of ``data`` naming vertex 0, or None (one scan for
-    zero tokens, each then placed on its line: vertex lines hold most of them)."""
-    for found in _ZERO_TOKEN.finditer(data):
-        start = data.rfind(b"\n", 0, found.start()) + 1
-        head = data[start : found.start() + 1].lstrip()
-        if b"#" not in head and (head[:2] in (b"f ", b"f\t") or head[:3] in (b"fo ", b"fo\t")):
-            return data.count(b"\n", 0, start) + 1
-    return None
-
-
 def _read_non_stl(name: str, file_type: str, data: bytes | None = None) -> RawMesh:
-    """Read OBJ / PLY / 3MF with trimesh (imported here: it is slow to import) and OFF with :mod:`.off`, from the
-    file ``name`` (PLY and 3MF: :data:`_BY_NAME`) or from its bytes ``data`` (no temporary file; OBJ and OFF are
-    always given theirs); a 3MF is inflated first under :func:`zip_inflate_limit`."""
-    if file_type == "off":  # (not trimesh's reader: it dropped faces silently, module .off)
-        vertices, faces = read_off(data, name)
-        return _raw_mesh(name, file_type, _triangles(name, "OFF", vertices, faces, None), None)
+    """Read PLY / 3MF with trimesh (imported here: it is slow to import), OBJ with :mod:`.obj` and OFF with
+    :mod:`.off`, from the file ``name`` (PLY and 3MF: :data:`_BY_NAME`) or from its bytes ``data`` (no temporary
+    file; OBJ and OFF are always given theirs); a 3MF is inflated first under :func:`zip_inflate_limit`."""
+    if file_type in ("off", "obj"):  # (not trimesh's readers: they dropped faces silently, folded concave ones)
+        vertices, counts, faces = (read_off if file_type == "off" else read_obj)(data, name)
+        return _raw_mesh(name, file_type, _triangles(name, file_type.upper(), vertices, faces, None, counts), None)
     try:
         import trimesh
     except ImportError as exc:  # pragma: no cover - trimesh is a dependency
         raise MeshFileError(f"{name}: reading {file_type.upper()} files needs trimesh ({exc})") from None
-    if file_type == "obj":  # (trimesh takes an OBJ face's vertex 0, which does not exist, as vertex 1)
-        if (line := _obj_zero_line(data)) is not None:
-            raise MeshFileError(f"{name}: line {line}: an OBJ face names vertex 0 (OBJ counts vertices from 1)")
     source: str | io.BytesIO = name if data is None else io.BytesIO(data)
     if file_type == "3mf":
         source = inflate_3mf(name, data)

@@ -3,9 +3,9 @@
 The layout (Geomview's ``OFF`` manual page): an optional keyword line ``[ST][C][N]OFF``; a counts line ``NV NF
 [NE]`` (on the keyword's line or the next); ``NV`` vertex lines ``x y z`` (then, per the keyword, a normal, a
 colour, a texture coordinate: ignored); ``NF`` face lines ``n i_1 ... i_n`` (vertex indices counted from 0, then
-an optional colour: ignored). ``#`` starts a comment anywhere; blank lines are skipped. A face of n > 3 vertices
-is cut into a fan of n − 2 triangles (its first vertex shared), which is exact for the planar convex faces OFF
-files hold and keeps the face's orientation.
+an optional colour: ignored). ``#`` starts a comment anywhere; blank lines are skipped. Faces are returned as
+polygons (vertex counts and their indices); :mod:`gpuslice.io.polygons` cuts those of n > 3 vertices into n − 2
+triangles (a fan where it is exact, a concave face inside its outline).
 
 trimesh's OFF reader (5.x) let broken files through silently: a comment line after the counts line dropped a
 face, a face line short of an index dropped that face, a face colour dropped every face. Here each is refused with
@@ -38,9 +38,10 @@ def _content_lines(data: bytes) -> list[bytes]:
     return [line for line in data.split(b"\n") if line.strip()]
 
 
-def read_off(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices ``(V, 3)`` float64 (file units) and triangles ``(F, 3)`` int64 (indices into the vertices, not
-    yet checked against their count) of the ASCII OFF file ``data``; a :class:`MeshFileError` naming ``name``
+def read_off(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vertices ``(V, 3)`` float64 (file units), the faces' vertex counts ``(F,)`` int64 (each >= 3) and their
+    vertex indices (flat, face after face, int64, not yet checked against the vertex count) of the ASCII OFF file
+    ``data``; a :class:`MeshFileError` naming ``name``
     for a binary OFF, a 4-D or n-D one, a bad counts line, a vertex or face line that is short or not numbers, a
     face of fewer than 3 vertices, or other than as many lines as the counts declare."""
 
@@ -81,8 +82,8 @@ def read_off(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray]:
     except (ValueError, OverflowError):  # (an index past int64: found by the line below)
         first = None
     if first is not None and (first[:, 0] == 3).all():
-        return vertices, first[:, 1:].copy()
-    return vertices, _polygons(rows, fail)
+        return vertices, first[:, 0].copy(), first[:, 1:].reshape(-1)
+    return (vertices, *_polygons(rows, fail))
 
 
 def _numbers(rows: list[bytes], dtype, n: int, what: str, fail) -> np.ndarray:
@@ -104,10 +105,11 @@ def _numbers(rows: list[bytes], dtype, n: int, what: str, fail) -> np.ndarray:
         raise fail(f"unreadable {what} lines") from None
 
 
-def _polygons(rows: list[bytes], fail) -> np.ndarray:
-    """Triangles of face lines ``n i_1 ... i_n [colour]`` (a fan for n > 3): one pass in Python, only for files
+def _polygons(rows: list[bytes], fail) -> tuple[np.ndarray, np.ndarray]:
+    """Vertex counts and flat indices of face lines ``n i_1 ... i_n [colour]``: one pass in Python, only for files
     whose faces are not all triangles or whose lines are not all well formed."""
-    tris: list[tuple[int, int, int]] = []
+    counts: list[int] = []
+    flat: list[int] = []
     for k, row in enumerate(rows):
         parts = row.split()
         n = int(parts[0]) if _INTEGER.fullmatch(parts[0]) else -1
@@ -122,5 +124,6 @@ def _polygons(rows: list[bytes], fail) -> np.ndarray:
             raise fail(f"face line {k + 1} ({text!r}) has {n} vertices (a face needs 3)")
         if any(abs(i) >= 1 << 62 for i in idx):
             raise fail(f"face line {k + 1} ({text!r}) names a vertex index out of range")
-        tris.extend((idx[0], idx[j], idx[j + 1]) for j in range(1, n - 1))
-    return np.asarray(tris, np.int64).reshape(-1, 3)
+        counts.append(n)
+        flat.extend(idx)
+    return np.asarray(counts, np.int64), np.asarray(flat, np.int64)

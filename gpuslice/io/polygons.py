@@ -1,0 +1,149 @@
+"""Triangles of a mesh file's polygon faces (OBJ, PLY and OFF faces of more than three vertices).
+
+A face of n vertices becomes n − 2 triangles that keep its orientation (the triangles' normals point the way the
+face's Newell normal does). Most faces are convex and get the fan from their first vertex, as every reader does;
+a fan is exact for a face when none of its triangles turns against the face's normal. A concave face (a CAD
+part's L- or U-shaped side, a letter's outline) would get fan triangles that turn round and overlap their
+neighbours: the mesh's winding number stays right, but every cutting plane through such a face yields
+segments that double back on themselves, which the slicer must then repair as overlapping loops. Those faces are
+triangulated inside their outline instead (GEOS's constrained Delaunay triangulation, ``shapely
+.constrained_delaunay_triangles``, in the plane of the face's dominant axes: exact vertex coordinates, no new
+vertex). A face whose outline crosses itself, or repeats a point, has no inside to triangulate: it keeps its fan.
+
+Columnar: one pass of numpy over all faces; GEOS only for the concave ones, all in one call.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["triangulate", "fan"]
+
+#: a fan triangle turned against its face's normal by more than this share of |its normal| · |the face's| is
+#: wrong (collinear vertices, e.g. a point in the middle of a face's edge, give triangles of zero area, which are
+#: not wrong: a fan through them is still the face)
+_AGAINST = 1e-9
+
+
+def fan(counts: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(T, 3) int64 fan triangles ``(i_0, i_j, i_j+1)`` of faces given as ``counts`` (F,) vertices each (>= 3) and
+    their ``indices`` (flat, face after face), and (T,) the face of each triangle."""
+    counts = np.asarray(counts, np.int64)
+    start = np.zeros(counts.size, np.int64)
+    np.cumsum(counts[:-1], out=start[1:])
+    per = counts - 2
+    face = np.repeat(np.arange(counts.size), per)
+    first = np.zeros(per.size, np.int64)
+    np.cumsum(per[:-1], out=first[1:])
+    j = np.arange(face.size, dtype=np.int64) - np.repeat(first, per) + 1  # 1 .. n-2 within each face
+    base = start[face]
+    tri = np.stack([indices[base], indices[base + j], indices[base + j + 1]], axis=1)
+    return tri.astype(np.int64, copy=False), face
+
+
+def _newell(vertices: np.ndarray, counts: np.ndarray, indices: np.ndarray) -> np.ndarray:
+    """(F, 3) Newell normal of each face (twice its vector area; its direction is the face's orientation)."""
+    start = np.zeros(counts.size, np.int64)
+    np.cumsum(counts[:-1], out=start[1:])
+    p = vertices[indices]
+    nxt = np.arange(indices.size, dtype=np.int64) + 1
+    nxt[start + counts - 1] = start  # each face's last vertex goes back to its first
+    q = p[nxt]
+    return np.add.reduceat(np.cross(p, q), start, axis=0) if indices.size else np.zeros((0, 3))
+
+
+def triangulate(vertices: np.ndarray, counts: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, int]:
+    """Triangles ``(T, 3)`` int64 (indices into ``vertices``) of polygon faces, face by face in order, and how many
+    faces were concave and triangulated inside their outline (see the module docstring).
+
+    ``vertices``: (V, 3) float64 (file units); ``counts``: (F,) vertices per face, each >= 3; ``indices``: (sum of
+    counts,) vertex indices, face after face, each in range (the callers check). Triangles keep their face's
+    vertex order: a triangle face is itself, a convex face its fan from its first vertex.
+    """
+    counts = np.asarray(counts, np.int64)
+    indices = np.asarray(indices, np.int64)
+    if counts.size == 0:
+        return np.zeros((0, 3), np.int64), 0
+    if (counts == 3).all():
+        return indices.reshape(-1, 3).copy(), 0
+    tri, face = fan(counts, indices)
+    big = counts > 3
+    sel = np.flatnonzero(big[face])  # the fan triangles of faces of more than three vertices
+    vertices = np.asarray(vertices, np.float64)
+    normal = _newell(vertices, counts, indices)
+    a, b, c = (vertices[tri[sel, k]] for k in range(3))
+    own = np.cross(b - a, c - a)
+    fn = normal[face[sel]]
+    dot = np.einsum("ij,ij->i", own, fn)
+    scale = np.linalg.norm(own, axis=1) * np.linalg.norm(fn, axis=1)
+    wrong = np.zeros(counts.size, bool)
+    wrong[face[sel][dot < -_AGAINST * scale]] = True
+    concave = np.flatnonzero(wrong)
+    if concave.size == 0:
+        return tri, 0
+    done, inner = _inside(vertices, counts, indices, normal, concave)
+    if done.size == 0:
+        return tri, 0
+    keep = ~np.isin(face, done)
+    # the faces' triangles in face order: the fan's of the others, the outline's of these
+    out_face = np.concatenate([face[keep], np.repeat(done, counts[done] - 2)])
+    out = np.concatenate([tri[keep], inner])
+    order = np.argsort(out_face, kind="stable")
+    return out[order], int(done.size)
+
+
+def _inside(vertices, counts, indices, normal, faces) -> tuple[np.ndarray, np.ndarray]:
+    """The faces among ``faces`` that GEOS triangulates inside their outline (in order) and their triangles, n − 2
+    a face in face order, each turned as its face; the others (an outline crossing itself, a point repeated, or
+    GEOS giving other than n − 2 triangles) are left to the fan."""
+    import shapely
+
+    start = np.zeros(counts.size, np.int64)
+    np.cumsum(counts[:-1], out=start[1:])
+    axis = np.abs(normal[faces]).argmax(axis=1)  # drop the dominant axis: (u, v) = the next two, cyclically
+    up = normal[faces, axis] > 0  # the outline is counter-clockwise in (u, v) where the normal points up that axis
+    n = counts[faces]
+    owner = np.repeat(np.arange(faces.size), n)
+    first = np.zeros(faces.size, np.int64)
+    np.cumsum(n[:-1], out=first[1:])
+    idx = indices[np.repeat(start[faces] - first, n) + np.arange(int(n.sum()), dtype=np.int64)]
+    p = vertices[idx]
+    rows = np.arange(p.shape[0])
+    ax = axis[owner]
+    uv = np.stack([p[rows, (ax + 1) % 3], p[rows, (ax + 2) % 3]], axis=1) + 0.0  # (+ 0.0: no negative zero)
+    # (face, u, v) of every outline point, as integers: the way back from a triangle's corner to its vertex index
+    keys = np.column_stack([owner, uv.view(np.int64)])
+    _, inv, cnt = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.reshape(-1)
+    repeated = np.zeros(faces.size, bool)
+    repeated[owner[cnt[inv] > 1]] = True  # a point twice: no outline to triangulate inside, no way back
+    ring_off = np.zeros(faces.size + 1, np.int64)
+    np.cumsum(n + 1, out=ring_off[1:])
+    ring = np.empty((int(ring_off[-1]), 2))
+    ring[rows + owner] = uv
+    ring[ring_off[1:] - 1] = uv[first]
+    polys = shapely.from_ragged_array(shapely.GeometryType.POLYGON, ring, (ring_off, np.arange(faces.size + 1)))
+    take = np.flatnonzero(~repeated & shapely.is_valid(polys))
+    if take.size == 0:
+        return np.zeros(0, np.int64), np.zeros((0, 3), np.int64)
+    parts, of = shapely.get_parts(shapely.constrained_delaunay_triangles(polys[take]), return_index=True)
+    full = np.bincount(of, minlength=take.size) == n[take] - 2
+    if not full.all():  # (GEOS made other than n - 2 triangles: that face keeps its fan)
+        mine = full[of]
+        take, parts, of = take[full], parts[mine], (np.cumsum(full) - 1)[of[mine]]
+    corner = shapely.get_coordinates(parts).reshape(-1, 4, 2)[:, :3] + 0.0  # (each ring closed: its first again)
+    q = np.column_stack([np.repeat(take[of], 3), corner.reshape(-1, 2).view(np.int64)])
+    _, qinv = np.unique(np.concatenate([keys, q]), axis=0, return_inverse=True)
+    qinv = qinv.reshape(-1)
+    where = np.full(int(qinv.max()) + 1, -1, np.int64)
+    where[qinv[: keys.shape[0]]] = np.arange(keys.shape[0])
+    pos = where[qinv[keys.shape[0]:]]
+    if (pos < 0).any():  # pragma: no cover - GEOS made a point of its own (it does not)
+        raise AssertionError("a triangle corner that is not one of its face's vertices")
+    tri = idx[pos].reshape(-1, 3)
+    c = corner  # each triangle turned as its face: the sign of its (u, v) area against the outline's
+    area = (c[:, 1, 0] - c[:, 0, 0]) * (c[:, 2, 1] - c[:, 0, 1]) - (c[:, 1, 1] - c[:, 0, 1]) * (c[:, 2, 0] - c[:, 0, 0])
+    flip = (area > 0) != up[of]
+    tri[flip] = tri[flip][:, ::-1]
+    order = np.argsort(of, kind="stable")  # (each face's triangles together, faces in order)
+    return faces[take], tri[order]
