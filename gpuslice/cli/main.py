@@ -89,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else list(argv)
     debug = "--debug" in args
     try:
-        with _stop_on_terminate():
+        with _stop_on_terminate(), _named_stdout():
             cli.main(args=args, prog_name="gpuslice", standalone_mode=False)
     except click.exceptions.Abort as exc:
         _INTERRUPTED.set()
@@ -122,8 +122,8 @@ def main(argv: list[str] | None = None) -> int:
         if debug:
             raise
         reason = exc.strerror or flatten(str(exc)) or type(exc).__name__
-        click.echo(f"gpuslice: error: {exc.filename}: {reason}" if exc.filename else f"gpuslice: error: {reason}",
-                   err=True)
+        where = exc.filename  # ("standard output" for what it could not take: _NamedStream)
+        click.echo(f"gpuslice: error: {where}: {reason}" if where else f"gpuslice: error: {reason}", err=True)
         return EXIT_USAGE
     except Exception as exc:  # never a traceback for users; --debug shows it
         if debug:
@@ -131,6 +131,54 @@ def main(argv: list[str] | None = None) -> int:
         click.echo(f"gpuslice: internal error: {one_line(exc)} (run with --debug)", err=True)
         return 1
     return 0
+
+
+class _NamedStream:
+    """``sys.stdout`` (and its ``buffer``) for the length of a command, naming itself in the OSErrors of its writes:
+    a result written with ``-o -`` or ``--report -`` to a full disk says "standard output: No space left on
+    device" (the OSError names no file, and the data it could not write is gone, so it cannot be asked later)."""
+
+    NAME = "standard output"
+
+    def __init__(self, stream) -> None:
+        self._stream = stream
+
+    def _named(self, call, *args):
+        try:
+            return call(*args)
+        except OSError as exc:
+            if exc.filename is None:
+                exc.filename = self.NAME
+            raise
+
+    def write(self, data):
+        return self._named(self._stream.write, data)
+
+    def writelines(self, lines):
+        return self._named(self._stream.writelines, lines)
+
+    def flush(self):
+        return self._named(self._stream.flush)
+
+    @property
+    def buffer(self):
+        return _NamedStream(self._stream.buffer)
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
+
+
+@contextlib.contextmanager
+def _named_stdout():
+    """:class:`_NamedStream` in place of ``sys.stdout`` while a command runs (left as found afterwards)."""
+    real = sys.stdout
+    if real is not None:
+        sys.stdout = _NamedStream(real)
+    try:
+        yield
+    finally:
+        if isinstance(sys.stdout, _NamedStream):
+            sys.stdout = real
 
 
 def entry() -> None:

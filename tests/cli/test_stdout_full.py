@@ -1,0 +1,64 @@
+"""Results written to standard output on a full disk (``-o -``, ``--report -``, ``info``): one line that says it was
+standard output that could not take them (the OSError names no file: the line said only "No space left on
+device"), exit 2."""
+
+from __future__ import annotations
+
+import errno
+import io
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gpuslice.cli import main
+
+BOX = np.array([[0, 0, 0], [10, 0, 0], [10, 10, 0], [0, 10, 0], [0, 0, 10], [10, 0, 10], [10, 10, 10], [0, 10, 10]],
+               float)
+FACES = [(0, 2, 1), (0, 3, 2), (4, 5, 6), (4, 6, 7), (0, 1, 5), (0, 5, 4), (1, 2, 6), (1, 6, 5), (2, 3, 7),
+         (2, 7, 6), (3, 0, 4), (3, 4, 7)]
+
+
+@pytest.fixture
+def box(tmp_path: Path) -> Path:
+    import trimesh
+
+    path = tmp_path / "box.stl"
+    trimesh.Trimesh(BOX, FACES, process=False).export(path)
+    return path
+
+
+class _Full(io.TextIOWrapper):
+    """A text stream on a disk that is full."""
+
+    def __init__(self) -> None:
+        super().__init__(io.BytesIO(), encoding="utf-8")
+
+    def write(self, data):  # noqa: D102
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+@pytest.mark.parametrize("args", [
+    ["slice", "{box}", "-t", "1", "--format", "svg", "-o", "-"],
+    ["slice", "{box}", "-t", "1", "-o", "{tmp}/x.npz", "--report", "-"],
+    ["info", "{box}"],
+], ids=["svg", "report", "info"])
+def test_in_process(args, box, tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(sys, "stdout", _Full())
+    code = main([a.format(box=box, tmp=tmp_path) for a in args])
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert err == f"gpuslice: error: standard output: {os.strerror(errno.ENOSPC)}"
+    assert isinstance(sys.stdout, _Full)  # (left as it was found)
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full on this system")
+def test_a_command_writing_to_dev_full(box):
+    with open("/dev/full", "w") as full:
+        p = subprocess.run([sys.executable, "-m", "gpuslice.cli", "slice", str(box), "-t", "1", "--format", "svg",
+                            "-o", "-"], stdout=full, stderr=subprocess.PIPE, text=True, timeout=120)
+    assert p.returncode == 2
+    assert p.stderr.strip() == f"gpuslice: error: standard output: {os.strerror(errno.ENOSPC)}"
