@@ -253,12 +253,14 @@ def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | Non
                 _prestart_encoders(job.resin)
             dev = prepare_device(job.params, device, timings)
             mesh = load_job_mesh(job, dev, timings)
-            from .raster.edges import check_printer_fits
-
             if job.resin is not None:  # before slicing: a model larger than the printer is refused now
+                from .raster.edges import check_printer_fits  # (not for contours: the raster modules cost 10 ms)
+
                 check_printer_fits(job.model_name, mesh, job.resin.spec, job.resin.options.preset, _bounds(mesh))
                 _check_resin_early(job)
             elif job.checks is not None and job.checks.printer is not None:
+                from .raster.edges import check_printer_fits
+
                 check_printer_fits(job.model_name, mesh, job.checks.spec, job.checks.printer, _bounds(mesh))
             stream = _open_contour_stream(job)
             result = _slice(job, mesh, dev, timings, stream)
