@@ -60,7 +60,12 @@ from .settings import PrintSettings, print_time_s, ramp_layers, resin_ml
 from .sl1 import _member, _Thumb, _write_deflated, _zip_time, check_one_layer_height
 from .spec import RasterSpec
 
-__all__ = ["PREVIEW_SIZE", "polygon_areas", "write_nanodlp", "write_target"]
+__all__ = ["PREVIEW_SIZE", "UNSTORED", "polygon_areas", "refuse_settings", "write_nanodlp", "write_target"]
+
+#: the settings a NanoDLP profile has no field for (each with its bottom twin): its one lift is a height without a
+#: speed, it retracts the same way, and its one light intensity is the normal layers'
+UNSTORED = ("lift_speed", "lift_speed2", "retract_speed", "retract_height2", "retract_speed2", "bottom_light_pwm",
+            "per_layer_settings")
 
 #: size of ``3d.png`` (NanoDLP's manual: a 200x100 px render)
 PREVIEW_SIZE = (200, 100)
@@ -247,6 +252,20 @@ def write_nanodlp(
         z.writestr(entry("plate.json"), _json(plate))
         z.writestr(entry("3d.png"), thumb.png(PREVIEW_SIZE))
     return stats
+
+
+def refuse_settings(path, name: str, options, settings, spec=None) -> None:
+    """NanoDLP's settings check (:meth:`gpuslice.raster.outputs.ResinFormat.check_settings`): a setting of
+    :data:`UNSTORED` given beyond the preset's (:func:`~gpuslice.raster.settings.changed_settings`) is refused
+    before any work rather than dropped (the plate would say nothing of it; the lift's two stages are stored as
+    their total height)."""
+    from .settings import changed_settings
+
+    unstored = changed_settings(settings, UNSTORED, base=options.settings() if options is not None else None)
+    if unstored:
+        raise ParameterError(f"{path}: a NanoDLP plate stores lift heights, waits, exposures and the normal layers' "
+                             f"light, no speeds (NanoDLP moves as its own profile says): {', '.join(unstored)} cannot "
+                             "be written (leave them out)")
 
 
 def write_target(tiles: Iterable[Tile | RunLayer], target) -> dict[str, float]:

@@ -156,7 +156,8 @@ RESIN_FORMATS: dict[str, ResinFormat] = {
                     "the contours per layer, config.ini, thumbnails)", "SL1 SVG archive",
                     settings_check="sl1svg:refuse_settings", print_time="sl1:tilt_print_time"),
         ResinFormat("nanodlp", (".nanodlp",), "nanodlp:write_target", "NanoDLP plate (1.png upward, "
-                    "meta/plate/profile/options/info json, 3d.png)", "NanoDLP plate", png=True),
+                    "meta/plate/profile/options/info json, 3d.png)", "NanoDLP plate", png=True,
+                    settings_check="nanodlp:refuse_settings"),
         ResinFormat("goo", (".goo",), "goo:write_target", "Elegoo GOO file (8-bit RLE layers, print settings, "
                     "RGB565 previews)", "GOO file"),
         ResinFormat("prz", (".prz",), "goo:write_target", "Phrozen PRZ file (the GOO layout, no grey-difference "

@@ -387,6 +387,27 @@ def test_sl1svg_refuses_z_samples(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cube.stl"]
 
 
+@pytest.mark.parametrize("flags, named", [
+    (["--lift-speed", "30"], "--lift-speed 30"),
+    (["--bottom-retract-speed", "90", "--bottom-light-pwm", "200"],
+     "--bottom-retract-speed 90.0, --bottom-light-pwm 200"),
+    (["--retract-height2", "1", "--retract-speed2", "40"], "--retract-height2 1"),
+], ids=["lift-speed", "bottom", "retract-stage"])
+def test_nanodlp_refuses_settings_it_cannot_store(tmp_path, capsys, flags, named):
+    """A NanoDLP profile has lift heights and waits but no speeds and one light intensity: what it cannot store is
+    refused before any work (it was dropped without a word), as SL1 does; the heights and waits it stores pass."""
+    stl = tmp_path / "cube.stl"
+    shapes.write_stl(shapes.box(), stl)
+    out = tmp_path / "x.nanodlp"
+    assert main(["raster", str(stl), "-t", "1", "--no-progress", "-q", "-o", str(out), *flags]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"gpuslice: error: {out}: a NanoDLP plate stores lift heights") and named in err, err
+    assert "\n" not in err and sorted(p.name for p in tmp_path.iterdir()) == ["cube.stl"]
+    assert main(["raster", str(stl), "-t", "1", "--no-progress", "-q", "-o", str(out), "--lift-height", "3",
+                 "--wait-after-lift", "2", "--light-pwm", "200"]) == 0
+    assert zr.read_nanodlp(out).manifests["profile.json"]["WaitHeight"] == pytest.approx(3.0)
+
+
 def test_nanodlp_refuses_adaptive_layers(tmp_path, torus):
     uneven = replace(torus, thickness=np.linspace(0.5, 1.5, torus.n_layers))
     with pytest.raises(ParameterError, match="one layer height"):
