@@ -3,9 +3,9 @@
 The slicer works on a triangle soup: an ``(F, 3, 3)`` float32 array holding the three corners of every facet in file
 order and file units (STL, OBJ, PLY and OFF have no units; for 3D printing they are millimetres by convention),
 except a 3MF, whose model declares its unit (micron to meter): it is read in millimetres (:data:`UNITS_3MF_MM`).
-Files named ``.ply`` or ``.3mf`` are read through :mod:`trimesh` (imported lazily), ``.obj`` by
-:mod:`gpuslice.io.obj`, ``.off`` by :mod:`gpuslice.io.off` (their polygon faces cut into triangles by
-:mod:`gpuslice.io.polygons`); every other file is parsed as STL, binary or ASCII (:mod:`gpuslice.io.stl`).
+Files named ``.3mf`` are read through :mod:`trimesh` (imported lazily), ``.obj``, ``.ply`` and ``.off`` by
+:mod:`gpuslice.io.obj`, :mod:`gpuslice.io.ply` and :mod:`gpuslice.io.off` (their polygon faces cut into triangles
+by :mod:`gpuslice.io.polygons`); every other file is parsed as STL, binary or ASCII (:mod:`gpuslice.io.stl`).
 :func:`read_mesh_source` also reads a file's bytes sent elsewhere (a batch worker). Every problem a user can cause
 raises a :class:`~gpuslice.errors.MeshFileError` (or a subclass) whose message is one line naming the file and the
 problem.
@@ -27,6 +27,7 @@ import numpy as np
 from ..errors import EmptyMeshError, GpusliceError, MeshFileError, flatten
 from .obj import read_obj
 from .off import read_off
+from .ply import read_ply
 from .rawmesh import BINARY_STL_RECORD, MAX_COORDINATE, NON_STL_EXTENSIONS, RawMesh, check_coordinates
 from .stl import _os_reason, read_stl_bytes
 
@@ -56,17 +57,20 @@ ZIP_MAX_RATIO = 200
 ZIP_RATIO_FLOOR = 64 << 20
 _INFLATE_CHUNK = 1 << 20
 #: the formats trimesh reads from the file's name (the others' bytes are read by gpuslice, for its own checks)
-_BY_NAME = ("ply", "3mf")
+_BY_NAME = ("3mf",)
+#: gpuslice's own readers: vertices, face vertex counts and flat indices (polygons) from a file's bytes
+_OWN = {"obj": read_obj, "ply": read_ply, "off": read_off}
 
 
 def read_mesh_file(path: str | os.PathLike[str]) -> RawMesh:
     """Read a mesh file into a :class:`RawMesh`.
 
-    Files named ``.ply`` or ``.3mf`` (any case) are read with
+    Files named ``.3mf`` (any case) are read with
     ``trimesh.load(path, force="mesh", process=False)`` (all objects of the file merged, vertices not merged,
-    nothing repaired), ``.obj`` with :func:`gpuslice.io.obj.read_obj` (all objects merged too), ``.off`` with
-    :func:`gpuslice.io.off.read_off`; every other name, ``.stl`` or not, goes
-    through :func:`read_stl_bytes`, which tells binary from ASCII STL and recognises common non-STL files.
+    nothing repaired), ``.obj`` with :func:`gpuslice.io.obj.read_obj` (all objects merged too), ``.ply`` with
+    :func:`gpuslice.io.ply.read_ply`, ``.off`` with :func:`gpuslice.io.off.read_off`; every other name, ``.stl``
+    or not, goes through :func:`read_stl_bytes`, which tells binary from ASCII STL and recognises common non-STL
+    files.
 
     Parameters
     ----------
@@ -195,11 +199,6 @@ def inflate_3mf(name: str, data: bytes | None = None) -> io.BytesIO:
     return out
 
 
-#: an ASCII PLY header (its vertex and face counts, then the end of the header)
-_PLY_ASCII = re.compile(rb"\Aply\s*\r?\nformat\s+ascii\b.*?^element\s+vertex\s+(\d+)\s*$.*?"
-                        rb"^element\s+face\s+(\d+)\s*$.*?^end_header\s*?\r?\n", re.M | re.S)
-
-
 def _quiet_trimesh() -> None:
     """Give trimesh's logger a handler that drops its records, once (Python's last-resort handler printed them on
     stderr beside the one error line); a program's own logging configuration still receives them."""
@@ -208,30 +207,6 @@ def _quiet_trimesh() -> None:
     log = logging.getLogger("trimesh")
     if not any(isinstance(h, logging.NullHandler) for h in log.handlers):
         log.addHandler(logging.NullHandler())
-
-
-def _short_text(name: str, file_type: str, data: bytes | None) -> str | None:
-    """Why an ASCII PLY file is cut short, or None: fewer lines after its header than the vertices and faces it
-    declares (trimesh reads what is there and says nothing)."""
-    if file_type != "ply":
-        return None
-    try:
-        with io.BytesIO(data) if data is not None else open(name, "rb") as fh:
-            head = fh.read(1 << 16)
-            found = _PLY_ASCII.match(head)
-            if found is None:  # (a binary PLY: trimesh refuses its truncation itself; a header past 64 KiB)
-                return None
-            lines, last = head.count(b"\n", found.end()), head[-1:]
-            while chunk := fh.read(1 << 22):  # (counted in pieces: a large ASCII file is not held twice)
-                lines, last = lines + chunk.count(b"\n"), chunk[-1:]
-    except OSError:
-        return None
-    nv, nf = int(found.group(1)), int(found.group(2))
-    lines += 1 if last not in (b"\n", b"") and len(head) > found.end() else 0
-    if lines < nv + nf:
-        return f"the {file_type.upper()} header declares {nv} vertices and {nf} faces, the file holds {lines} lines " \
-               "after it (cut short?)"
-    return None
 
 
 def _triangles(name: str, kind: str, vertices: np.ndarray, faces: np.ndarray, short: str | None,
@@ -261,11 +236,12 @@ def _triangles(name: str, kind: str, vertices: np.ndarray, faces: np.ndarray, sh
 
 
 def _read_non_stl(name: str, file_type: str, data: bytes | None = None) -> RawMesh:
-    """Read PLY / 3MF with trimesh (imported here: it is slow to import), OBJ with :mod:`.obj` and OFF with
-    :mod:`.off`, from the file ``name`` (PLY and 3MF: :data:`_BY_NAME`) or from its bytes ``data`` (no temporary
-    file; OBJ and OFF are always given theirs); a 3MF is inflated first under :func:`zip_inflate_limit`."""
-    if file_type in ("off", "obj"):  # (not trimesh's readers: they dropped faces silently, folded concave ones)
-        vertices, counts, faces = (read_off if file_type == "off" else read_obj)(data, name)
+    """Read 3MF with trimesh (imported here: it is slow to import), OBJ, PLY and OFF with :data:`_OWN`'s readers,
+    from the file ``name`` (3MF: :data:`_BY_NAME`) or from its bytes ``data`` (no temporary file; OBJ, PLY and OFF
+    are always given theirs); a 3MF is inflated first under :func:`zip_inflate_limit`."""
+    if file_type in _OWN:  # (not trimesh's readers: they dropped faces silently, folded concave ones, cost 1 s)
+        with np.errstate(all="ignore"):  # (a number past float32 is infinite, refused below without numpy's words)
+            vertices, counts, faces = _OWN[file_type](data, name)
         return _raw_mesh(name, file_type, _triangles(name, file_type.upper(), vertices, faces, None, counts), None)
     try:
         import trimesh
@@ -299,7 +275,7 @@ def _read_non_stl(name: str, file_type: str, data: bytes | None = None) -> RawMe
         raise MeshFileError(
             f"{name}: cannot read {file_type.upper()} file: {type(exc).__name__}: {reason}"
         ) from None
-    triangles = _triangles(name, file_type.upper(), vertices, faces, _short_text(name, file_type, data))
+    triangles = _triangles(name, file_type.upper(), vertices, faces, None)
     return _raw_mesh(name, file_type, triangles, mesh)
 
 

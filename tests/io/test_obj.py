@@ -136,6 +136,11 @@ def l_prism(start: int, suffix: str = "obj") -> bytes:
     v = [(x, 0.0, z) for x, z in pts] + [(x, 10.0, z) for x, z in pts]
     faces = [list(range(n)), [n + i for i in reversed(range(n))]]  # y = 0 (normal -y), y = 10 (normal +y)
     faces += [[i, n + i, n + (i + 1) % n, (i + 1) % n] for i in range(n)]  # outwards
+    if suffix == "ply":
+        return (f"ply\nformat ascii 1.0\nelement vertex {2 * n}\nproperty double x\nproperty double y\n"
+                f"property double z\nelement face {len(faces)}\nproperty list uchar int vertex_indices\nend_header\n"
+                + "".join(f"{x} {y} {z}\n" for x, y, z in v)
+                + "".join(f"{len(f)} {' '.join(map(str, f))}\n" for f in faces)).encode()
     if suffix == "off":
         return (f"OFF\n{2 * n} {len(faces)} 0\n" + "".join(f"{x} {y} {z}\n" for x, y, z in v)
                 + "".join(f"{len(f)} {' '.join(map(str, f))}\n" for f in faces)).encode()
@@ -143,7 +148,7 @@ def l_prism(start: int, suffix: str = "obj") -> bytes:
             + "".join("f " + " ".join(str(i + 1) for i in f) + "\n" for f in faces)).encode()
 
 
-@pytest.mark.parametrize("suffix", ["obj", "off"])
+@pytest.mark.parametrize("suffix", ["obj", "off", "ply"])
 @pytest.mark.parametrize("start", range(6))
 def test_a_concave_face_is_cut_inside_its_outline(start, suffix):
     """From some of its corners the L's fan folds over itself: the slices came out right only after every layer's

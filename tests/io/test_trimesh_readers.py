@@ -99,7 +99,10 @@ def test_a_face_naming_no_vertex(data, name):
 
 @pytest.mark.parametrize("data, name", [(_ply(cut=0.8), "cut.ply"), (_off(cut=0.8), "cut.off")], ids=["ply", "off"])
 def test_an_ascii_file_cut_short(data, name):
-    with pytest.raises(MeshFileError, match=rf"{name}: the (PLY|OFF) header declares 8 vertices and 6 faces"):
+    # (gpuslice's own PLY and OFF readers since: each counts what its header declares)
+    with pytest.raises(MeshFileError, match=rf"{name}: (cannot read PLY file: the header declares 14 records \(8 "
+                                            r"vertex, 6 face\)|the OFF header declares 8 vertices and 6 faces).*"
+                                            r"\(cut short\?\)$"):
         load_mesh(data, name=name)
 
 
