@@ -135,8 +135,8 @@ def main(argv: list[str] | None = None) -> int:
 
 class _NamedStream:
     """``sys.stdout`` (and its ``buffer``) for the length of a command, naming itself in the OSErrors of its writes:
-    a result written with ``-o -`` or ``--report -`` to a full disk says "standard output: No space left on
-    device" (the OSError names no file, and the data it could not write is gone, so it cannot be asked later)."""
+    a summary or a table printed to a full disk says "standard output: No space left on device" (the OSError names
+    no file, and the data it could not write is gone, so it cannot be asked later)."""
 
     NAME = "standard output"
 
@@ -170,15 +170,19 @@ class _NamedStream:
 
 @contextlib.contextmanager
 def _named_stdout():
-    """:class:`_NamedStream` in place of ``sys.stdout`` while a command runs (left as found afterwards)."""
+    """:class:`_NamedStream` in place of ``sys.stdout`` while a command runs (left as found afterwards; where click
+    wrapped it on a closed pipe, its wrapper keeps the wrapping, around the stream found)."""
     real = sys.stdout
-    if real is not None:
-        sys.stdout = _NamedStream(real)
+    named = _NamedStream(real) if real is not None else None
+    if named is not None:
+        sys.stdout = named
     try:
         yield
     finally:
-        if isinstance(sys.stdout, _NamedStream):
+        if sys.stdout is named:
             sys.stdout = real
+        elif getattr(sys.stdout, "wrapped", None) is named:  # (click's PacifyFlushWrapper, on a broken pipe)
+            sys.stdout.wrapped = real
 
 
 def entry() -> None:

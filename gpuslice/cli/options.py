@@ -83,12 +83,20 @@ def refuse_model_as_output(model: str, *outputs: str | None) -> None:
     for out in outputs:
         if out is None:
             continue
+        refuse_dash(out)
         try:
             same = os.path.samefile(model, out.rstrip("/\\") or ".")
         except OSError:  # either does not exist (yet): not the same file
             same = False
         if same:
             fail(f"{out}: is the model {model} itself; name another output")
+
+
+def refuse_dash(out: str) -> None:
+    """A one-line error for the output ``-``: gpuslice writes its outputs as files (whole, or not at all: renamed
+    into place when complete), never to standard output, and a file named ``-`` is not what the convention asks."""
+    if out == "-":
+        fail("-: gpuslice writes files, not standard output; name the file to write (./- for a file named '-')")
 
 
 def check_output_file(*paths: str | None, creates: str | None = None) -> None:
@@ -103,6 +111,7 @@ def check_output_file(*paths: str | None, creates: str | None = None) -> None:
     for out in paths:
         if out is None:
             continue
+        refuse_dash(out)
         path = Path(out)
         if path.is_dir() or out.endswith(("/", "\\")):  # (`--report newdir/` wrote a file named newdir)
             fail(f"{out}: is a folder; name the file to write")
@@ -123,6 +132,7 @@ def check_output_place(out: str) -> None:
     typo's whole tree was made)."""
     from pathlib import Path
 
+    refuse_dash(out)
     parent = Path(out.rstrip("/\\") or ".").resolve().parent
     if not parent.is_dir():
         fail(f"{out}: directory {parent} does not exist")

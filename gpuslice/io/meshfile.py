@@ -209,14 +209,15 @@ def _quiet_trimesh() -> None:
         log.addHandler(logging.NullHandler())
 
 
-def _triangles(name: str, kind: str, vertices: np.ndarray, faces: np.ndarray, short: str | None,
+def _triangles(name: str, kind: str, vertices: np.ndarray, faces: np.ndarray,
                counts: np.ndarray | None = None) -> np.ndarray:
     """(F, 3, 3) float64 corners of the faces read, or a one-line :class:`MeshFileError` for what a reader let
-    through: vertices without three coordinates (an OBJ ``v 0 10``), a face naming a vertex that is not there (a
-    negative index: numpy would take another vertex), an ASCII PLY or OFF file cut short (``short``).
+    through: vertices without three coordinates, a face naming a vertex that is not there (a negative index: numpy
+    would take another vertex).
 
-    ``faces``: (F, 3) triangles (trimesh's), or with ``counts`` (vertices per face) polygons' flat vertex indices,
-    cut into triangles by :func:`gpuslice.io.polygons.triangulate` (a concave face inside its outline)."""
+    ``faces``: (F, 3) triangles (trimesh's, for 3MF), or with ``counts`` (vertices per face) the polygons' flat
+    vertex indices (gpuslice's readers), cut into triangles by :func:`gpuslice.io.polygons.triangulate` (a concave
+    face inside its outline)."""
     if vertices.ndim != 2 or vertices.shape[1] != 3:
         raise MeshFileError(f"{name}: {kind} vertices with {vertices.shape[-1] if vertices.ndim == 2 else '?'} "
                             "coordinates, not x y z (a vertex line short of a number?)")
@@ -225,8 +226,6 @@ def _triangles(name: str, kind: str, vertices: np.ndarray, faces: np.ndarray, sh
     if bad.any():
         raise MeshFileError(f"{name}: a {kind} face names vertex {int(faces[bad][0])}, but the file has "
                             f"{len(vertices)} vertices (counted from 0; an index out of range)")
-    if short is not None:
-        raise MeshFileError(f"{name}: {short}")
     if counts is not None:
         from .polygons import triangulate
 
@@ -242,7 +241,7 @@ def _read_non_stl(name: str, file_type: str, data: bytes | None = None) -> RawMe
     if file_type in _OWN:  # (not trimesh's readers: they dropped faces silently, folded concave ones, cost 1 s)
         with np.errstate(all="ignore"):  # (a number past float32 is infinite, refused below without numpy's words)
             vertices, counts, faces = _OWN[file_type](data, name)
-        return _raw_mesh(name, file_type, _triangles(name, file_type.upper(), vertices, faces, None, counts), None)
+        return _raw_mesh(name, file_type, _triangles(name, file_type.upper(), vertices, faces, counts), None)
     try:
         import trimesh
     except ImportError as exc:  # pragma: no cover - trimesh is a dependency
@@ -275,7 +274,7 @@ def _read_non_stl(name: str, file_type: str, data: bytes | None = None) -> RawMe
         raise MeshFileError(
             f"{name}: cannot read {file_type.upper()} file: {type(exc).__name__}: {reason}"
         ) from None
-    triangles = _triangles(name, file_type.upper(), vertices, faces, None)
+    triangles = _triangles(name, file_type.upper(), vertices, faces)
     return _raw_mesh(name, file_type, triangles, mesh)
 
 

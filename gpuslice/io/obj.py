@@ -32,6 +32,7 @@ __all__ = ["read_obj"]
 
 _REFERENCE_TAIL = re.compile(rb"/[^ \t\n]*")  # "/vt/vn" after a face's vertex index
 _INTEGER = re.compile(rb"[+-]?[0-9]+")
+_BLANKS = bytes.maketrans(b"\x0b\x0c", b"  ")
 
 
 def _lines(data: bytes) -> list[bytes]:
@@ -44,6 +45,8 @@ def _lines(data: bytes) -> list[bytes]:
         data = data.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
     if b"#" in data:
         data = re.sub(rb"#[^\n]*", b"", data)
+    if b"\x0b" in data or b"\x0c" in data:  # (vertical tab, form feed: blanks to Python's split, not to numpy's)
+        data = data.translate(_BLANKS)
     lines = data.split(b"\n")
     if data[:1] in (b" ", b"\t") or b"\n " in data or b"\n\t" in data:
         lines = [line.lstrip() for line in lines]
@@ -55,6 +58,8 @@ def _lines(data: bytes) -> list[bytes]:
                 carry, lines[k] = carry + body[:-1] + b" ", b""
             elif carry:
                 carry, lines[k] = b"", carry + line
+        if carry:  # (the file ends in a backslash: the statement is what was there)
+            lines[-1] = carry
     return lines
 
 
@@ -121,6 +126,8 @@ def _references(rows: list[bytes], at: np.ndarray, fail) -> tuple[np.ndarray, np
     blank = newline | (text == 32) | (text == 9)
     first = ~blank
     first[1:] &= blank[:-1]
+    sign = (text == 43) | (text == 45)
+    lone = bool((sign[:-1] & blank[1:]).any() or sign[-1:].any())  # (a bare sign: numpy reads it as 0)
     counts = np.bincount(np.cumsum(newline)[first], minlength=len(rows)).astype(np.int64)
     if (counts < 3).any():
         k = int(np.argmax(counts < 3))
@@ -131,7 +138,7 @@ def _references(rows: list[bytes], at: np.ndarray, fail) -> tuple[np.ndarray, np
             values = np.fromstring(text.tobytes(), dtype=np.int64, sep=" ")
     except (ValueError, DeprecationWarning):
         values = np.zeros(0, np.int64)
-    if values.size != int(counts.sum()) or not (np.abs(values) < 1 << 62).all():
+    if lone or values.size != int(counts.sum()) or not (np.abs(values) < 1 << 62).all():
         for k, row in enumerate(rows):  # (only on failure: find the line to name)
             refs = _REFERENCE_TAIL.sub(b"", row).split()[1:]
             if not all(_INTEGER.fullmatch(t) for t in refs):

@@ -65,7 +65,9 @@ def read_ply(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray
     if "vertex" not in found:
         raise fail("no vertex element in the header")
     if "face" not in found:
-        raise fail("no faces (a point cloud?): the header declares no face element")
+        others = [el for el in found if el != "vertex"]
+        raise fail(f"no face element (its elements: {', '.join(['vertex', *others])}; gpuslice reads faces, not "
+                   f"{others[0]})" if others else "no faces (a point cloud?): the header declares no face element")
     vnames, fnames = [p.name for p in found["vertex"]], [p.name for p in found["face"]]
     for axis in "xyz":
         if axis not in vnames:

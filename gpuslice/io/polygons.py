@@ -113,10 +113,10 @@ def _inside(vertices, counts, indices, normal, faces) -> tuple[np.ndarray, np.nd
     uv = np.stack([p[rows, (ax + 1) % 3], p[rows, (ax + 2) % 3]], axis=1) + 0.0  # (+ 0.0: no negative zero)
     # (face, u, v) of every outline point, as integers: the way back from a triangle's corner to its vertex index
     keys = np.column_stack([owner, uv.view(np.int64)])
-    _, inv, cnt = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.reshape(-1)
+    order = np.lexsort(keys.T[::-1])
+    twice = (keys[order[1:]] == keys[order[:-1]]).all(axis=1)
     repeated = np.zeros(faces.size, bool)
-    repeated[owner[cnt[inv] > 1]] = True  # a point twice: no outline to triangulate inside, no way back
+    repeated[keys[order[1:]][twice, 0]] = True  # a point twice: no outline to triangulate inside, no way back
     ring_off = np.zeros(faces.size + 1, np.int64)
     np.cumsum(n + 1, out=ring_off[1:])
     ring = np.empty((int(ring_off[-1]), 2))
@@ -133,17 +133,31 @@ def _inside(vertices, counts, indices, normal, faces) -> tuple[np.ndarray, np.nd
         take, parts, of = take[full], parts[mine], (np.cumsum(full) - 1)[of[mine]]
     corner = shapely.get_coordinates(parts).reshape(-1, 4, 2)[:, :3] + 0.0  # (each ring closed: its first again)
     q = np.column_stack([np.repeat(take[of], 3), corner.reshape(-1, 2).view(np.int64)])
-    _, qinv = np.unique(np.concatenate([keys, q]), axis=0, return_inverse=True)
-    qinv = qinv.reshape(-1)
-    where = np.full(int(qinv.max()) + 1, -1, np.int64)
-    where[qinv[: keys.shape[0]]] = np.arange(keys.shape[0])
-    pos = where[qinv[keys.shape[0]:]]
+    pos = _rows_in(keys, q)
     if (pos < 0).any():  # pragma: no cover - GEOS made a point of its own (it does not)
         raise AssertionError("a triangle corner that is not one of its face's vertices")
     tri = idx[pos].reshape(-1, 3)
     c = corner  # each triangle turned as its face: the sign of its (u, v) area against the outline's
     area = (c[:, 1, 0] - c[:, 0, 0]) * (c[:, 2, 1] - c[:, 0, 1]) - (c[:, 1, 1] - c[:, 0, 1]) * (c[:, 2, 0] - c[:, 0, 0])
-    flip = (area > 0) != up[of]
+    flip = (area > 0) != up[take[of]]
     tri[flip] = tri[flip][:, ::-1]
     order = np.argsort(of, kind="stable")  # (each face's triangles together, faces in order)
     return faces[take], tri[order]
+
+
+def _rows_in(keys: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """For each row of ``q`` (int64, 3 columns), the index of the equal row of ``keys`` (rows distinct), -1 where
+    there is none: both sorted together (lexsort; a key before the queries equal to it), each query taking the
+    first row of its run of equal rows."""
+    k = keys.shape[0]
+    rows = np.concatenate([keys, q])
+    tag = np.concatenate([np.zeros(k, np.int8), np.ones(q.shape[0], np.int8)])
+    order = np.lexsort((tag, rows[:, 2], rows[:, 1], rows[:, 0]))
+    s = rows[order]
+    new = np.ones(order.size, bool)
+    new[1:] = (s[1:] != s[:-1]).any(axis=1)
+    head = order[np.maximum.accumulate(np.where(new, np.arange(order.size), 0))]  # the first row of each run
+    out = np.full(q.shape[0], -1, np.int64)
+    mine = order >= k
+    out[order[mine] - k] = np.where(head[mine] < k, head[mine], -1)
+    return out

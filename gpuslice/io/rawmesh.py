@@ -19,7 +19,8 @@ BINARY_STL_RECORD = np.dtype([("normal", "<f4", (3,)), ("v", "<f4", (3, 3)), ("a
 #: coordinates in float32 (max 3.4e38); beyond 1e18 a product of two differences can overflow.
 MAX_COORDINATE = 1e18
 
-#: Extensions (lower case) read through trimesh; every other name is parsed as an STL.
+#: Extensions (lower case) of the other mesh formats (OBJ, PLY, OFF: gpuslice's readers; 3MF: trimesh); every
+#: other name is parsed as an STL.
 NON_STL_EXTENSIONS = {".obj": "obj", ".ply": "ply", ".off": "off", ".3mf": "3mf"}
 
 _HEADER_BYTES = 84
@@ -78,21 +79,21 @@ class RawMesh:
     Attributes
     ----------
     triangles : numpy.ndarray
-        ``(F, 3, 3)`` C-contiguous, float32 for STL (as stored) and float64 for the formats read through trimesh
-        (OBJ, PLY, OFF, 3MF: placed before they are rounded, :func:`gpuslice.mesh.mesh.mesh_from_triangles`):
+        ``(F, 3, 3)`` C-contiguous, float32 for STL (as stored) and float64 for the other formats (OBJ, PLY,
+        OFF, 3MF: placed before they are rounded, :func:`gpuslice.mesh.mesh.mesh_from_triangles`):
         ``triangles[f, k]`` is corner ``k`` (x, y, z) of facet ``f``, in
         file order and file units (millimetres by 3D-printing convention; STL itself has no units). Every
         coordinate is finite with magnitude at most :data:`MAX_COORDINATE`; ``F >= 1``.
     normals : numpy.ndarray or None
         ``(F, 3)`` float32 facet normals as stored in the file, not validated: they may be zero, not unit
-        length, infinite, or NaN where an ASCII value was unparsable (``weirdvalue``). ``None`` for formats
-        read through trimesh, which store no per-facet normal.
+        length, infinite, or NaN where an ASCII value was unparsable (``weirdvalue``). ``None`` for the other
+        formats, which store no per-facet normal.
     source_format : str
-        ``"binary STL"``, ``"ASCII STL"``, or the trimesh file type: ``"obj"``, ``"ply"``, ``"off"``,
+        ``"binary STL"``, ``"ASCII STL"``, or the other format's name: ``"obj"``, ``"ply"``, ``"off"``,
         ``"3mf"``.
     solids : int
         Number of ``solid ... endsolid`` blocks of an ASCII STL (empty blocks included), 1 for a binary STL
-        and for trimesh formats (trimesh merges a file's objects into one mesh, so the count is unknown).
+        and for the other formats (a file's objects are merged into one mesh, so the count is not kept).
     header : bytes
         The 80-byte header of a binary STL, the first ``solid`` line of an ASCII STL (surrounding whitespace
         and line end stripped), ``b""`` otherwise.

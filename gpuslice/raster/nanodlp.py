@@ -63,7 +63,7 @@ from .spec import RasterSpec
 __all__ = ["PREVIEW_SIZE", "UNSTORED", "polygon_areas", "refuse_settings", "write_nanodlp", "write_target"]
 
 #: the settings a NanoDLP profile has no field for (each with its bottom twin): its one lift is a height without a
-#: speed, it retracts the same way, and its one light intensity is the normal layers'
+#: speed, it retracts the same way, its one light intensity is the normal layers', and it has no per-layer table
 UNSTORED = ("lift_speed", "lift_speed2", "retract_speed", "retract_height2", "retract_speed2", "bottom_light_pwm",
             "per_layer_settings")
 
@@ -264,8 +264,9 @@ def refuse_settings(path, name: str, options, settings, spec=None) -> None:
     unstored = changed_settings(settings, UNSTORED, base=options.settings() if options is not None else None)
     if unstored:
         raise ParameterError(f"{path}: a NanoDLP plate stores lift heights, waits, exposures and the normal layers' "
-                             f"light, no speeds (NanoDLP moves as its own profile says): {', '.join(unstored)} cannot "
-                             "be written (leave them out)")
+                             "light, not speeds, a slow retract stage, the bottom layers' light or per-layer settings "
+                             f"(NanoDLP moves as its own profile says): {', '.join(unstored)} cannot be written (leave "
+                             "them out)")
 
 
 def write_target(tiles: Iterable[Tile | RunLayer], target) -> dict[str, float]:

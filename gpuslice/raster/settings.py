@@ -300,7 +300,8 @@ def changed_settings(settings: PrintSettings, names: tuple[str, ...], base: Prin
                 continue
             v = getattr(settings, key)
             if v is not None and v != getattr(default, key):
-                out.append(f"--{key.replace('_', '-')} {shown(v)}")
+                flag = f"--{key.replace('_', '-')}"
+                out.append(flag if v is True else f"{flag} {shown(v)}")  # (a switch: its flag alone)
     return out
 
 

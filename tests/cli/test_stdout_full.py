@@ -1,6 +1,6 @@
-"""Results written to standard output on a full disk (``-o -``, ``--report -``, ``info``): one line that says it was
-standard output that could not take them (the OSError names no file: the line said only "No space left on
-device"), exit 2."""
+"""What the commands print on standard output (``info``'s table, ``slice``'s summary) when it is a full disk: one line
+that says it was standard output that could not take it (the OSError names no file: the line said only "No space
+left on device"), exit 2. And ``-`` as an output: refused (a file named ``-`` was written)."""
 
 from __future__ import annotations
 
@@ -42,10 +42,9 @@ class _Full(io.TextIOWrapper):
 
 
 @pytest.mark.parametrize("args", [
-    ["slice", "{box}", "-t", "1", "--format", "svg", "-o", "-"],
-    ["slice", "{box}", "-t", "1", "-o", "{tmp}/x.npz", "--report", "-"],
+    ["slice", "{box}", "-t", "1", "-o", "{tmp}/x.npz"],
     ["info", "{box}"],
-], ids=["svg", "report", "info"])
+], ids=["slice-summary", "info"])
 def test_in_process(args, box, tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(sys, "stdout", _Full())
     code = main([a.format(box=box, tmp=tmp_path) for a in args])
@@ -58,7 +57,24 @@ def test_in_process(args, box, tmp_path, monkeypatch, capsys):
 @pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full on this system")
 def test_a_command_writing_to_dev_full(box):
     with open("/dev/full", "w") as full:
-        p = subprocess.run([sys.executable, "-m", "gpuslice.cli", "slice", str(box), "-t", "1", "--format", "svg",
-                            "-o", "-"], stdout=full, stderr=subprocess.PIPE, text=True, timeout=120)
+        p = subprocess.run([sys.executable, "-m", "gpuslice.cli", "info", str(box)], stdout=full,
+                           stderr=subprocess.PIPE, text=True, timeout=120)
     assert p.returncode == 2
     assert p.stderr.strip() == f"gpuslice: error: standard output: {os.strerror(errno.ENOSPC)}"
+
+
+@pytest.mark.parametrize("args", [
+    ["slice", "{box}", "-t", "1", "-o", "-", "--format", "svg"],
+    ["slice", "{box}", "-t", "1", "-o", "{tmp}/x.npz", "--report", "-"],
+    ["raster", "{box}", "-t", "1", "-o", "-", "--format", "goo"],
+    ["check", "{box}", "-t", "1", "--json", "-"],
+    ["batch", "{box}", "-o", "-"],
+], ids=["slice", "report", "raster", "check", "batch"])
+def test_a_dash_is_not_standard_output(args, box, tmp_path, monkeypatch, capsys):
+    """``-o -`` wrote a file named ``-`` in the current folder: refused before any work, saying so."""
+    monkeypatch.chdir(tmp_path)
+    assert main([a.format(box=box, tmp=tmp_path) for a in args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == "gpuslice: error: -: gpuslice writes files, not standard output; name the file to write (./- for a " \
+                  "file named '-')"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["box.stl"]

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import gpuslice
 from gpuslice import load_mesh, slice_mesh
 from gpuslice.cli import main
 from gpuslice.errors import MeshFileError
@@ -233,3 +234,20 @@ def test_faces_without_an_inside_keep_their_fan():
     tri, cut = triangulate(v, counts, flat)
     assert cut == 0
     np.testing.assert_array_equal(tri, fan(counts, flat)[0])
+
+
+def test_a_concave_face_after_one_left_to_its_fan_is_turned_as_its_own():
+    """The turn of each face's triangles was read from the concave faces' list at the position GEOS's output had
+    (a review): after a face left to its fan (its outline repeats a point, as exporters write), the next concave
+    face took the wrong face's turn and came out inside-out (4 flipped facets, no volume)."""
+    data = b"".join(f"v {x} {y} {z}\n".encode() for z in (0, 1) for x, y in L_SHAPE_3) + (
+        b"f 9 10 10 11 12 7 8\n"  # the top L, its point 10 twice: a fan
+        b"f 6 5 4 3 2 1\n"  # the bottom L: concave, cut inside its outline
+        + b"".join(f"f {i + 1} {(i + 1) % 6 + 1} {(i + 1) % 6 + 7} {i + 7}\n".encode() for i in range(6)))
+    mesh = load_mesh(data, name="l.obj")
+    assert volume(mesh) == pytest.approx(5.0)
+    assert gpuslice.mesh_repairs(mesh)["flipped_facets"] == 0
+    assert slice_mesh(mesh, thickness=0.25).meta["repairs"]["overlaps_resolved"] == 0
+
+
+L_SHAPE_3 = [(0, 0), (3, 0), (3, 1), (1, 1), (1, 3), (0, 3)]

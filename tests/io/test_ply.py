@@ -229,8 +229,9 @@ def edit(old: bytes, new: bytes) -> bytes:
     (cube("ascii", after=[("vertex", XYZ, [])]), r"header line 10 \('element vertex 0'\): a second vertex element"),
     (edit(b"float z", b"float w"), r"the vertex element has no z property"),
     (edit(b"float y", b"list uchar float y"), r"the vertex property y is a list, not a coordinate"),
-    (cube("binary_little_endian").replace(b"element face", b"element tri"), r"no faces \(a point cloud\?\): the "
-                                                                            r"header declares no face element"),
+    (cube("binary_little_endian").replace(b"element face", b"element tri"), r"no face element \(its elements: "
+                                                                            r"vertex, tri; gpuslice reads faces, not "
+                                                                            r"tri\)"),
     (ply("ascii", [("vertex", XYZ, CUBE_V)]), r"no faces \(a point cloud\?\)"),
     (edit(b"element vertex", b"element point"), r"no vertex element in the header"),
     (edit(b"vertex_indices", b"corners"), r"the face element has no vertex_indices list"),
