@@ -55,8 +55,10 @@ def volume(mesh) -> float:
     obj().replace(b"f 1 4", b"   f 1 4"),  # leading blanks
     obj().replace(b"f 1 4 3 2", b"f 1 4 \\\n 3 2"),  # a statement continued on the next line
     obj().replace(b"f 1 4 3 2\n", b"f 1 4 3 2  # the bottom\n"),
+    obj().replace(b"f 1 4 3 2\n", b"").replace(b"f 4 1 5 8\n", b"f 4 1 5 8\nf 1 4 \\\n 3 2\\"),  # to the end
+    obj().replace(b"f 1 4", b"f 1\x0b4\x0c"),  # (a vertical tab and a form feed: blanks to OBJ readers)
 ], ids=["triangles", "quads", "v/vt/vn", "v//vn", "v/vt", "negative", "fo", "weight", "rgb", "tabs", "statements",
-        "crlf", "cr", "bom", "indent", "continued", "comment"])
+        "crlf", "cr", "bom", "indent", "continued", "comment", "continued-to-the-end", "vertical-tab"])
 def test_a_cube_in_every_layout_is_the_whole_cube(data):
     mesh = load_mesh(data, name="c.obj")
     assert mesh.n_faces == 12 and np.allclose(np.ptp(mesh.vertices, axis=0), 10.0)
@@ -81,6 +83,8 @@ def test_negative_references_count_back_from_the_face_line():
                                                r"\('f 1 4 3 x'\)"),
     (obj().replace(b"f 1 4 3 2", b"f 1 4 3 1_0"), r"line 9: a face reference that is not a vertex number"),
     (obj().replace(b"f 1 4 3 2", b"f 1 4 3 2.0"), r"line 9: a face reference that is not a vertex number"),
+    (obj().replace(b"f 1 4 3 2", b"f 1 4 3 -"), r"line 9: a face reference that is not a vertex number"),
+    (obj().replace(b"f 1 4 3 2", b"f 1 4 3 +"), r"line 9: a face reference that is not a vertex number"),
     (obj().replace(b"f 1 4 3 2", b"f 1 4 3 99999999999999999999"), r"line 9: a face names a vertex index out of "
                                                                     r"range"),
     (obj().replace(b"f 1 4 3 2", b"f 1 4 3 9"), r"line 9: a face names vertex 9, but the file has 8 vertices "
@@ -90,8 +94,8 @@ def test_negative_references_count_back_from_the_face_line():
     (b"v 0 0 0\nf -1 -2 -3\nv 1 0 0\nv 0 1 0\n", r"line 2: a face counts back past the first vertex"),
     (obj(head="cstype bspline\nsurf 0 1 0 1 1 2 3 4\n"), r"line 2: a free-form surface \(surf\): gpuslice reads "
                                                           r"polygons"),
-], ids=["short-vertex", "vertex-word", "two-vertex-face", "word", "underscore", "decimal", "huge", "past-the-end",
-        "back-too-far", "back-before-defined", "surf"])
+], ids=["short-vertex", "vertex-word", "two-vertex-face", "word", "underscore", "decimal", "minus", "plus", "huge",
+        "past-the-end", "back-too-far", "back-before-defined", "surf"])
 def test_broken_files_are_refused_naming_the_line(data, message, tmp_path, capsys):
     with pytest.raises(MeshFileError, match=rf"^b\.obj: {message}"):
         load_mesh(data, name="b.obj")
