@@ -3,9 +3,10 @@
 The slicer works on a triangle soup: an ``(F, 3, 3)`` float32 array holding the three corners of every facet in file
 order and file units (STL, OBJ, PLY and OFF have no units; for 3D printing they are millimetres by convention),
 except a 3MF, whose model declares its unit (micron to meter): it is read in millimetres (:data:`UNITS_3MF_MM`).
-Files named ``.3mf`` are read through :mod:`trimesh` (imported lazily), ``.obj``, ``.ply`` and ``.off`` by
-:mod:`gpuslice.io.obj`, :mod:`gpuslice.io.ply` and :mod:`gpuslice.io.off` (their polygon faces cut into triangles
-by :mod:`gpuslice.io.polygons`); every other file is parsed as STL, binary or ASCII (:mod:`gpuslice.io.stl`).
+Files named ``.obj``, ``.ply``, ``.off`` and ``.3mf`` are read by gpuslice's own readers (:mod:`gpuslice.io.obj`,
+:mod:`gpuslice.io.ply`, :mod:`gpuslice.io.off`, :mod:`gpuslice.io.threemf`; polygon faces cut into triangles by
+:mod:`gpuslice.io.polygons`; trimesh, which read them before, is not imported); every other file is parsed as STL,
+binary or ASCII (:mod:`gpuslice.io.stl`).
 :func:`read_mesh_source` also reads a file's bytes sent elsewhere (a batch worker). Every problem a user can cause
 raises a :class:`~gpuslice.errors.MeshFileError` (or a subclass) whose message is one line naming the file and the
 problem.
@@ -17,7 +18,6 @@ import io
 import os
 import re
 import stat
-import warnings
 import zipfile
 import zlib
 from pathlib import Path
@@ -56,7 +56,7 @@ UNITS_3MF_MM = {"micron": 0.001, "millimeter": 1.0, "centimeter": 10.0, "inch": 
 ZIP_MAX_RATIO = 200
 ZIP_RATIO_FLOOR = 64 << 20
 _INFLATE_CHUNK = 1 << 20
-#: the formats trimesh reads from the file's name (the others' bytes are read by gpuslice, for its own checks)
+#: the formats read from the file by name (3MF: inflated from the zip under its limits); the others from its bytes
 _BY_NAME = ("3mf",)
 #: gpuslice's own readers: vertices, face vertex counts and flat indices (polygons) from a file's bytes
 _OWN = {"obj": read_obj, "ply": read_ply, "off": read_off}
@@ -65,12 +65,11 @@ _OWN = {"obj": read_obj, "ply": read_ply, "off": read_off}
 def read_mesh_file(path: str | os.PathLike[str]) -> RawMesh:
     """Read a mesh file into a :class:`RawMesh`.
 
-    Files named ``.3mf`` (any case) are read with
-    ``trimesh.load(path, force="mesh", process=False)`` (all objects of the file merged, vertices not merged,
-    nothing repaired), ``.obj`` with :func:`gpuslice.io.obj.read_obj` (all objects merged too), ``.ply`` with
-    :func:`gpuslice.io.ply.read_ply`, ``.off`` with :func:`gpuslice.io.off.read_off`; every other name, ``.stl``
-    or not, goes through :func:`read_stl_bytes`, which tells binary from ASCII STL and recognises common non-STL
-    files.
+    Files named ``.obj``, ``.ply``, ``.off`` or ``.3mf`` (any case) are read with
+    :func:`gpuslice.io.obj.read_obj`, :func:`gpuslice.io.ply.read_ply`, :func:`gpuslice.io.off.read_off` and
+    :func:`gpuslice.io.threemf.read_3mf` (all objects of a file merged, vertices not merged, nothing repaired);
+    every other name, ``.stl`` or not, goes through :func:`read_stl_bytes`, which tells binary from ASCII STL and
+    recognises common non-STL files.
 
     Parameters
     ----------
@@ -86,7 +85,7 @@ def read_mesh_file(path: str | os.PathLike[str]) -> RawMesh:
     ------
     MeshFileError
         The path is missing, a directory or unreadable; the file is not a mesh of its type, is truncated or
-        malformed (see :func:`read_stl_bytes`); trimesh failed to read it.
+        malformed (see :func:`read_stl_bytes` and the readers above).
     EmptyMeshError
         The file is well formed but holds no facets.
     InvalidGeometryError
@@ -104,9 +103,9 @@ def read_mesh_file(path: str | os.PathLike[str]) -> RawMesh:
         if not (stat.S_ISREG(mode) or stat.S_ISFIFO(mode)):  # /dev/zero would be read until memory runs out
             raise MeshFileError(f"{name}: not a regular file (a device or a socket)")
         ext = os.path.splitext(name)[1].lower()
-        if NON_STL_EXTENSIONS.get(ext) in _BY_NAME and not stat.S_ISFIFO(mode):  # (trimesh opens the file itself)
+        if NON_STL_EXTENSIONS.get(ext) in _BY_NAME and not stat.S_ISFIFO(mode):  # (the zip opened by name)
             return _read_non_stl(name, NON_STL_EXTENSIONS[ext])
-        with open(name, "rb") as fh:  # (a FIFO's bytes read here: trimesh takes only a regular file by name)
+        with open(name, "rb") as fh:  # (a FIFO's bytes read here: a zip is read by name only from a regular file)
             data = fh.read()
     except OSError as exc:
         raise _file_error(name, exc) from None
@@ -157,13 +156,13 @@ def zip_inflate_limit(zip_size: int) -> int:
 
 
 #: the 3MF slice extension's mark of an object whose mesh is not for fabrication (gpuslice's own 3MF slice stacks
-#: carry their bounding box so): trimesh would read that box as the part
+#: carry their bounding box so): a reader would read that box as the part
 _LOWRES = re.compile(rb"meshresolution\s*=\s*[\"']lowres[\"']")
 
 
 def inflate_3mf(name: str, data: bytes | None = None) -> io.BytesIO:
     """Inflate the 3MF (a zip) ``data`` (or the file ``name``) under :func:`zip_inflate_limit`, into an in-memory
-    zip of stored (uncompressed) members for trimesh to read.
+    zip of stored (uncompressed) members for :func:`gpuslice.io.threemf.read_3mf` to read.
 
     Raises :class:`MeshFileError` (one line naming ``name``) when the members' declared sizes add up to more than
     the limit, when inflating goes past it anyway (sizes that lie), or when the zip is broken.
@@ -199,23 +198,13 @@ def inflate_3mf(name: str, data: bytes | None = None) -> io.BytesIO:
     return out
 
 
-def _quiet_trimesh() -> None:
-    """Give trimesh's logger a handler that drops its records, once (Python's last-resort handler printed them on
-    stderr beside the one error line); a program's own logging configuration still receives them."""
-    import logging
-
-    log = logging.getLogger("trimesh")
-    if not any(isinstance(h, logging.NullHandler) for h in log.handlers):
-        log.addHandler(logging.NullHandler())
-
-
 def _triangles(name: str, kind: str, vertices: np.ndarray, faces: np.ndarray,
                counts: np.ndarray | None = None) -> np.ndarray:
     """(F, 3, 3) float64 corners of the faces read, or a one-line :class:`MeshFileError` for what a reader let
     through: vertices without three coordinates, a face naming a vertex that is not there (a negative index: numpy
     would take another vertex).
 
-    ``faces``: (F, 3) triangles (trimesh's, for 3MF), or with ``counts`` (vertices per face) the polygons' flat
+    ``faces``: (F, 3) triangles (3MF's), or with ``counts`` (vertices per face) the polygons' flat
     vertex indices (gpuslice's readers), cut into triangles by :func:`gpuslice.io.polygons.triangulate` (a concave
     face inside its outline)."""
     if vertices.ndim != 2 or vertices.shape[1] != 3:
@@ -235,62 +224,34 @@ def _triangles(name: str, kind: str, vertices: np.ndarray, faces: np.ndarray,
 
 
 def _read_non_stl(name: str, file_type: str, data: bytes | None = None) -> RawMesh:
-    """Read 3MF with trimesh (imported here: it is slow to import), OBJ, PLY and OFF with :data:`_OWN`'s readers,
-    from the file ``name`` (3MF: :data:`_BY_NAME`) or from its bytes ``data`` (no temporary file; OBJ, PLY and OFF
-    are always given theirs); a 3MF is inflated first under :func:`zip_inflate_limit`."""
+    """Read OBJ, PLY, OFF (:data:`_OWN`'s readers) and 3MF (:func:`gpuslice.io.threemf.read_3mf`, after
+    :func:`inflate_3mf` under :func:`zip_inflate_limit` and the slice-stack check) from the file's bytes ``data``
+    (or the file ``name``: a 3MF by name, :data:`_BY_NAME`)."""
     if file_type in _OWN:  # (not trimesh's readers: they dropped faces silently, folded concave ones, cost 1 s)
         with np.errstate(all="ignore"):  # (a number past float32 is infinite, refused below without numpy's words)
             vertices, counts, faces = _OWN[file_type](data, name)
-        return _raw_mesh(name, file_type, _triangles(name, file_type.upper(), vertices, faces, counts), None)
-    try:
-        import trimesh
-    except ImportError as exc:  # pragma: no cover - trimesh is a dependency
-        raise MeshFileError(f"{name}: reading {file_type.upper()} files needs trimesh ({exc})") from None
-    source: str | io.BytesIO = name if data is None else io.BytesIO(data)
-    if file_type == "3mf":
-        source = inflate_3mf(name, data)
-        with zipfile.ZipFile(source) as zf:  # trimesh says only "StopIteration" when there is no model part
-            parts = [n for n in zf.namelist() if n.lower().endswith(".model")]
-            if not parts:
-                raise MeshFileError(f"{name}: not a 3MF file: the zip holds no 3D model part (3D/3dmodel.model)")
-            if any(_LOWRES.search(zf.read(n)) for n in parts):  # (stored members: read without inflating again)
-                raise MeshFileError(f"{name}: a 3MF slice stack (its mesh is a low-resolution stand-in, "
-                                    's:meshresolution="lowres", not the part): slice the model it was made from')
-        source.seek(0)
-    try:
-        # (trimesh's log lines and numpy's warnings on a broken file would go to stderr beside the one error line)
-        with warnings.catch_warnings(), np.errstate(all="ignore"):
-            warnings.simplefilter("ignore")
-            _quiet_trimesh()
-            if isinstance(source, str):
-                mesh = trimesh.load(source, force="mesh", process=False)
-            else:
-                mesh = trimesh.load(source, file_type=file_type, force="mesh", process=False)
-            vertices, faces = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces)
-    except MemoryError:  # (not the file's fault: a batch tries the model again elsewhere)
-        raise
-    except Exception as exc:  # any trimesh failure means a file it cannot read: one line for the user
-        reason = flatten(str(exc), 200) or type(exc).__name__
-        raise MeshFileError(
-            f"{name}: cannot read {file_type.upper()} file: {type(exc).__name__}: {reason}"
-        ) from None
-    triangles = _triangles(name, file_type.upper(), vertices, faces)
-    return _raw_mesh(name, file_type, triangles, mesh)
+        return _raw_mesh(name, file_type, _triangles(name, file_type.upper(), vertices, faces, counts))
+    from .threemf import read_3mf
+
+    source = inflate_3mf(name, data)
+    with zipfile.ZipFile(source) as zf:
+        parts = [n for n in zf.namelist() if n.lower().endswith(".model")]
+        if not parts:
+            raise MeshFileError(f"{name}: not a 3MF file: the zip holds no 3D model part (3D/3dmodel.model)")
+        if any(_LOWRES.search(zf.read(n)) for n in parts):  # (stored members: read without inflating again)
+            raise MeshFileError(f"{name}: a 3MF slice stack (its mesh is a low-resolution stand-in, "
+                                's:meshresolution="lowres", not the part): slice the model it was made from')
+    with np.errstate(all="ignore"):
+        vertices, faces = read_3mf(source.getvalue(), name, units=UNITS_3MF_MM)  # (millimetres: its unit applied)
+    return _raw_mesh(name, file_type, _triangles(name, "3MF", vertices, faces))
 
 
-def _raw_mesh(name: str, file_type: str, triangles: np.ndarray, mesh) -> RawMesh:
-    """The :class:`RawMesh` of a non-STL file's ``triangles`` (a 3MF's in millimetres by its unit, read from
-    trimesh's ``mesh``); refuses a file without facets and coordinates out of range."""
+def _raw_mesh(name: str, file_type: str, triangles: np.ndarray) -> RawMesh:
+    """The :class:`RawMesh` of a non-STL file's ``triangles`` (a 3MF's already in millimetres); refuses a file
+    without facets and coordinates out of range."""
     if len(triangles) == 0:
         raise EmptyMeshError(f"{name}: no facets ({file_type.upper()} file)")
-    if file_type == "3mf":  # the model's unit (3MF core spec: micron ... meter; millimeter when absent), read as mm
-        unit = getattr(mesh, "units", None) or "millimeter"
-        unit = {"millimeters": "millimeter"}.get(unit, unit)  # (trimesh's name when the model names no unit)
-        if unit not in UNITS_3MF_MM:
-            raise MeshFileError(f"{name}: unknown 3MF unit {unit!r} (the 3MF units are {', '.join(UNITS_3MF_MM)})")
-        triangles = triangles * UNITS_3MF_MM[unit]
     check_coordinates(triangles, name)
-    # float64 as trimesh read them: the mesh is placed on the bed before its one rounding to float32
-    # (mesh.mesh_from_triangles), as the same file loaded by trimesh and handed over would be
+    # float64 as read: the mesh is placed on the bed before its one rounding to float32 (mesh.mesh_from_triangles)
     return RawMesh(triangles=np.ascontiguousarray(triangles, dtype=np.float64), normals=None,
                    source_format=file_type, solids=1, header=b"", path=name)

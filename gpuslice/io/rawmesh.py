@@ -19,8 +19,8 @@ BINARY_STL_RECORD = np.dtype([("normal", "<f4", (3,)), ("v", "<f4", (3, 3)), ("a
 #: coordinates in float32 (max 3.4e38); beyond 1e18 a product of two differences can overflow.
 MAX_COORDINATE = 1e18
 
-#: Extensions (lower case) of the other mesh formats (OBJ, PLY, OFF: gpuslice's readers; 3MF: trimesh); every
-#: other name is parsed as an STL.
+#: Extensions (lower case) of the other mesh formats (OBJ, PLY, OFF, 3MF: gpuslice's readers in this package);
+#: every other name is parsed as an STL.
 NON_STL_EXTENSIONS = {".obj": "obj", ".ply": "ply", ".off": "off", ".3mf": "3mf"}
 
 _HEADER_BYTES = 84
