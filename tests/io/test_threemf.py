@@ -5,7 +5,9 @@ naming the file and the problem."""
 
 from __future__ import annotations
 
+import contextlib
 import io
+import locale
 import re
 import zipfile
 from pathlib import Path
@@ -272,8 +274,19 @@ def _lib3mf_written(tmp_path: Path) -> bytes:
     model.AddBuildItem(model.AddComponentsObject(), mirror)
     model.GetComponentsObjectByID(2).AddComponent(box, lib3mf.Wrapper().GetIdentityTransform())
     model.SetUnit(lib3mf.ModelUnit.Inch)
-    model.QueryWriter("3mf").WriteToFile(str(tmp_path / "written.3mf"))
+    with _locale_kept():  # (lib3mf's writer sets the C locale and leaves it: later text files were ASCII)
+        model.QueryWriter("3mf").WriteToFile(str(tmp_path / "written.3mf"))
     return (tmp_path / "written.3mf").read_bytes()
+
+
+@contextlib.contextmanager
+def _locale_kept():
+    """The process's locale as it was, whatever the code inside sets."""
+    saved = locale.setlocale(locale.LC_ALL)
+    try:
+        yield
+    finally:
+        locale.setlocale(locale.LC_ALL, saved)
 
 
 def _painted(style: str) -> bytes:
