@@ -91,6 +91,12 @@ def init_worker(env: dict[str, str] | None = None, device: str | None = None, ba
     the next, so a SIGTERM sent to the whole group (a service manager's stop) left the workers running for ever. A
     worker whose ``driver`` (its pid) is gone (killed: SIGKILL, the OOM killer) sends itself SIGTERM within a second
     (:func:`_watch_driver`): the forkserver between them outlives the driver while its workers hold its pipe.
+
+    A signal sent to the process may be taken by any of its threads, and Python runs its handler in the main thread
+    only when that thread next runs: an idle worker's main thread, blocked reading its next task, never did (about
+    one group SIGTERM in 20 on a loaded machine left a worker alive, holding the caller's pipes). So the signals'
+    wake-up pipe (:func:`signal.set_wakeup_fd`) tells the watching thread of each SIGTERM, and it pokes the main
+    thread with SIGUSR1 (a no-op handler), whose interrupted read then runs the SIGTERM handler.
     """
     os.environ.update(env or {})
     if one_arena:  # (before the device's threads start)
@@ -100,11 +106,15 @@ def init_worker(env: dict[str, str] | None = None, device: str | None = None, ba
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGHUP, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    signal.signal(signal.SIGUSR1, lambda *_: None)  # (the watching thread's poke: see above)
     _WORKER["local"] = True
-    if driver is not None:
-        import threading
+    import threading
 
-        threading.Thread(target=_watch_driver, args=(driver,), name="gpuslice-driver-watch", daemon=True).start()
+    woken_r, woken_w = os.pipe()
+    os.set_blocking(woken_w, False)
+    signal.set_wakeup_fd(woken_w, warn_on_full_buffer=False)
+    threading.Thread(target=_watch_driver, args=(driver, woken_r, threading.main_thread().ident),
+                     name="gpuslice-driver-watch", daemon=True).start()
     t = time.perf_counter()
     if backend == "opencl":
         with contextlib.suppress(GpusliceError):  # reported by the first task instead
@@ -112,16 +122,26 @@ def init_worker(env: dict[str, str] | None = None, device: str | None = None, ba
     _WORKER["started"] = time.perf_counter() - t
 
 
-def _watch_driver(pid: int, every: float = 1.0) -> None:
-    """Send this worker SIGTERM once the process ``pid`` (the batch's driver) no longer exists (polled every
-    ``every`` seconds; a worker's own SIGTERM handling then removes its temporaries and ends it)."""
+def _watch_driver(pid: int | None, woken: int, main: int, every: float = 1.0) -> None:
+    """The worker's watching thread: on each SIGTERM the process takes (a byte on the signals' wake-up pipe
+    ``woken``), poke the ``main`` thread (SIGUSR1) so that its handler runs there even when that thread is blocked
+    in a read; and once the process ``pid`` (the batch's driver) no longer exists (polled every ``every`` seconds),
+    send this worker SIGTERM (its own handling then removes its temporaries and ends it)."""
+    import select
+
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM, signal.SIGUSR1})  # (this thread takes neither)
     while True:
-        time.sleep(every)
+        ready, _, _ = select.select([woken], [], [], every)
+        if ready and signal.SIGTERM in os.read(woken, 256):
+            signal.pthread_kill(main, signal.SIGUSR1)
+            continue
+        if pid is None:
+            continue
         try:
             os.kill(pid, 0)
         except ProcessLookupError:
             os.kill(os.getpid(), signal.SIGTERM)
-            return
+            pid = None  # (once: the poke above makes sure it is seen)
         except OSError:  # (exists, but not ours to signal: still there)
             continue
 
