@@ -27,6 +27,7 @@ import warnings
 import numpy as np
 
 from ..errors import MeshFileError
+from .rawmesh import plain_text
 
 __all__ = ["read_obj"]
 
@@ -39,12 +40,7 @@ def _lines(data: bytes) -> list[bytes]:
     """The file's lines (LF), comments gone, leading blanks stripped where there are any; a statement continued
     over lines (a backslash at the end) is joined on its last line, the lines before it left blank (so that each
     line keeps its number)."""
-    if data.startswith(b"\xef\xbb\xbf"):
-        data = data[3:]
-    if b"\r" in data:
-        data = data.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
-    if b"#" in data:
-        data = re.sub(rb"#[^\n]*", b"", data)
+    data = plain_text(data)
     if b"\x0b" in data or b"\x0c" in data:  # (vertical tab, form feed: blanks to Python's split, not to numpy's)
         data = data.translate(_BLANKS)
     lines = data.split(b"\n")

@@ -19,6 +19,7 @@ import re
 import numpy as np
 
 from ..errors import MeshFileError
+from .rawmesh import plain_text
 
 __all__ = ["read_off"]
 
@@ -29,13 +30,7 @@ _INTEGER = re.compile(rb"[+-]?[0-9]+")  # (Python's int() also takes "1_000" and
 def _content_lines(data: bytes) -> list[bytes]:
     """The file's lines without comments, blank ones left out (a UTF-8 byte-order mark dropped; CR, CRLF or LF line
     ends)."""
-    if data.startswith(b"\xef\xbb\xbf"):
-        data = data[3:]
-    if b"\r" in data:
-        data = data.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
-    if b"#" in data:
-        data = re.sub(rb"#[^\n]*", b"", data)
-    return [line for line in data.split(b"\n") if line.strip()]
+    return [line for line in plain_text(data).split(b"\n") if line.strip()]
 
 
 def read_off(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

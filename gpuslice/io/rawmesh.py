@@ -10,7 +10,7 @@ import numpy as np
 
 from ..errors import InvalidGeometryError
 
-__all__ = ["RawMesh", "BINARY_STL_RECORD", "MAX_COORDINATE", "NON_STL_EXTENSIONS", "check_coordinates"]
+__all__ = ["RawMesh", "BINARY_STL_RECORD", "MAX_COORDINATE", "NON_STL_EXTENSIONS", "check_coordinates", "plain_text"]
 
 #: One 50-byte binary STL facet record: stored normal, three corners, the 16-bit "attribute byte count".
 BINARY_STL_RECORD = np.dtype([("normal", "<f4", (3,)), ("v", "<f4", (3, 3)), ("attr", "<u2")])
@@ -146,3 +146,15 @@ def check_coordinates(coords: np.ndarray, name: str) -> None:
         f"{name}: coordinates up to {biggest:.2g} overflow float32 arithmetic (limit {MAX_COORDINATE:.0e} as "
         f"given, before any scaling; {n_big} {noun} affected)"
     )
+
+
+def plain_text(data: bytes) -> bytes:
+    """A text mesh file's bytes with a UTF-8 byte-order mark dropped, CR and CRLF line ends made LF, and ``#``
+    comments (to the end of their line) removed: what the OBJ and OFF readers split into lines."""
+    if data.startswith(b"\xef\xbb\xbf"):
+        data = data[3:]
+    if b"\r" in data:
+        data = data.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
+    if b"#" in data:
+        data = re.sub(rb"#[^\n]*", b"", data)
+    return data
