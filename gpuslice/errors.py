@@ -7,6 +7,8 @@ prints that line on stderr and exits with status 2.
 
 from __future__ import annotations
 
+import re
+
 __all__ = [
     "GpusliceError",
     "MeshFileError",
@@ -58,10 +60,14 @@ class BatchError(GpusliceError):
     """A batch cannot start: no models found, clashing outputs, options differing from the output folder's."""
 
 
+#: control characters other than whitespace (a file's bytes in a message: a terminal would act on ESC sequences)
+_CONTROL = re.compile("[\x00-\x08\x0e-\x1f\x7f-\x9f]")
+
+
 def flatten(text: str, limit: int | None = None) -> str:
-    """``text`` on one line (every run of whitespace, newlines included, becomes one space), cut to ``limit``
-    characters with ``...`` when longer."""
-    out = " ".join(str(text).split())
+    """``text`` on one line (every run of whitespace, newlines included, becomes one space; other control characters
+    written ``\\xNN``), cut to ``limit`` characters with ``...`` when longer."""
+    out = _CONTROL.sub(lambda m: f"\\x{ord(m.group()):02x}", " ".join(str(text).split()))
     if limit is not None and len(out) > limit:
         out = out[: limit - 3] + "..."
     return out

@@ -104,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     except GpusliceError as exc:
         if debug:
             raise
-        click.echo(f"gpuslice: error: {flatten(_message(exc))}", err=True)
+        click.echo(f"gpuslice: error: {flatten(_message(exc), 2000)}", err=True)  # (a file's text in it: bounded)
         return EXIT_USAGE
     except KeyboardInterrupt as exc:
         _INTERRUPTED.set()

@@ -172,6 +172,13 @@ def inflate_3mf(name: str, data: bytes | None = None) -> io.BytesIO:
         limit = zip_inflate_limit(size)
         with zipfile.ZipFile(io.BytesIO(data) if data is not None else name) as zf:
             infos = [i for i in zf.infolist() if not i.is_dir()]
+            seen: set[str] = set()
+            for info in infos:  # (OPC part names are unique, case aside; zipfile read the last copy, with a warning)
+                key = info.filename.lower()
+                if key in seen:
+                    raise MeshFileError(f"{name}: not a valid 3MF file: it holds two members named "
+                                        f"{flatten(info.filename, 80)!r}")
+                seen.add(key)
             declared = sum(i.file_size for i in infos)
             if declared > limit:
                 raise MeshFileError(f"{name}: 3MF members declare {declared} bytes inflated, over the limit of "

@@ -17,39 +17,60 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["triangulate", "fan"]
+__all__ = ["triangulate", "fan", "MAX_INSIDE"]
 
 #: a fan triangle turned against its face's normal by more than this share of |its normal| · |the face's| is
 #: wrong (collinear vertices, e.g. a point in the middle of a face's edge, give triangles of zero area, which are
 #: not wrong: a fan through them is still the face)
 _AGAINST = 1e-9
+#: concave faces of more vertices keep their fan (GEOS's constrained Delaunay triangulation of one face costs about
+#: the cube of its vertex count: 2,048 take a fraction of a second)
+MAX_INSIDE = 2048
 
 
 def fan(counts: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(T, 3) int64 fan triangles ``(i_0, i_j, i_j+1)`` of faces given as ``counts`` (F,) vertices each (>= 3) and
     their ``indices`` (flat, face after face), and (T,) the face of each triangle."""
-    counts = np.asarray(counts, np.int64)
+    pos, face = _fan_positions(np.asarray(counts, np.int64))
+    return np.asarray(indices, np.int64)[pos], face
+
+
+def _starts(counts: np.ndarray) -> np.ndarray:
     start = np.zeros(counts.size, np.int64)
     np.cumsum(counts[:-1], out=start[1:])
+    return start
+
+
+def _fan_positions(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(T, 3) positions in the flat index list of each fan triangle's corners, and (T,) its face."""
+    start = _starts(counts)
     per = counts - 2
     face = np.repeat(np.arange(counts.size), per)
-    first = np.zeros(per.size, np.int64)
-    np.cumsum(per[:-1], out=first[1:])
+    first = _starts(per)
     j = np.arange(face.size, dtype=np.int64) - np.repeat(first, per) + 1  # 1 .. n-2 within each face
     base = start[face]
-    tri = np.stack([indices[base], indices[base + j], indices[base + j + 1]], axis=1)
-    return tri.astype(np.int64, copy=False), face
+    return np.stack([base, base + j, base + j + 1], axis=1), face
 
 
-def _newell(vertices: np.ndarray, counts: np.ndarray, indices: np.ndarray) -> np.ndarray:
-    """(F, 3) Newell normal of each face (twice its vector area; its direction is the face's orientation)."""
-    start = np.zeros(counts.size, np.int64)
-    np.cumsum(counts[:-1], out=start[1:])
-    p = vertices[indices]
-    nxt = np.arange(indices.size, dtype=np.int64) + 1
+def _newell(p: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """(F, 3) Newell normal of each face of corners ``p`` (flat, face after face): twice its vector area; its
+    direction is the face's orientation."""
+    start = _starts(counts)
+    nxt = np.arange(p.shape[0], dtype=np.int64) + 1
     nxt[start + counts - 1] = start  # each face's last vertex goes back to its first
-    q = p[nxt]
-    return np.add.reduceat(np.cross(p, q), start, axis=0) if indices.size else np.zeros((0, 3))
+    return np.add.reduceat(np.cross(p, p[nxt]), start, axis=0) if p.shape[0] else np.zeros((0, 3))
+
+
+def _face_frames(vertices: np.ndarray, counts: np.ndarray, indices: np.ndarray) -> np.ndarray:
+    """The faces' corners (flat), each face moved to its first corner and scaled by a power of two to about unit
+    size: the turn tests below then neither underflow (a face 1e-100 across had products of 0, and a folded fan
+    passed for convex: a fuzzing helper) nor overflow."""
+    start = _starts(counts)
+    p = vertices[indices]
+    d = p - np.repeat(p[start], counts, axis=0)
+    extent = np.maximum.reduceat(np.abs(d).max(axis=1), start) if p.shape[0] else np.zeros(0)
+    _, exponent = np.frexp(extent)  # (0: exponent 0, scale 1)
+    return d * np.repeat(np.ldexp(1.0, -exponent), counts)[:, None]
 
 
 def triangulate(vertices: np.ndarray, counts: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, int]:
@@ -58,7 +79,9 @@ def triangulate(vertices: np.ndarray, counts: np.ndarray, indices: np.ndarray) -
 
     ``vertices``: (V, 3) float64 (file units); ``counts``: (F,) vertices per face, each >= 3; ``indices``: (sum of
     counts,) vertex indices, face after face, each in range (the callers check). Triangles keep their face's
-    vertex order: a triangle face is itself, a convex face its fan from its first vertex.
+    vertex order: a triangle face is itself, a convex face its fan from its first vertex. A concave face of more
+    than :data:`MAX_INSIDE` vertices keeps its fan too (GEOS's time grows with the cube of the count: a spiral of
+    16,000 took 91 s).
     """
     counts = np.asarray(counts, np.int64)
     indices = np.asarray(indices, np.int64)
@@ -66,19 +89,20 @@ def triangulate(vertices: np.ndarray, counts: np.ndarray, indices: np.ndarray) -
         return np.zeros((0, 3), np.int64), 0
     if (counts == 3).all():
         return indices.reshape(-1, 3).copy(), 0
-    tri, face = fan(counts, indices)
-    big = counts > 3
-    sel = np.flatnonzero(big[face])  # the fan triangles of faces of more than three vertices
+    pos, face = _fan_positions(counts)
+    tri = indices[pos]
+    sel = np.flatnonzero((counts > 3)[face])  # the fan triangles of faces of more than three vertices
     vertices = np.asarray(vertices, np.float64)
-    normal = _newell(vertices, counts, indices)
-    a, b, c = (vertices[tri[sel, k]] for k in range(3))
+    q = _face_frames(vertices, counts, indices)
+    normal = _newell(q, counts)
+    a, b, c = (q[pos[sel, k]] for k in range(3))
     own = np.cross(b - a, c - a)
     fn = normal[face[sel]]
     dot = np.einsum("ij,ij->i", own, fn)
     scale = np.linalg.norm(own, axis=1) * np.linalg.norm(fn, axis=1)
     wrong = np.zeros(counts.size, bool)
     wrong[face[sel][dot < -_AGAINST * scale]] = True
-    concave = np.flatnonzero(wrong)
+    concave = np.flatnonzero(wrong & (counts <= MAX_INSIDE))
     if concave.size == 0:
         return tri, 0
     done, inner = _inside(vertices, counts, indices, normal, concave)
@@ -98,8 +122,7 @@ def _inside(vertices, counts, indices, normal, faces) -> tuple[np.ndarray, np.nd
     GEOS giving other than n − 2 triangles) are left to the fan."""
     import shapely
 
-    start = np.zeros(counts.size, np.int64)
-    np.cumsum(counts[:-1], out=start[1:])
+    start = _starts(counts)
     axis = np.abs(normal[faces]).argmax(axis=1)  # drop the dominant axis: (u, v) = the next two, cyclically
     up = normal[faces, axis] > 0  # the outline is counter-clockwise in (u, v) where the normal points up that axis
     n = counts[faces]

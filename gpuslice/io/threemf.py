@@ -51,8 +51,10 @@ CORE_NS = "http://schemas.microsoft.com/3dmanufacturing/core/2015/02"
 PRODUCTION_NS = "http://schemas.microsoft.com/3dmanufacturing/production/2015/06"
 #: components nested deeper than this under a build item are refused (real files nest one or two deep)
 MAX_COMPONENT_DEPTH = 32
-#: the most triangles (and 3 times the most vertices) the build may place: instancing multiplies a small file
-MAX_TRIANGLES = 1 << 26
+#: the most triangles (and 3 times the most vertices) the build may place: instancing multiplies a small file (a
+#: fuzzing helper's 10 KB file placed 2^26 and ran out of memory; 2^24 corners take 1.2 GB, and the largest meshes
+#: gpuslice is measured on have 6.4M triangles)
+MAX_TRIANGLES = 1 << 24
 #: the most meshes the build may place (instances, each placed by Python code)
 MAX_MESHES = 1 << 16
 _P_PATH = f"{{{PRODUCTION_NS}}}path"

@@ -78,3 +78,13 @@ def test_a_dash_is_not_standard_output(args, box, tmp_path, monkeypatch, capsys)
     assert err == "gpuslice: error: -: gpuslice writes files, not standard output; name the file to write (./- for a " \
                   "file named '-')"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["box.stl"]
+
+
+def test_control_characters_of_a_file_are_escaped_in_its_error(tmp_path, capsys):
+    """A PLY element named with an ESC sequence reached the terminal as it was (a fuzzing helper)."""
+    path = tmp_path / "e.ply"
+    path.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                     b"element \x1b[2Jevil 1\nproperty float a\nend_header\n0 0 0\n1 0 0\n0 1 0\n1\n")
+    assert main(["info", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "\x1b" not in err and "\\x1b[2Jevil" in err and err.count("\n") == 1

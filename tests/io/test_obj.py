@@ -255,3 +255,30 @@ def test_a_concave_face_after_one_left_to_its_fan_is_turned_as_its_own():
 
 
 L_SHAPE_3 = [(0, 0), (3, 0), (3, 1), (1, 1), (1, 3), (0, 3)]
+
+
+@pytest.mark.parametrize("size", [1e-100, 1e-3, 1e100])
+def test_a_concave_face_of_any_size_is_cut_inside(size):
+    """At 1e-100 the turn test's products underflowed to 0, and the folded fan passed for convex (a fuzzing helper):
+    each face is now tested moved to its first corner and scaled by a power of two."""
+    v = np.array([(0, 0, 0), (2, 0, 0), (1, 0.2, 0), (1, 2, 0)]) * size  # a dart: concave at (1, 0.2)
+    for shift in range(4):
+        order = np.roll(np.arange(4), shift)
+        tri, cut = triangulate(v, np.array([4]), order)
+        a = v[tri]
+        turn = np.cross(a[:, 1] - a[:, 0], a[:, 2] - a[:, 0])[:, 2]
+        assert (turn > 0).all(), (shift, turn)  # counter-clockwise, as the dart
+
+
+def test_a_concave_face_past_the_limit_keeps_its_fan(monkeypatch):
+    """GEOS's time grows with the cube of a face's vertex count (a spiral of 16,000: 91 s): past MAX_INSIDE the fan,
+    as before (the slices stay right, through the overlap repair)."""
+    from gpuslice.io import polygons
+
+    v = np.array([(0, 0, 0), (2, 0, 0), (1, 0.2, 0), (1, 2, 0)], float)
+    order = np.array([1, 2, 3, 0])  # the fan from (2, 0) folds
+    assert triangulate(v, np.array([4]), order)[1] == 1
+    monkeypatch.setattr(polygons, "MAX_INSIDE", 3)
+    tri, cut = triangulate(v, np.array([4]), order)
+    assert cut == 0
+    np.testing.assert_array_equal(tri, fan(np.array([4]), order)[0])

@@ -576,3 +576,23 @@ def test_a_compressed_zip_is_read_and_a_stored_one_too():
         for info in src.infolist():
             dst.writestr(info.filename, src.read(info))
     assert np.array_equal(read(data), read(stored.getvalue()))
+
+
+def test_a_zip_with_two_members_of_one_name_is_refused(capsys):
+    """zipfile read the last copy and warned on stderr (a fuzzing helper): OPC part names are unique."""
+    import warnings
+
+    from gpuslice import load_mesh
+
+    data = package({"3D/3dmodel.model": model(box_object())})
+    out = io.BytesIO()
+    with warnings.catch_warnings(), zipfile.ZipFile(out, "w") as z:
+        warnings.simplefilter("ignore")
+        with zipfile.ZipFile(io.BytesIO(data)) as src:
+            for n in src.namelist():
+                z.writestr(n, src.read(n))
+        z.writestr("3D/3DModel.model", model(box_object()))  # (the same part, its name's case aside)
+    with pytest.raises(MeshFileError, match=r"^d\.3mf: not a valid 3MF file: it holds two members named "
+                                            r"'3D/3DModel\.model'$"):
+        load_mesh(out.getvalue(), name="d.3mf")
+    assert capsys.readouterr().err == ""
