@@ -26,7 +26,7 @@ import warnings
 
 import numpy as np
 
-from ..errors import MeshFileError
+from ..errors import MeshFileError, flatten
 from .rawmesh import plain_text
 
 __all__ = ["read_obj"]
@@ -75,7 +75,7 @@ def read_obj(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray
     a :class:`MeshFileError` naming ``name``)."""
 
     def fail(line: int, reason: str) -> MeshFileError:
-        return MeshFileError(f"{name}: line {line}: {reason}")
+        return MeshFileError(f"{name}: line {line}: {flatten(reason, 300)}")  # (a line's text: escaped)
 
     lines = _lines(data)
     is_v, is_f, is_surf = _kinds(lines)

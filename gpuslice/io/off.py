@@ -18,7 +18,7 @@ import re
 
 import numpy as np
 
-from ..errors import MeshFileError
+from ..errors import MeshFileError, flatten
 from .rawmesh import plain_text
 
 __all__ = ["read_off"]
@@ -41,7 +41,7 @@ def read_off(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray
     face of fewer than 3 vertices, or other than as many lines as the counts declare."""
 
     def fail(reason: str) -> MeshFileError:
-        return MeshFileError(f"{name}: cannot read OFF file: {reason}")
+        return MeshFileError(f"{name}: cannot read OFF file: {flatten(reason, 300)}")  # (escaped)
 
     lines = _content_lines(data)
     if not lines:

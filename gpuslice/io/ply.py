@@ -30,7 +30,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..errors import MeshFileError
+from ..errors import MeshFileError, flatten
 
 __all__ = ["read_ply"]
 
@@ -57,7 +57,7 @@ def read_ply(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray
     short or longer than its header declares, a face of fewer than 3 vertices."""
 
     def fail(reason: str) -> MeshFileError:
-        return MeshFileError(f"{name}: cannot read PLY file: {reason}")
+        return MeshFileError(f"{name}: cannot read PLY file: {flatten(reason, 300)}")  # (its names: escaped)
 
     data = bytes(data)
     order, elements, body = _header(data, 3 if data.startswith(b"\xef\xbb\xbf") else 0, fail)

@@ -105,7 +105,7 @@ def triangulate(vertices: np.ndarray, counts: np.ndarray, indices: np.ndarray) -
     concave = np.flatnonzero(wrong & (counts <= MAX_INSIDE))
     if concave.size == 0:
         return tri, 0
-    done, inner = _inside(vertices, counts, indices, normal, concave)
+    done, inner = _inside(q, counts, indices, normal, concave)
     if done.size == 0:
         return tri, 0
     keep = ~np.isin(face, done)
@@ -116,10 +116,11 @@ def triangulate(vertices: np.ndarray, counts: np.ndarray, indices: np.ndarray) -
     return out[order], int(done.size)
 
 
-def _inside(vertices, counts, indices, normal, faces) -> tuple[np.ndarray, np.ndarray]:
+def _inside(q, counts, indices, normal, faces) -> tuple[np.ndarray, np.ndarray]:
     """The faces among ``faces`` that GEOS triangulates inside their outline (in order) and their triangles, n − 2
-    a face in face order, each turned as its face; the others (an outline crossing itself, a point repeated, or
-    GEOS giving other than n − 2 triangles) are left to the fan."""
+    a face in face order, each turned as its face; the others (an outline crossing itself, a point repeated, GEOS
+    failing on it or giving other than n − 2 triangles) are left to the fan. ``q``: the corners in each face's own
+    frame (:func:`_face_frames`: GEOS, given a face 1e-100 across or far from the origin, failed or cut it wrongly)."""
     import shapely
 
     start = _starts(counts)
@@ -129,8 +130,8 @@ def _inside(vertices, counts, indices, normal, faces) -> tuple[np.ndarray, np.nd
     owner = np.repeat(np.arange(faces.size), n)
     first = np.zeros(faces.size, np.int64)
     np.cumsum(n[:-1], out=first[1:])
-    idx = indices[np.repeat(start[faces] - first, n) + np.arange(int(n.sum()), dtype=np.int64)]
-    p = vertices[idx]
+    flat = np.repeat(start[faces] - first, n) + np.arange(int(n.sum()), dtype=np.int64)
+    idx, p = indices[flat], q[flat]
     rows = np.arange(p.shape[0])
     ax = axis[owner]
     uv = np.stack([p[rows, (ax + 1) % 3], p[rows, (ax + 2) % 3]], axis=1) + 0.0  # (+ 0.0: no negative zero)
@@ -149,7 +150,7 @@ def _inside(vertices, counts, indices, normal, faces) -> tuple[np.ndarray, np.nd
     take = np.flatnonzero(~repeated & shapely.is_valid(polys))
     if take.size == 0:
         return np.zeros(0, np.int64), np.zeros((0, 3), np.int64)
-    parts, of = shapely.get_parts(shapely.constrained_delaunay_triangles(polys[take]), return_index=True)
+    parts, of = shapely.get_parts(_triangulated(polys[take]), return_index=True)
     full = np.bincount(of, minlength=take.size) == n[take] - 2
     if not full.all():  # (GEOS made other than n - 2 triangles: that face keeps its fan)
         mine = full[of]
@@ -166,6 +167,25 @@ def _inside(vertices, counts, indices, normal, faces) -> tuple[np.ndarray, np.nd
     tri[flip] = tri[flip][:, ::-1]
     order = np.argsort(of, kind="stable")  # (each face's triangles together, faces in order)
     return faces[take], tri[order]
+
+
+def _triangulated(polys: np.ndarray) -> np.ndarray:
+    """GEOS's constrained Delaunay triangulation of each polygon (a GeometryCollection of triangles each; an empty
+    one where GEOS fails on that polygon: "Unable to find a convex corner", on valid but nearly degenerate
+    outlines), all in one call unless one fails."""
+    import shapely
+    from shapely.errors import GEOSException
+
+    try:
+        return shapely.constrained_delaunay_triangles(polys)
+    except GEOSException:
+        out = np.empty(polys.size, dtype=object)
+        for k, poly in enumerate(polys):  # (only after a failure: one call a face)
+            try:
+                out[k] = shapely.constrained_delaunay_triangles(poly)
+            except GEOSException:
+                out[k] = shapely.GeometryCollection()
+        return out
 
 
 def _rows_in(keys: np.ndarray, q: np.ndarray) -> np.ndarray:

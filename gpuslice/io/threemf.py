@@ -116,7 +116,7 @@ class _Package:
         self.root = self.root_part()
 
     def fail(self, reason: str) -> MeshFileError:
-        return MeshFileError(f"{self.name}: cannot read 3MF file: {reason}")
+        return MeshFileError(f"{self.name}: cannot read 3MF file: {flatten(reason, 300)}")
 
     def member(self, path: str) -> str | None:
         """The zip member of the part ``path`` (case-insensitive, leading ``/`` optional, %-escapes taken)."""
