@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from ..errors import flatten
+
 __all__ = ["checks_summary", "format_summary"]
 
 
@@ -29,7 +31,7 @@ def _note(r: dict[str, Any]) -> str:
     """The last cell: the error of a failed model, else a warning (open chains: the mesh is not closed there, so a
     resin archive leaves what they outline unfilled), else nothing."""
     if r.get("error"):
-        return r["error"]
+        return flatten(r["error"])
     n = r.get("open_chains") or 0
     return f"warning: {n} open chains (the mesh is not closed there; a resin layer leaves them unfilled)" if n else ""
 
@@ -39,14 +41,15 @@ def format_summary(report: dict[str, Any], max_rows: int = 40) -> str:
     ``max_rows``), then the totals; with ``--check``, a ``checks`` column (islands, resin traps, suction cups); the
     last column holds a failed model's error, or a warning (:func:`_note`)."""
     rows = sorted(report["models"], key=lambda r: (r["status"] != "failed", r["model"]))
-    width = min(60, max([len(r["model"]) for r in rows] + [5]))
+    width = min(60, max([len(flatten(r["model"])) for r in rows] + [5]))
     checked = "checks" in report["summary"]
     cw = max([len(_checks_cell(r)) for r in rows[:max_rows]] + [6]) if checked else 0
     head = f" {'checks':{cw}s}" if checked else ""
     lines = [f"{'model':{width}s} {'status':8s} {'facets':>9s} {'layers':>7s} {'time s':>8s}{head}  error or warning"]
     for r in rows[:max_rows]:
         t = r.get("timings_s", {}).get("total")
-        name = r["model"] if len(r["model"]) <= width else "…" + r["model"][-width + 1:]
+        shown = flatten(r["model"])  # (a file name's control characters: escaped)
+        name = shown if len(shown) <= width else "…" + shown[-width + 1:]
         cell = f" {_checks_cell(r):{cw}s}" if checked else ""
         lines.append(f"{name:{width}s} {r['status']:8s} {r.get('facets', ''):>9} {r.get('layers', ''):>7} "
                      f"{'' if t is None else f'{t:.3f}':>8s}{cell}  {_note(r)}")

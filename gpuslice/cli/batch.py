@@ -14,6 +14,7 @@ from pathlib import Path
 import click
 
 from ..batch.options import BatchOptions, check_path
+from ..errors import flatten
 from .options import (
     RESIN_DEFAULTS,
     build,
@@ -99,13 +100,13 @@ class _Progress:
 
     def __call__(self, rec: dict) -> None:
         if rec["status"] == "failed":  # (-q hides the bar and the table, not a model's failure)
-            line = f"gpuslice: failed: {rec['error']}"
+            line = f"gpuslice: failed: {flatten(rec['error'])}"  # (a file name's control characters: escaped)
             if self.bar is not None:
                 self.bar.console.print(line, markup=False, highlight=False)
             else:
                 click.echo(line, err=True)
         if self.bar is not None:
-            self.bar.update(self.task, advance=1, description=rec["model"][-40:])
+            self.bar.update(self.task, advance=1, description=flatten(rec["model"])[-40:])
 
 
 @click.command()

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["triangulate", "fan", "MAX_INSIDE"]
+__all__ = ["triangulate", "fan", "MAX_INSIDE", "INSIDE_BUDGET"]
 
 #: a fan triangle turned against its face's normal by more than this share of |its normal| · |the face's| is
 #: wrong (collinear vertices, e.g. a point in the middle of a face's edge, give triangles of zero area, which are
@@ -26,6 +26,9 @@ _AGAINST = 1e-9
 #: concave faces of more vertices keep their fan (GEOS's constrained Delaunay triangulation of one face costs about
 #: the cube of its vertex count: 2,048 take a fraction of a second)
 MAX_INSIDE = 2048
+#: and all of a file's concave faces together, by the sum of their vertex counts squared: 20 spirals of 2,048
+#: vertices took 13 s (a review); past it, faces keep their fans (the slices stay right, through the overlap repair)
+INSIDE_BUDGET = float(1 << 25)
 
 
 def fan(counts: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -103,6 +106,8 @@ def triangulate(vertices: np.ndarray, counts: np.ndarray, indices: np.ndarray) -
     wrong = np.zeros(counts.size, bool)
     wrong[face[sel][dot < -_AGAINST * scale]] = True
     concave = np.flatnonzero(wrong & (counts <= MAX_INSIDE))
+    work = np.cumsum(counts[concave].astype(np.float64) ** 2)
+    concave = concave[work <= INSIDE_BUDGET]  # (in face order: the faces past the budget keep their fans)
     if concave.size == 0:
         return tri, 0
     done, inner = _inside(q, counts, indices, normal, concave)

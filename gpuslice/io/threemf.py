@@ -247,6 +247,8 @@ class _Package:
         sizes: dict[tuple[str, str], tuple[int, int, int, int]] = {}  # triangles, vertices, meshes, nesting depth
 
         def size(part: str, oid: str, what: str, chain: tuple[tuple[str, str], ...]) -> tuple[int, int, int, int]:
+            if len(chain) > MAX_COMPONENT_DEPTH:  # (before going deeper: 3,000 levels ended in a RecursionError)
+                raise self.fail(f"components nested more than {MAX_COMPONENT_DEPTH} deep under {what}")
             if (found := sizes.get((part, oid))) is None:
                 if (obj := self.part(part).objects.get(oid)) is None:  # (trimesh: "id 2 included but not defined!")
                     raise self.fail(f"{what} names object {flatten(oid, 20)!r}, which {part} does not define")
@@ -257,7 +259,9 @@ class _Package:
                     raise self.fail(f"object {flatten(oid, 20)!r} in {part} is neither a mesh nor components (an "
                                     "extension gpuslice does not read)")
                 if obj[0] == "components":
-                    parts = [size(p, i, w, (*chain, (part, oid))) for p, i, _, w in obj[1]] or [(0, 0, 0, 0)]
+                    if not obj[1]:  # (the schema asks for one; empty ones placed 10^9 times took minutes: a review)
+                        raise self.fail(f"object {flatten(oid, 20)!r} in {part} has no component")
+                    parts = [size(p, i, w, (*chain, (part, oid))) for p, i, _, w in obj[1]]
                     found = (*(sum(s[k] for s in parts) for k in range(3)), 1 + max(s[3] for s in parts))
                 else:
                     found = (len(obj[2]), len(obj[1]), 1, 0)

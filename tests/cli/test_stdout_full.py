@@ -88,3 +88,16 @@ def test_control_characters_of_a_file_are_escaped_in_its_error(tmp_path, capsys)
     assert main(["info", str(path)]) == 2
     err = capsys.readouterr().err
     assert "\x1b" not in err and "\\x1b[2Jevil" in err and err.count("\n") == 1
+
+
+def test_a_batch_model_named_with_control_characters(tmp_path, capsys):
+    """A batch's failure line and table printed the name raw (an ESC sequence reached the terminal), and twice: the
+    model's escaped name in its message was not found, so the raw one was put before it (a review)."""
+    models = tmp_path / "in"
+    models.mkdir()
+    (models / "bad\x1b[31mred.obj").write_bytes(b"v 1 2\n")
+    code = main(["batch", str(models), "-o", str(tmp_path / "out"), "-j", "1", "--backend", "numpy"])
+    out, err = capsys.readouterr()
+    assert code != 0 and "\x1b" not in err + out
+    failed = [line for line in err.splitlines() if line.startswith("gpuslice: failed: ")]
+    assert len(failed) == 1 and failed[0].count("bad\\x1b[31mred.obj") == 1, failed

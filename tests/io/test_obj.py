@@ -282,3 +282,18 @@ def test_a_concave_face_past_the_limit_keeps_its_fan(monkeypatch):
     tri, cut = triangulate(v, np.array([4]), order)
     assert cut == 0
     np.testing.assert_array_equal(tri, fan(np.array([4]), order)[0])
+
+
+def test_concave_faces_past_the_budget_keep_their_fans(monkeypatch):
+    """Each face is capped, and so are all of a file's together (20 spirals of 2,048 vertices took 13 s): the first
+    faces in file order within the budget are cut inside, the rest keep their fans."""
+    from gpuslice.io import polygons
+
+    v = np.array([(0, 0, 0), (2, 0, 0), (1, 0.2, 0), (1, 2, 0)] * 3, float) + np.repeat(np.arange(3) * 10.0, 4)[:, None]
+    order = np.array([1, 2, 3, 0, 5, 6, 7, 4, 9, 10, 11, 8])  # three darts whose fans fold
+    counts = np.array([4, 4, 4])
+    assert triangulate(v, counts, order)[1] == 3
+    monkeypatch.setattr(polygons, "INSIDE_BUDGET", 2 * 16.0)  # room for two faces of 4 vertices
+    tri, cut = triangulate(v, counts, order)
+    assert cut == 2
+    np.testing.assert_array_equal(tri[4:], fan(counts, order)[0][4:])

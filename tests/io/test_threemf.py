@@ -596,3 +596,17 @@ def test_a_zip_with_two_members_of_one_name_is_refused(capsys):
                                             r"'3D/3DModel\.model'$"):
         load_mesh(out.getvalue(), name="d.3mf")
     assert capsys.readouterr().err == ""
+
+
+def test_empty_components_and_deep_chains_are_refused_at_once():
+    """Objects of no component placed by 1,000 components each, three deep, walked 10^9 placements of nothing for
+    minutes; 3,000 levels of components ended in a RecursionError (a review)."""
+    empty = '<object id="1" type="model"><components></components></object>' + "".join(
+        f'<object id="{k}" type="model"><components>' + f'<component objectid="{k - 1}"/>' * 1000
+        + "</components></object>" for k in (2, 3, 4))
+    with pytest.raises(MeshFileError, match=r"object '1' in 3D/3dmodel\.model has no component$"):
+        read_3mf(one(empty, '<item objectid="4"/>'), "e.3mf", units=UNITS_3MF_MM)
+    deep = box_object() + "".join(f'<object id="{k}" type="model"><components><component objectid="{k - 1}"/>'
+                                  "</components></object>" for k in range(2, 3002))
+    with pytest.raises(MeshFileError, match=r"components nested more than 32 deep"):
+        read_3mf(one(deep, '<item objectid="3001"/>'), "d.3mf", units=UNITS_3MF_MM)
