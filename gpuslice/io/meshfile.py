@@ -174,7 +174,7 @@ def inflate_3mf(name: str, data: bytes | None = None) -> io.BytesIO:
             infos = [i for i in zf.infolist() if not i.is_dir()]
             seen: set[str] = set()
             for info in infos:  # (OPC part names are unique, case aside; zipfile read the last copy, with a warning)
-                key = info.filename.lower()
+                key = info.filename.lower().lstrip("/")  # (as the reader matches part names)
                 if key in seen:
                     raise MeshFileError(f"{name}: not a valid 3MF file: it holds two members named "
                                         f"{flatten(info.filename, 80)!r}")
