@@ -122,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
         if debug:
             raise
         reason = exc.strerror or flatten(str(exc)) or type(exc).__name__
-        where = exc.filename  # ("standard output" for what it could not take: _NamedStream)
+        where = exc.filename  # ("standard output" where it could not take a write: _NamedStream)
         click.echo(f"gpuslice: error: {where}: {reason}" if where else f"gpuslice: error: {reason}", err=True)
         return EXIT_USAGE
     except Exception as exc:  # never a traceback for users; --debug shows it

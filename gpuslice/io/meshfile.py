@@ -19,7 +19,6 @@ import os
 import re
 import stat
 import zipfile
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +27,7 @@ from ..errors import EmptyMeshError, GpusliceError, MeshFileError, flatten
 from .obj import read_obj
 from .off import read_off
 from .ply import read_ply
-from .rawmesh import BINARY_STL_RECORD, MAX_COORDINATE, NON_STL_EXTENSIONS, RawMesh, check_coordinates
+from .rawmesh import BINARY_STL_RECORD, MAX_COORDINATE, NON_STL_EXTENSIONS, ZIP_ERRORS, RawMesh, check_coordinates
 from .stl import _os_reason, read_stl_bytes
 
 __all__ = [
@@ -195,8 +194,7 @@ def inflate_3mf(name: str, data: bytes | None = None) -> io.BytesIO:
                                 raise MeshFileError(f"{name}: 3MF inflates past the limit of {limit} bytes")
                             chunks.append(chunk)
                     dst.writestr(info.filename, b"".join(chunks))
-    # zipfile raises NotImplementedError for a compression method it lacks, RuntimeError for encrypted members
-    except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, RuntimeError, ValueError) as exc:
+    except ZIP_ERRORS as exc:
         reason = flatten(str(exc), 200) or type(exc).__name__
         raise MeshFileError(f"{name}: cannot read 3MF file: {type(exc).__name__}: {reason}") from None
     except OSError as exc:
@@ -225,8 +223,7 @@ def _triangles(name: str, kind: str, vertices: np.ndarray, faces: np.ndarray,
     if counts is not None:
         from .polygons import triangulate
 
-        with np.errstate(all="ignore"):  # (NaN or infinite coordinates: refused below, without numpy's warnings)
-            faces = triangulate(vertices, counts, faces)[0]
+        faces = triangulate(vertices, counts, faces)[0]
     return vertices[faces]
 
 
@@ -235,9 +232,12 @@ def _read_non_stl(name: str, file_type: str, data: bytes | None = None) -> RawMe
     :func:`inflate_3mf` under :func:`zip_inflate_limit` and the slice-stack check) from the file's bytes ``data``
     (or the file ``name``: a 3MF by name, :data:`_BY_NAME`)."""
     if file_type in _OWN:  # (not trimesh's readers: they dropped faces silently, folded concave ones, cost 1 s)
-        with np.errstate(all="ignore"):  # (a number past float32 is infinite, refused below without numpy's words)
+        # (a number past float32 is infinite, NaN or infinite coordinates are refused by _raw_mesh: without numpy's
+        # warnings from the reading and the triangles on the way)
+        with np.errstate(all="ignore"):
             vertices, counts, faces = _OWN[file_type](data, name)
-        return _raw_mesh(name, file_type, _triangles(name, file_type.upper(), vertices, faces, counts))
+            triangles = _triangles(name, file_type.upper(), vertices, faces, counts)
+        return _raw_mesh(name, file_type, triangles)
     from .threemf import read_3mf
 
     source = inflate_3mf(name, data)
@@ -250,7 +250,8 @@ def _read_non_stl(name: str, file_type: str, data: bytes | None = None) -> RawMe
                                 's:meshresolution="lowres", not the part): slice the model it was made from')
     with np.errstate(all="ignore"):
         vertices, faces = read_3mf(source.getvalue(), name, units=UNITS_3MF_MM)  # (millimetres: its unit applied)
-    return _raw_mesh(name, file_type, _triangles(name, "3MF", vertices, faces))
+        triangles = _triangles(name, "3MF", vertices, faces)
+    return _raw_mesh(name, file_type, triangles)
 
 
 def _raw_mesh(name: str, file_type: str, triangles: np.ndarray) -> RawMesh:

@@ -7,10 +7,12 @@ part's L- or U-shaped side, a letter's outline) would get fan triangles that tur
 neighbours: the mesh's winding number stays right, but every cutting plane through such a face yields
 segments that double back on themselves, which the slicer must then repair as overlapping loops. Those faces are
 triangulated inside their outline instead (GEOS's constrained Delaunay triangulation, ``shapely
-.constrained_delaunay_triangles``, in the plane of the face's dominant axes: exact vertex coordinates, no new
-vertex). A face whose outline crosses itself, or repeats a point, has no inside to triangulate: it keeps its fan.
+.constrained_delaunay_triangles``, in the plane of the face's dominant axes, each face in its own frame: no new
+vertex). A face whose outline crosses itself, or repeats a point, has no inside to triangulate: it keeps its fan;
+so do faces past :data:`MAX_INSIDE` vertices and those past a file's :data:`INSIDE_BUDGET`.
 
-Columnar: one pass of numpy over all faces; GEOS only for the concave ones, all in one call.
+Columnar: one pass of numpy over all faces; GEOS only for the concave ones, in one call (one a face only after
+GEOS fails on one).
 """
 
 from __future__ import annotations
@@ -83,8 +85,8 @@ def triangulate(vertices: np.ndarray, counts: np.ndarray, indices: np.ndarray) -
     ``vertices``: (V, 3) float64 (file units); ``counts``: (F,) vertices per face, each >= 3; ``indices``: (sum of
     counts,) vertex indices, face after face, each in range (the callers check). Triangles keep their face's
     vertex order: a triangle face is itself, a convex face its fan from its first vertex. A concave face of more
-    than :data:`MAX_INSIDE` vertices keeps its fan too (GEOS's time grows with the cube of the count: a spiral of
-    16,000 took 91 s).
+    than :data:`MAX_INSIDE` vertices, or past :data:`INSIDE_BUDGET`, keeps its fan too (GEOS's time grows with the
+    cube of the count: a spiral of 16,000 took 91 s).
     """
     counts = np.asarray(counts, np.int64)
     indices = np.asarray(indices, np.int64)
@@ -133,8 +135,7 @@ def _inside(q, counts, indices, normal, faces) -> tuple[np.ndarray, np.ndarray]:
     up = normal[faces, axis] > 0  # the outline is counter-clockwise in (u, v) where the normal points up that axis
     n = counts[faces]
     owner = np.repeat(np.arange(faces.size), n)
-    first = np.zeros(faces.size, np.int64)
-    np.cumsum(n[:-1], out=first[1:])
+    first = _starts(n)
     flat = np.repeat(start[faces] - first, n) + np.arange(int(n.sum()), dtype=np.int64)
     idx, p = indices[flat], q[flat]
     rows = np.arange(p.shape[0])
@@ -161,8 +162,8 @@ def _inside(q, counts, indices, normal, faces) -> tuple[np.ndarray, np.ndarray]:
         mine = full[of]
         take, parts, of = take[full], parts[mine], (np.cumsum(full) - 1)[of[mine]]
     corner = shapely.get_coordinates(parts).reshape(-1, 4, 2)[:, :3] + 0.0  # (each ring closed: its first again)
-    q = np.column_stack([np.repeat(take[of], 3), corner.reshape(-1, 2).view(np.int64)])
-    pos = _rows_in(keys, q)
+    wanted = np.column_stack([np.repeat(take[of], 3), corner.reshape(-1, 2).view(np.int64)])
+    pos = _rows_in(keys, wanted)
     if (pos < 0).any():  # pragma: no cover - GEOS made a point of its own (it does not)
         raise AssertionError("a triangle corner that is not one of its face's vertices")
     tri = idx[pos].reshape(-1, 3)

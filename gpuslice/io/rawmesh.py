@@ -4,13 +4,16 @@ coordinate check (one-line errors naming the file)."""
 from __future__ import annotations
 
 import re
+import zipfile
+import zlib
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import InvalidGeometryError
 
-__all__ = ["RawMesh", "BINARY_STL_RECORD", "MAX_COORDINATE", "NON_STL_EXTENSIONS", "check_coordinates", "plain_text"]
+__all__ = ["RawMesh", "BINARY_STL_RECORD", "MAX_COORDINATE", "NON_STL_EXTENSIONS", "check_coordinates", "plain_text",
+           "ZIP_ERRORS"]
 
 #: One 50-byte binary STL facet record: stored normal, three corners, the 16-bit "attribute byte count".
 BINARY_STL_RECORD = np.dtype([("normal", "<f4", (3,)), ("v", "<f4", (3, 3)), ("attr", "<u2")])
@@ -18,6 +21,10 @@ BINARY_STL_RECORD = np.dtype([("normal", "<f4", (3,)), ("v", "<f4", (3, 3)), ("a
 #: Largest accepted coordinate magnitude in file units. The slicer forms differences and products of
 #: coordinates in float32 (max 3.4e38); beyond 1e18 a product of two differences can overflow.
 MAX_COORDINATE = 1e18
+
+#: What reading a broken zip (a 3MF) raises: a bad archive or deflate stream, a member cut short, a compression
+#: method zipfile does not implement (NotImplementedError), an encrypted member (RuntimeError), a bad header field
+ZIP_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, RuntimeError, ValueError)
 
 #: Extensions (lower case) of the other mesh formats (OBJ, PLY, OFF, 3MF: gpuslice's readers in this package);
 #: every other name is parsed as an STL.

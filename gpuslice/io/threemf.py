@@ -34,7 +34,6 @@ import posixpath
 import re
 import xml.etree.ElementTree as ET
 import zipfile
-import zlib
 from collections.abc import Mapping
 from functools import lru_cache
 from typing import NamedTuple
@@ -44,6 +43,7 @@ import numpy as np
 from numpy.lib.stride_tricks import as_strided
 
 from ..errors import MeshFileError, flatten
+from .rawmesh import ZIP_ERRORS
 
 __all__ = ["read_3mf", "MAX_COMPONENT_DEPTH", "MAX_TRIANGLES", "MAX_MESHES", "CORE_NS", "PRODUCTION_NS"]
 
@@ -91,7 +91,7 @@ def read_3mf(data: bytes, name: str, *, units: Mapping[str, float] | None = None
                 raise MeshFileError(f"{name}: unknown 3MF unit {flatten(unit, 40)!r} (the 3MF units are "
                                     f"{', '.join(units)})")
             instances = package.instances()
-    except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, RuntimeError, ValueError) as exc:
+    except ZIP_ERRORS as exc:
         raise MeshFileError(f"{name}: cannot read 3MF file: {type(exc).__name__}: "
                             f"{flatten(str(exc), 200) or type(exc).__name__}") from None
     return _merge(instances, float(units[unit]))
