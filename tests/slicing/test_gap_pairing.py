@@ -61,3 +61,17 @@ def test_thousands_of_loose_ends_in_one_layer():
     assert res.n_layers == 10
     gaps = res.repairs["gap_closed"]
     assert np.all(gaps[:-1] >= 1900)  # (nearly every pair of ends within 2 mm closed; the top layer may be empty)
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_few_pairs_is_the_full_count(seed):
+    """The pairs within a quarter of the gap, counted first, never change the answer of the full count."""
+    from scipy.spatial import cKDTree
+
+    from gpuslice.slicing.chain import _PAIRS_LISTED, _few_pairs
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(2, 400))
+    xy = rng.uniform(0.0, rng.choice([0.3, 1.0, 4.0, 20.0]), size=(n, 2))
+    pairs = int((np.linalg.norm(xy[:, None] - xy[None], axis=2) <= 2.0).sum() - n) // 2
+    assert _few_pairs(cKDTree(xy), 2.0) == (pairs <= _PAIRS_LISTED * n)
