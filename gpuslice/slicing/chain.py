@@ -257,6 +257,7 @@ def _finish(points, offsets, chain_layer, cclosed, open_ends, max_gap, n_layers,
 
 
 _PAIRS_LISTED = 16  # a layer's free ends with more pairs within max_gap than this many per end: _closest_first
+_SMALL = 64  # a layer's free ends up to this many: every pair listed, in numpy (an open scan's holes: 2-8 a layer)
 
 
 def _closest_first(xy: np.ndarray, max_gap: float) -> np.ndarray:
@@ -298,20 +299,33 @@ def _closest_first(xy: np.ndarray, max_gap: float) -> np.ndarray:
     return np.concatenate(out) if out else np.empty((0, 2), dtype=np.int64)
 
 
-def _few_pairs(tree, max_gap: float) -> bool:
-    """Whether the points of ``tree`` have at most :data:`_PAIRS_LISTED` pairs within ``max_gap`` per point, counted
+def _few_pairs(xy: np.ndarray, max_gap: float) -> bool:
+    """Whether the points ``xy`` have at most :data:`_PAIRS_LISTED` pairs within ``max_gap`` per point, counted
     without listing them (a cluster of n free ends has ~n^2/2). The count's time grows with the pairs: those within a
     quarter of the gap are counted first, and where they are already too many (a triangle soup's layers: 0.69 s
     instead of 1.16 s on a 225k-facet one, 0.54 s instead of 0.36 s on another) that is the answer."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(xy)
     n = tree.n
     return all((int(tree.count_neighbors(tree, r)) - n) // 2 <= _PAIRS_LISTED * n for r in (max_gap / 4, max_gap))
 
 
 def _greedy_listed(xy: np.ndarray, left: np.ndarray, max_gap: float) -> np.ndarray:
-    """The greedy matching of the points ``left`` of ``xy`` within ``max_gap``: every pair listed, closest first."""
-    from scipy.spatial import cKDTree
+    """The greedy matching of the points ``left`` of ``xy`` within ``max_gap``: every pair listed, closest first,
+    ties by index (the pairs (i, j), i < j, in lexicographic order before a stable sort by distance). Up to
+    :data:`_SMALL` points, the pairs are all compared in numpy (no k-d tree: scipy.spatial's import alone takes
+    0.3 s, most of an open scan's whole slice); the tree's pairs are the same (d^2 <= max_gap^2, as its own test)."""
+    if left.size <= _SMALL:
+        i, j = np.triu_indices(left.size, 1)
+        dx, dy = xy[left[i], 0] - xy[left[j], 0], xy[left[i], 1] - xy[left[j], 1]
+        near = dx * dx + dy * dy <= max_gap * max_gap
+        pairs = np.stack([i[near], j[near]], axis=1)
+    else:
+        from scipy.spatial import cKDTree
 
-    pairs = cKDTree(xy[left]).query_pairs(max_gap, output_type="ndarray")
+        pairs = cKDTree(xy[left]).query_pairs(max_gap, output_type="ndarray")
+        pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
     d = np.linalg.norm(xy[left[pairs[:, 0]]] - xy[left[pairs[:, 1]]], axis=1)
     free, out = np.ones(left.size, dtype=bool), []
     for a, b in pairs[np.argsort(d, kind="stable")].tolist():
@@ -334,8 +348,6 @@ def _repair(points, offsets, chain_layer, closed, open_idx, head_slot, tail_slot
     smallest chain. Per layer, the paths by that end, then the cycles by that chain; a cycle's last point is dropped
     where it repeats its first.
     """
-    from scipy.spatial import cKDTree
-
     n_layers = repairs["gap_closed"].size
     by = np.argsort(chain_layer[open_idx], kind="stable")
     chains = open_idx[by]
@@ -371,8 +383,10 @@ def _repair(points, offsets, chain_layer, closed, open_idx, head_slot, tail_slot
             if hi - lo < 2:
                 continue
             xy = xy_all[lo:hi]
-            matched = (_greedy_listed(xy, np.arange(hi - lo), max_gap) if _few_pairs(cKDTree(xy), max_gap)
-                       else _closest_first(xy, max_gap))
+            if hi - lo <= _SMALL or _few_pairs(xy, max_gap):
+                matched = _greedy_listed(xy, np.arange(hi - lo), max_gap)
+            else:
+                matched = _closest_first(xy, max_gap)
             if len(matched):
                 i, j = free[lo:hi][matched[:, 0]], free[lo:hi][matched[:, 1]]
                 link[i], link[j] = j, i

@@ -66,12 +66,25 @@ def test_thousands_of_loose_ends_in_one_layer():
 @pytest.mark.parametrize("seed", range(12))
 def test_few_pairs_is_the_full_count(seed):
     """The pairs within a quarter of the gap, counted first, never change the answer of the full count."""
-    from scipy.spatial import cKDTree
-
     from gpuslice.slicing.chain import _PAIRS_LISTED, _few_pairs
 
     rng = np.random.default_rng(seed)
     n = int(rng.integers(2, 400))
     xy = rng.uniform(0.0, rng.choice([0.3, 1.0, 4.0, 20.0]), size=(n, 2))
     pairs = int((np.linalg.norm(xy[:, None] - xy[None], axis=2) <= 2.0).sum() - n) // 2
-    assert _few_pairs(cKDTree(xy), 2.0) == (pairs <= _PAIRS_LISTED * n)
+    assert _few_pairs(xy, 2.0) == (pairs <= _PAIRS_LISTED * n)
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_listed_pairs_in_numpy_are_the_trees(seed, monkeypatch):
+    """Up to _SMALL ends the pairs are compared in numpy, past it listed by a k-d tree: the same matching, ties (a
+    lattice's equal distances, ends exactly max_gap apart) broken by index either way."""
+    from gpuslice.slicing import chain
+
+    rng = np.random.default_rng(seed)
+    xy = (rng.integers(0, 5, (int(rng.integers(2, 60)), 2)) * 0.5).astype(np.float64)
+    left = rng.permutation(len(xy))[: max(2, len(xy) - 3)]
+    small = chain._greedy_listed(xy, left, 1.0)
+    monkeypatch.setattr(chain, "_SMALL", 0)
+    assert small.tolist() == chain._greedy_listed(xy, left, 1.0).tolist()
+    assert len(small) > 0

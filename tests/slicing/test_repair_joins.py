@@ -10,13 +10,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gpuslice.slicing.chain import _PAIRS_LISTED, REPAIR_KINDS, _closest_first, _greedy_listed, _repair
+from gpuslice.slicing.chain import _SMALL, REPAIR_KINDS, _closest_first, _few_pairs, _greedy_listed, _repair
 
 
 def _reference_repair(points, offsets, chain_layer, closed, open_idx, head_slot, tail_slot, max_gap, repairs):
-    """The walk ``_repair`` was before it was vectorised (gpuslice 7e1563a), verbatim but for its names."""
-    from scipy.spatial import cKDTree
-
+    """The walk ``_repair`` was before it was vectorised (gpuslice 7e1563a), verbatim but for its names and its
+    matching call (as now)."""
     pieces = [points[offsets[i] : offsets[i + 1]] for i in open_idx]
     new_points, new_layer = [], []
     layers = chain_layer[open_idx]
@@ -38,10 +37,9 @@ def _reference_repair(points, offsets, chain_layer, closed, open_idx, head_slot,
         free = np.flatnonzero(link < 0)
         if free.size > 1 and max_gap > 0:
             xy = np.array([pieces[sel[e // 2]][0 if e % 2 == 0 else -1] for e in free], dtype=np.float64)
-            tree = cKDTree(xy)
-            n_pairs = (int(tree.count_neighbors(tree, max_gap)) - free.size) // 2
-            matched = (_greedy_listed(xy, np.arange(free.size), max_gap) if n_pairs <= _PAIRS_LISTED * free.size
-                       else _closest_first(xy, max_gap))
+            # (the matching as _repair makes it now: every pair listed up to _SMALL ends)
+            matched = (_greedy_listed(xy, np.arange(free.size), max_gap)
+                       if free.size <= _SMALL or _few_pairs(xy, max_gap) else _closest_first(xy, max_gap))
             for a, b in matched.tolist():
                 i, j = free[a], free[b]
                 link[i], link[j] = j, i
