@@ -345,8 +345,10 @@ def _repair(points, offsets, chain_layer, closed, open_idx, head_slot, tail_slot
     (:func:`_greedy_listed` or :func:`_closest_first`, one call per layer). The joined chains are then the chains of
     the ends' successor graph (``next(e) = link[e ^ 1]``) that :func:`order_chains` cuts in canonical order, one of
     each component's two directions kept: a path from its smaller free end, a cycle entered at the head of its
-    smallest chain. Per layer, the paths by that end, then the cycles by that chain; a cycle's last point is dropped
-    where it repeats its first.
+    smallest chain. Per layer, the paths by that end, then the cycles by that chain. A cycle whose chains were walked
+    against their own direction for more segments than along it is turned round: a loop goes the way the mesh's
+    winding takes most of it (nesting reads holes from it: a soup's hole joined the other way round was filled). A
+    cycle's last point is dropped where it repeats its first.
     """
     n_layers = repairs["gap_closed"].size
     by = np.argsort(chain_layer[open_idx], kind="stable")
@@ -403,11 +405,18 @@ def _repair(points, offsets, chain_layer, closed, open_idx, head_slot, tail_slot
     size = last[k] - first[k] + 1
     owner, step = expand_ranges(np.zeros(e.size, dtype=np.int64), size)
     pt = np.where(e[owner] % 2 == 0, first[k][owner] + step, last[k][owner] - step)
-    new_count = np.bincount(np.repeat(np.arange(n_seq.size), n_seq), weights=size, minlength=n_seq.size)
-    new_count = new_count.astype(np.int64)
+    seq_of = np.repeat(np.arange(n_seq.size), n_seq)
+    new_count = np.bincount(seq_of, weights=size, minlength=n_seq.size).astype(np.int64)
     new_closed = seq_closed[kept]
-    c_pts = np.ascontiguousarray(points).view(np.complex64).reshape(-1)
     new_end = np.cumsum(new_count)
+    # a closed loop goes the way most of its segments go (the mesh's winding), not the way its walk began
+    along = np.bincount(seq_of, weights=np.where(e % 2 == 0, size - 1, 1 - size), minlength=n_seq.size)
+    turn = new_closed & (along < 0)
+    if turn.any():
+        p_seq = np.repeat(np.arange(n_seq.size), new_count)
+        at = np.arange(pt.size)
+        pt = pt[np.where(turn[p_seq], 2 * new_end[p_seq] - new_count[p_seq] - 1 - at, at)]
+    c_pts = np.ascontiguousarray(points).view(np.complex64).reshape(-1)
     seq_first, seq_last = pt[new_end - new_count], pt[new_end - 1]
     drop = new_closed & (new_count > 1) & (c_pts[seq_first] == c_pts[seq_last])
     if drop.any():

@@ -14,8 +14,8 @@ from gpuslice.slicing.chain import _SMALL, REPAIR_KINDS, _closest_first, _few_pa
 
 
 def _reference_repair(points, offsets, chain_layer, closed, open_idx, head_slot, tail_slot, max_gap, repairs):
-    """The walk ``_repair`` was before it was vectorised (gpuslice 7e1563a), verbatim but for its names and its
-    matching call (as now)."""
+    """The walk ``_repair`` was before it was vectorised (gpuslice 7e1563a), verbatim but for its names, its
+    matching call (as now) and the loops turned round to the way most of their segments go (new)."""
     pieces = [points[offsets[i] : offsets[i + 1]] for i in open_idx]
     new_points, new_layer = [], []
     layers = chain_layer[open_idx]
@@ -51,11 +51,13 @@ def _reference_repair(points, offsets, chain_layer, closed, open_idx, head_slot,
                 continue
             parts, e = [], e0
             is_closed = False
+            along = 0
             while True:
                 c = e // 2
                 used[c] = True
                 p = pieces[sel[c]]
                 parts.append(p if e % 2 == 0 else p[::-1])
+                along += (len(p) - 1) * (1 if e % 2 == 0 else -1)
                 nxt = link[e ^ 1]
                 if nxt < 0:
                     break
@@ -64,6 +66,8 @@ def _reference_repair(points, offsets, chain_layer, closed, open_idx, head_slot,
                     break
                 e = nxt
             pts = np.concatenate(parts)
+            if is_closed and along < 0:  # (new: a loop goes the way most of its segments go)
+                pts = pts[::-1]
             if is_closed and len(pts) > 1 and np.all(pts[0] == pts[-1]):
                 pts = pts[:-1]
             new_points.append((pts, is_closed))
@@ -152,3 +156,25 @@ def test_a_chain_joined_to_itself_closes_without_its_repeated_point():
     assert cl.tolist() == [True] and off.tolist() == [0, 3] and lay.tolist() == [0]
     np.testing.assert_array_equal(pts, points[:3])
     assert repairs["joined_by_id"].tolist() == [1] and repairs["reversed"].tolist() == [0]
+
+
+def test_a_soups_hole_stays_a_hole():
+    """A square tube's walls as a soup (no two facets share a vertex), its first facet wound the wrong way: gap
+    closing joins that segment the other way round, and the outer loop's walk began on it, so the loop came out
+    clockwise like its hole; under the nonzero rule the hole was then filled (400 mm² instead of 300: found on a
+    jittered benchy, a layer 117 % too large). The loop now goes the way most of its segments go."""
+    from gpuslice import mesh_from_triangles, slice_mesh
+
+    def walls(corners):  # two facets a wall, the material on the left going round the corners
+        out = []
+        for (ax, ay), (bx, by) in zip(corners, corners[1:] + corners[:1], strict=True):
+            a0, b0, a1, b1 = [ax, ay, 0.0], [bx, by, 0.0], [ax, ay, 10.0], [bx, by, 10.0]
+            out += [[a0, b0, b1], [a0, b1, a1]]
+        return out
+
+    tri = np.array(walls([(0, 0), (20, 0), (20, 20), (0, 20)]) + walls([(5, 5), (5, 15), (15, 15), (15, 5)]))
+    tri[0] = tri[0][[0, 2, 1]]
+    tri += np.random.default_rng(0).uniform(-1e-5, 1e-5, tri.shape)
+    res = slice_mesh(mesh_from_triangles(tri), z=np.array([2.5, 5.0, 7.5]))
+    assert res.repairs["gap_closed"].tolist() == [16, 16, 16]
+    np.testing.assert_allclose(res.area, 300.0, atol=1e-3)
