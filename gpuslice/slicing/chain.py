@@ -19,7 +19,9 @@ as degenerate (``degenerate_loops``).
 Repairs of open chains, per layer, in this order (counted by kind):
 ``joined_by_id``: two free ends on the same slot (e.g. a facet wound the wrong way) are joined, reversing a chain;
 ``gap_closed``: the nearest free ends closer than ``max_gap`` mm are joined, closest first (a chain's own two ends
-included, as the free ends are all candidates alike). Chains still open are kept as open chains and reported.
+included, as the free ends are all candidates alike). Chains still open are kept as open chains and reported. A loop
+closed by these joins goes the way most of its segments go (the mesh's winding), whichever chain its walk began on.
+All layers are repaired at once (:func:`_repair`: a triangle soup's layers are all open chains).
 """
 
 from __future__ import annotations
