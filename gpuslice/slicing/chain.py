@@ -304,8 +304,9 @@ def _closest_first(xy: np.ndarray, max_gap: float) -> np.ndarray:
 def _few_pairs(xy: np.ndarray, max_gap: float) -> bool:
     """Whether the points ``xy`` have at most :data:`_PAIRS_LISTED` pairs within ``max_gap`` per point, counted
     without listing them (a cluster of n free ends has ~n^2/2). The count's time grows with the pairs: those within a
-    quarter of the gap are counted first, and where they are already too many (a triangle soup's layers: 0.69 s
-    instead of 1.16 s on a 225k-facet one, 0.54 s instead of 0.36 s on another) that is the answer."""
+    quarter of the gap are counted first, and where they are already too many, that is the answer (a benchy soup's
+    640 layers: 0.69 s of counting against 1.16 s; where they are still few both counts are made: a bunny soup's,
+    0.54 s against 0.36 s)."""
     from scipy.spatial import cKDTree
 
     tree = cKDTree(xy)
@@ -416,8 +417,8 @@ def _repair(points, offsets, chain_layer, closed, open_idx, head_slot, tail_slot
     turn = new_closed & (along < 0)
     if turn.any():
         p_seq = np.repeat(np.arange(n_seq.size), new_count)
-        at = np.arange(pt.size)
-        pt = pt[np.where(turn[p_seq], 2 * new_end[p_seq] - new_count[p_seq] - 1 - at, at)]
+        pos = np.arange(pt.size)
+        pt = pt[np.where(turn[p_seq], 2 * new_end[p_seq] - new_count[p_seq] - 1 - pos, pos)]
     c_pts = np.ascontiguousarray(points).view(np.complex64).reshape(-1)
     seq_first, seq_last = pt[new_end - new_count], pt[new_end - 1]
     drop = new_closed & (new_count > 1) & (c_pts[seq_first] == c_pts[seq_last])
