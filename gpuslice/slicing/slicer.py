@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InvalidGeometryError, ParameterError
+from ..mesh.defects import wound_for_slicing
 from ..mesh.mesh import Mesh
 from ..prefetch import prefetch
 from ..schedule.adaptive import AdaptiveSchedule
@@ -161,6 +162,7 @@ def slice_mesh(
             from ..mesh.mesh import load_mesh
 
             mesh = load_mesh(mesh, device=device, **placement)  # welded on the slicing device, when there is one
+        mesh = wound_for_slicing(mesh)  # (shells of mixed winding turned outward: a loop's direction says its side)
         t0 = time.perf_counter()
         sched = schedule if schedule is not None else make_schedule(mesh, params, z, layer_thickness)
         zs = _planes32(sched.z, mesh.name)

@@ -83,8 +83,8 @@ SLICED: dict[str, tuple[dict[str, int], set[str]]] = {
     "p_ascii_two_solids": ({}, set()),
     "p_invalid_unicode_header": ({}, set()),
     "p_zero_header": ({}, set()),
-    # two solids wound inconsistently: most of each is inside out; chains through the flipped facets are joined
-    "p_ascii_multibody": ({"flipped_facets": 26, "inverted_shells": 2}, {"joined_by_id", "reversed"}),
+    # two solids wound inconsistently: most of each is inside out; sliced turned outward, so no chain needs joining
+    "p_ascii_multibody": ({"flipped_facets": 26, "inverted_shells": 2}, set()),
     "p_block_flipped_facet": ({"flipped_facets": 1}, set()),  # the top facet: no layer cuts it
     "p_block_hole": ({"open_edges": 3}, set()),  # the missing facet is the top one: every layer is closed
     # a nudged vertex: stray two-point chains inside the top 5 layers, too far apart to join; reported, area intact
@@ -98,7 +98,7 @@ SLICED: dict[str, tuple[dict[str, int], set[str]]] = {
     "p_self_intersect_a": ({}, {"overlaps_resolved"}),
     "p_shared_edge": ({"non_manifold_edges": 1}, {"overlaps_resolved"}),
     "p_soup": ({"open_edges": 300}, {"gap_closed", "open_chains"}),
-    "p_triamid": ({"flipped_facets": 5}, {"joined_by_id", "reversed"}),
+    "p_triamid": ({"flipped_facets": 5}, set()),  # (sliced turned outward: its chains close by themselves)
     "p_wallhole": ({"non_manifold_edges": 1}, set()),
 }
 MESH_KINDS = ("flipped_facets", "inverted_shells", "non_orientable_shells", "non_manifold_edges", "open_edges",
