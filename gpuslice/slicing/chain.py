@@ -17,7 +17,9 @@ skipped: no loop holds consecutive duplicate points. Closed loops left with fewe
 as degenerate (``degenerate_loops``).
 
 Repairs of open chains, per layer, in this order (counted by kind):
-``joined_by_id``: two free ends on the same slot (e.g. a facet wound the wrong way) are joined, reversing a chain;
+``joined_by_id``: two free ends on the same slot are joined, reversing a chain (a facet wound against its neighbour
+where its shell could not be turned outward first, :func:`gpuslice.mesh.defects.wound_for_slicing`: a
+non-orientable shell, a non-manifold edge);
 ``gap_closed``: the nearest free ends closer than ``max_gap`` mm are joined, closest first (a chain's own two ends
 included, as the free ends are all candidates alike). Chains still open are kept as open chains and reported. A loop
 closed by these joins goes the way most of its segments go (the mesh's winding), whichever chain its walk began on.
