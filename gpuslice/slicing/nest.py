@@ -182,6 +182,7 @@ def nest_loops(loops: Loops, n_layers: int, fill_rule: str = "nonzero") -> Neste
     layer_area = np.bincount(layer[is_outer], weights=abs_area[is_outer], minlength=n_layers) - np.bincount(
         layer[is_hole], weights=abs_area[is_hole], minlength=n_layers
     )
+    layer_area = layer_area.astype(np.float64)  # (numpy's bincount of nothing is int64, weights or not)
     nested = Nested(
         points=out_points,
         loop_offsets=new_offsets,

@@ -471,3 +471,18 @@ def test_layers_too_thin_for_float32_planes_are_refused():
         slice_mesh(tall, thickness=0.0002)
     short = mesh_from_triangles(S.box((0, 0, 0), (5, 5, 2)), name="short.stl")
     assert slice_mesh(short, thickness=0.0002).n_layers == 10_000  # 2 mm: a step is 1.2e-7 mm, under 0.1 %
+
+
+def test_a_layer_of_one_self_crossing_loop_keeps_its_fractional_area(backend):
+    """A prism over a bow tie (a quadrilateral crossing itself): its one loop per layer bounds nothing on the fast
+    path (the lobes cancel), so the layers' areas began as numpy's bincount of nothing, int64, and the rebuilt
+    lobes' 6.6 mm² was stored as 6 (seen on one layer; the same prism cut at two came out right; a helper's sweep
+    saw the int64)."""
+    p = np.array([[0, 0], [4, 3.3], [4, 0], [0, 3.3]], float)
+    tri = []
+    for i in range(4):
+        (ax, ay), (bx, by) = p[i], p[(i + 1) % 4]
+        tri += [[[ax, ay, 0], [bx, by, 0], [bx, by, 5]], [[ax, ay, 0], [bx, by, 5], [ax, ay, 5]]]
+    r = slice_mesh(mesh_from_triangles(np.array(tri, float)), z=np.array([2.5]), backend=backend)
+    assert r.area.dtype == np.float64 and r.repairs["overlaps_resolved"].tolist() == [1]
+    np.testing.assert_allclose(r.area, 6.6, rtol=1e-6)
