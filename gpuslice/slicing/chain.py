@@ -353,7 +353,8 @@ def _repair(points, offsets, chain_layer, closed, open_idx, head_slot, tail_slot
     smallest chain. Per layer, the paths by that end, then the cycles by that chain. A cycle whose chains were walked
     against their own direction for more segments than along it is turned round: a loop goes the way the mesh's
     winding takes most of it (nesting reads holes from it: a soup's hole joined the other way round was filled). A
-    cycle's last point is dropped where it repeats its first.
+    point where two chains meet is kept once, and a cycle's last point is dropped where it repeats its first: no
+    loop holds consecutive duplicate points.
     """
     n_layers = repairs["gap_closed"].size
     by = np.argsort(chain_layer[open_idx], kind="stable")
@@ -422,6 +423,15 @@ def _repair(points, offsets, chain_layer, closed, open_idx, head_slot, tail_slot
         pos = np.arange(pt.size)
         pt = pt[np.where(turn[p_seq], 2 * new_end[p_seq] - new_count[p_seq] - 1 - pos, pos)]
     c_pts = np.ascontiguousarray(points).view(np.complex64).reshape(-1)
+    # where two chains meet on one point (joined by slot, or ends that coincide) it is kept once
+    z = c_pts[pt]
+    again = np.zeros(pt.size, dtype=bool)
+    again[1:] = z[1:] == z[:-1]
+    again[new_end[:-1]] = False  # (a chain's first point never repeats the chain before)
+    if again.any():
+        pt = pt[~again]
+        new_count = new_count - np.bincount(np.repeat(np.arange(n_seq.size), new_count)[again], minlength=n_seq.size)
+        new_end = np.cumsum(new_count)
     seq_first, seq_last = pt[new_end - new_count], pt[new_end - 1]
     drop = new_closed & (new_count > 1) & (c_pts[seq_first] == c_pts[seq_last])
     if drop.any():

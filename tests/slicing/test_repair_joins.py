@@ -15,7 +15,8 @@ from gpuslice.slicing.chain import _SMALL, REPAIR_KINDS, _closest_first, _few_pa
 
 def _reference_repair(points, offsets, chain_layer, closed, open_idx, head_slot, tail_slot, max_gap, repairs):
     """The walk ``_repair`` was before it was vectorised (gpuslice 7e1563a), verbatim but for its names, its
-    matching call (as now) and the loops turned round to the way most of their segments go (new)."""
+    matching call (as now), the loops turned round to the way most of their segments go and the points where two
+    chains meet kept once (new)."""
     pieces = [points[offsets[i] : offsets[i + 1]] for i in open_idx]
     new_points, new_layer = [], []
     layers = chain_layer[open_idx]
@@ -68,6 +69,9 @@ def _reference_repair(points, offsets, chain_layer, closed, open_idx, head_slot,
             pts = np.concatenate(parts)
             if is_closed and along < 0:  # (new: a loop goes the way most of its segments go)
                 pts = pts[::-1]
+            again = np.zeros(len(pts), dtype=bool)  # (new: a point where two chains meet kept once)
+            again[1:] = np.all(pts[1:] == pts[:-1], axis=1)
+            pts = pts[~again]
             if is_closed and len(pts) > 1 and np.all(pts[0] == pts[-1]):
                 pts = pts[:-1]
             new_points.append((pts, is_closed))
