@@ -237,22 +237,68 @@ def mesh_repairs(mesh: Mesh) -> dict[str, int]:
 
 
 def wound_for_slicing(mesh: Mesh) -> Mesh:
-    """``mesh`` itself where every shell is consistently wound, else a copy in which the facets of each shell that
-    mixes both windings face outward (:func:`outward_facets`; a facet turned has its corners 0, 2, 1 and its sides
-    reordered to match, the same edge ids). Shells wound consistently, inside out or not, are left as stored, and
-    non-orientable ones too.
+    """The mesh the slicer cuts: ``mesh`` itself where every shell is consistently wound and no facet is repeated,
+    else a copy without the repeats of a facet (the same corners in the same turn: :func:`_without_repeats`) in
+    which the facets of each shell that mixes both windings face outward (:func:`outward_facets`; a facet turned has
+    its corners 0, 2, 1 and its sides reordered to match, the same edge ids). Shells wound consistently, inside out
+    or not, are left as stored, and non-orientable ones too.
 
     Why: chaining follows each facet's winding, and where a loop's segments disagree it goes the way most of them go
     (``chain._repair``); a cavity cut from facets mostly wound the wrong way then runs the way of its outer wall, and
     under the ``nonzero`` fill rule the cavity was filled (a hollow box with 4 of its cavity's 8 wall facets
-    flipped: 400 mm² instead of 300; a helper's sweep). Costs nothing on a consistently wound mesh (one test of the
-    edge pairing); otherwise the shells' classes and volumes, as the mesh check computes them.
+    flipped: 400 mm² instead of 300; a helper's sweep). Costs nothing on a consistently wound manifold mesh (a test of
+    the edge pairing); otherwise the repeats among the facets beside a crowded edge, and the shells' classes and
+    volumes, as the mesh check computes them.
     """
-    if mesh.n_faces == 0 or _directed_edges_paired(mesh):
+    if mesh.n_faces == 0 or (_directed_edges_paired(mesh) and not (mesh.edge_sides().count > 2).any()):
         return mesh
     if "wound_for_slicing" not in mesh._cache:  # (a resin job slices its sub-planes' chunks from the same mesh)
-        mesh._cache["wound_for_slicing"] = _turned_outward(mesh)
+        once = _without_repeats(mesh)
+        mesh._cache["wound_for_slicing"] = once if _directed_edges_paired(once) else _turned_outward(once)
     return mesh._cache["wound_for_slicing"]
+
+
+def _without_repeats(mesh: Mesh) -> Mesh:
+    """``mesh``, or a copy keeping the first of the facets with the same corners in the same turn (an exporter's
+    repeat: each edge of the facet is then used three times, and chaining paired the facet with its neighbours and
+    left the repeat a loose chain, which gap closing could join to another body: two bars 0.8 mm apart with their
+    facing walls repeated gave 56 mm² for 40; a helper's sweep). Only the facets beside an edge of three or more
+    sides are compared. A facet and a copy the other way round: where each of their sides has at most one other facet
+    (the copy was flipped in a surface), the copy that runs with more of those neighbours goes; where a side has more
+    (a wall between two bodies that touch) or the neighbours are split evenly, both stay."""
+    sides = mesh.edge_sides()
+    crowded = sides.count > 2
+    if not crowded.any():
+        return mesh
+    cand = np.flatnonzero(crowded[mesh.face_edges].any(axis=1))
+    f = mesh.faces[cand].astype(np.int64)
+    turn = np.argmin(f, axis=1)  # each facet's corners from its smallest id, in its own turn
+    rows = np.take_along_axis(f, (turn[:, None] + np.arange(3)) % 3, axis=1)
+    order = np.lexsort((cand, rows[:, 2], rows[:, 1], rows[:, 0]))
+    r = rows[order]
+    again = np.zeros(r.shape[0], dtype=bool)
+    again[1:] = np.all(r[1:] == r[:-1], axis=1)
+    keep = np.ones(mesh.n_faces, dtype=bool)
+    keep[cand[order][again]] = False
+    # a facet and a copy of it the other way round, each of their sides shared with one other facet only (a flipped
+    # repeat in a closed surface, not a wall between two bodies): the copy that runs with its neighbours goes
+    c = cand[keep[cand]]
+    srt = np.sort(mesh.faces[c], axis=1)
+    o2 = np.lexsort((c, srt[:, 2], srt[:, 1], srt[:, 0]))
+    same = np.all(srt[o2][1:] == srt[o2][:-1], axis=1)
+    fi, fj = c[o2[:-1][same]], c[o2[1:][same]]
+    e = mesh.face_edges[fi]
+    pairs = np.bincount(e.reshape(-1), minlength=sides.count.size)  # (a pair's two sides run both ways)
+    rest = (sides.count - 2 * pairs)[e]  # the other facets on fi's sides: 1, a neighbour; 0, none (no say)
+    runs = mesh.faces[fi] < np.roll(mesh.faces[fi], -1, axis=1)  # fi's side k from the smaller vertex id
+    against = runs != (sides.forward - pairs)[e].astype(bool)  # fi runs against that side's neighbour, as it should
+    vote = np.where(rest == 1, np.where(against, 1, -1), 0).sum(axis=1)
+    decided = np.all(rest <= 1, axis=1) & (vote != 0)
+    keep[np.where(vote > 0, fj, fi)[decided]] = False
+    if keep.all():
+        return mesh
+    return replace(mesh, faces=mesh.faces[keep], face_edges=mesh.face_edges[keep],
+                   stored_normals=None if mesh.stored_normals is None else mesh.stored_normals[keep])
 
 
 def _turned_outward(mesh: Mesh) -> Mesh:

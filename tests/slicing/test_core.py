@@ -486,3 +486,30 @@ def test_a_layer_of_one_self_crossing_loop_keeps_its_fractional_area(backend):
     r = slice_mesh(mesh_from_triangles(np.array(tri, float)), z=np.array([2.5]), backend=backend)
     assert r.area.dtype == np.float64 and r.repairs["overlaps_resolved"].tolist() == [1]
     np.testing.assert_allclose(r.area, 6.6, rtol=1e-6)
+
+
+def test_a_repeated_facet_is_cut_once(backend):
+    """Two bars 0.8 mm apart whose facing walls are each stored twice (an exporter's repeats): every edge of a
+    repeat has three sides, chaining paired one copy with its neighbours and left the other a loose chain, and gap
+    closing joined the two loose chains across the gap into a rectangle that was filled (56 mm² for 40; a helper's
+    sweep). Repeats (the same corners in the same turn) are now cut once; a closed box stored twice over, too. A copy
+    the other way round goes where its sides have one neighbour each (the one that runs with it); two boxes that
+    touch, their shared wall stored once by each, keep both walls (their sides have two neighbours) and merge."""
+    a = np.asarray(S.box(lo=(0, 0, 0), hi=(1, 20, 10)), float)
+    b = np.asarray(S.box(lo=(1.8, 0, 0), hi=(2.8, 20, 10)), float)
+    tri = np.concatenate([a, b])
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    facing = np.flatnonzero(np.r_[n[:12, 0] > 0, n[12:, 0] < 0])
+    z = np.array([2.5001, 5.0001, 7.5001])
+    r = slice_mesh(mesh_from_triangles(np.concatenate([tri, tri[facing]])), z=z, backend=backend)
+    np.testing.assert_allclose(r.area, 40.0, rtol=F32)
+    assert not any(v.any() for v in r.repairs.values())
+    twice = np.concatenate([a, np.roll(a, 1, axis=1)])  # (the repeat's corners listed from another one)
+    r = slice_mesh(mesh_from_triangles(twice), z=z, backend=backend)
+    np.testing.assert_allclose(r.area, 20.0, rtol=F32)
+    r = slice_mesh(mesh_from_triangles(np.concatenate([tri, tri[facing][:, ::-1]])), z=z, backend=backend)
+    np.testing.assert_allclose(r.area, 40.0, rtol=F32)
+    assert not any(v.any() for v in r.repairs.values())
+    c, d = np.asarray(S.box(hi=(10, 10, 10)), float), np.asarray(S.box(lo=(10, 0, 0), hi=(20, 10, 10)), float)
+    r = slice_mesh(mesh_from_triangles(np.concatenate([c, d])), z=z, backend=backend)
+    np.testing.assert_allclose(r.area, 200.0, rtol=F32)
