@@ -1,9 +1,9 @@
 """Mesh defects the slicer works around, counted for the report: flipped facets, inside-out shells, non-manifold and
 open edges, degenerate facets.
 
-The slicer rewrites one thing: a shell whose facets disagree on their winding is sliced turned outward
-(:func:`wound_for_slicing`; a loop's direction says which side is material, and a cavity whose walls were cut from
-facets mostly wound the wrong way was filled). Inside-out shells that are consistently wound stay as stored (the
+The slicer cuts a prepared copy where needed (:func:`wound_for_slicing`): a facet stored twice once, and a shell
+whose facets disagree on their winding turned outward (a loop's direction says which side is material, and a cavity
+whose walls were cut from facets mostly wound the wrong way was filled). Inside-out shells that are consistently wound stay as stored (the
 fill rules read them: ``positive`` as empty), open chains are joined in ``chain.py``, degenerate facets are dropped
 in ``mesh.py``. Otherwise this module only *counts* what was wrong, so that ``gpuslice slice`` can say which repairs
 a file needed. Everything is vectorised and linear in the facets: the
