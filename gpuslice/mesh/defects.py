@@ -3,10 +3,10 @@ open edges, degenerate facets.
 
 The slicer cuts a prepared copy where needed (:func:`wound_for_slicing`): a facet stored twice once, and a shell
 whose facets disagree on their winding turned outward (a loop's direction says which side is material, and a cavity
-whose walls were cut from facets mostly wound the wrong way was filled). Inside-out shells that are consistently wound stay as stored (the
-fill rules read them: ``positive`` as empty), open chains are joined in ``chain.py``, degenerate facets are dropped
-in ``mesh.py``. Otherwise this module only *counts* what was wrong, so that ``gpuslice slice`` can say which repairs
-a file needed. Everything is vectorised and linear in the facets: the
+whose walls were cut from facets mostly wound the wrong way was filled). Inside-out shells that are consistently
+wound stay as stored (the fill rules read them: ``positive`` as empty), open chains are joined in ``chain.py``,
+degenerate facets are dropped in ``mesh.py``. Otherwise this module only *counts* what was wrong, so that
+``gpuslice slice`` can say which repairs a file needed. Everything is vectorised and linear in the facets: the
 pairing of the facet sides along each edge comes from the edge numbering (``Mesh.edge_sides``, no sort here), the
 shells are connected components (:func:`gpuslice.mesh.graph.components`: on the device when the mesh was welded on one),
 the volumes are summed a block of facets at a time, solid angles judge nested shells.
