@@ -262,10 +262,12 @@ def _without_repeats(mesh: Mesh) -> Mesh:
     """``mesh``, or a copy keeping the first of the facets with the same corners in the same turn (an exporter's
     repeat: each edge of the facet is then used three times, and chaining paired the facet with its neighbours and
     left the repeat a loose chain, which gap closing could join to another body: two bars 0.8 mm apart with their
-    facing walls repeated gave 56 mm² for 40; a helper's sweep). Only the facets beside an edge of three or more
-    sides are compared. A facet and a copy the other way round: where each of their sides has at most one other facet
-    (the copy was flipped in a surface), the copy that runs with more of those neighbours goes; where a side has more
-    (a wall between two bodies that touch) or the neighbours are split evenly, both stay."""
+    facing walls repeated gave 56 mm² for 40; a helper's sweep), where the copies add nothing: every side of a copy
+    is left with at most two facets without them (two overlapping bodies that share a face, stored with the same
+    corners, each keep it: a review). Only the facets beside an edge of three or more sides are compared. A facet
+    and a copy the other way round: where each of their sides has at most one other facet (the copy was flipped in a
+    surface), the copy that runs with more of those neighbours goes; where a side has more (a wall between two bodies
+    that touch) or the neighbours are split evenly, both stay."""
     sides = mesh.edge_sides()
     crowded = sides.count > 2
     if not crowded.any():
@@ -278,14 +280,20 @@ def _without_repeats(mesh: Mesh) -> Mesh:
     r = rows[order]
     again = np.zeros(r.shape[0], dtype=bool)
     again[1:] = np.all(r[1:] == r[:-1], axis=1)
+    # a copy goes only where it adds nothing: each of its sides is left with at most two facets without the copies (a
+    # body that shares a face with another, stored with the same corners, keeps its face: its sides have three)
+    copies = cand[order][again]
+    extra = np.bincount(mesh.face_edges[copies].reshape(-1), minlength=sides.count.size)
+    spare = np.all((sides.count - extra)[mesh.face_edges[copies]] <= 2, axis=1)
     keep = np.ones(mesh.n_faces, dtype=bool)
-    keep[cand[order][again]] = False
+    keep[copies[spare]] = False
     # a facet and a copy of it the other way round, each of their sides shared with one other facet only (a flipped
     # repeat in a closed surface, not a wall between two bodies): the copy that runs with its neighbours goes
     c = cand[keep[cand]]
     srt = np.sort(mesh.faces[c], axis=1)
     o2 = np.lexsort((c, srt[:, 2], srt[:, 1], srt[:, 0]))
-    same = np.all(srt[o2][1:] == srt[o2][:-1], axis=1)
+    rot = rows[keep[cand]][o2]  # (the turns: a repeat kept above is not the other way round)
+    same = np.all(srt[o2][1:] == srt[o2][:-1], axis=1) & ~np.all(rot[1:] == rot[:-1], axis=1)
     fi, fj = c[o2[:-1][same]], c[o2[1:][same]]
     e = mesh.face_edges[fi]
     pairs = np.bincount(e.reshape(-1), minlength=sides.count.size)  # (a pair's two sides run both ways)

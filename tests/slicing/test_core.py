@@ -513,3 +513,17 @@ def test_a_repeated_facet_is_cut_once(backend):
     c, d = np.asarray(S.box(hi=(10, 10, 10)), float), np.asarray(S.box(lo=(10, 0, 0), hi=(20, 10, 10)), float)
     r = slice_mesh(mesh_from_triangles(np.concatenate([c, d])), z=z, backend=backend)
     np.testing.assert_allclose(r.area, 200.0, rtol=F32)
+
+
+def test_overlapping_bodies_that_share_a_face_keep_it(backend):
+    """Two boxes, one inside the other but for a face they share, stored with the same corners and turn: the second
+    box's copy of that face is no repeat to drop (its sides have three other facets), or the box opens and is lost
+    (a review: 5 mm² for 15)."""
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float)
+    f = np.array([[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4], [1, 2, 6], [1, 6, 5], [2, 3, 7],
+                  [2, 7, 6], [3, 0, 4], [3, 4, 7]])
+    m = mesh_from_arrays(np.vstack([v * [1, 5, 4], v * [3, 5, 4]]), np.vstack([f, f + 8]))
+    for rule, want in (("nonzero", 15.0), ("evenodd", 10.0), ("positive", 15.0)):
+        r = slice_mesh(m, thickness=0.5, fill_rule=rule, backend=backend)
+        np.testing.assert_allclose(r.area, want, rtol=F32)
+        assert r.repairs["open_chains"].sum() == 0
