@@ -241,10 +241,8 @@ def _read_non_stl(name: str, file_type: str, data: bytes | None = None) -> RawMe
     from .threemf import read_3mf
 
     source = inflate_3mf(name, data)
-    with zipfile.ZipFile(source) as zf:
+    with zipfile.ZipFile(source) as zf:  # (no model part at all: read_3mf's own one-line error)
         parts = [n for n in zf.namelist() if n.lower().endswith(".model")]
-        if not parts:
-            raise MeshFileError(f"{name}: not a 3MF file: the zip holds no 3D model part (3D/3dmodel.model)")
         if any(_LOWRES.search(zf.read(n)) for n in parts):  # (stored members: read without inflating again)
             raise MeshFileError(f"{name}: a 3MF slice stack (its mesh is a low-resolution stand-in, "
                                 's:meshresolution="lowres", not the part): slice the model it was made from')

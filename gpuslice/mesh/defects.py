@@ -125,6 +125,11 @@ def outward_facets(mesh: Mesh) -> tuple[np.ndarray, dict[str, int]]:
     Returns ``flipped`` (F,) bool (True: the stored winding is reversed with respect to the outward orientation;
     reversing exactly these facets gives a consistently, outward-oriented mesh) and the counts dictionary.
     """
+    return _outward(mesh, _shells(mesh) if mesh.n_faces else None)
+
+
+def _outward(mesh: Mesh, shells) -> tuple[np.ndarray, dict[str, int]]:
+    """:func:`outward_facets` of ``mesh`` whose :func:`_shells` are ``shells`` (None: no facet)."""
     n = mesh.n_faces
     edge_counts = mesh.edge_face_counts()
     counts = {
@@ -137,7 +142,7 @@ def outward_facets(mesh: Mesh) -> tuple[np.ndarray, dict[str, int]]:
     }
     if n == 0:
         return np.zeros(0, bool), counts
-    shell, sign, non_orientable = _shells(mesh)
+    shell, sign, non_orientable = shells
     n_shells = non_orientable.size
     verts, faces = mesh.vertices, mesh.faces
     blocks = [slice(a, min(n, a + _FACET_BLOCK)) for a in range(0, n, _FACET_BLOCK)]
@@ -311,13 +316,13 @@ def _without_repeats(mesh: Mesh) -> Mesh:
 
 def _turned_outward(mesh: Mesh) -> Mesh:
     """:func:`wound_for_slicing` of a mesh with some edge used twice in one direction."""
-    shell, sign, non_orientable = _shells(mesh)
+    shells = shell, sign, non_orientable = _shells(mesh)
     mixed = np.zeros(non_orientable.size, dtype=bool)
     mixed[shell[sign < 0]] = True
     mixed &= ~non_orientable
     if not mixed.any():
         return mesh
-    flipped, _ = outward_facets(mesh)
+    flipped, _ = _outward(mesh, shells)
     turn = flipped & mixed[shell]
     if not turn.any():
         return mesh

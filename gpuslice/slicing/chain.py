@@ -264,13 +264,14 @@ _PAIRS_LISTED = 16  # a layer's free ends with more pairs within max_gap than th
 _SMALL = 64  # a layer's free ends up to this many: every pair listed, in numpy (an open scan's holes: 2-8 a layer)
 
 
-def _closest_first(xy: np.ndarray, max_gap: float) -> np.ndarray:
+def _closest_first(xy: np.ndarray, max_gap: float, tree=None) -> np.ndarray:
     """(M, 2) index pairs of ``xy``: the greedy matching, closest pair first, of the points within ``max_gap`` of
     each other, in rounds that match every pair of mutual nearest neighbours (a locally dominant edge: the greedy
     matching's, for distances ordered with ties broken by index). Memory and time grow with the points, not with
     the pairs (a cluster of n points has ~n^2/2 of them). A round that matches under a twentieth of the points left
     (a chain of ends whose gaps shrink along it matches one pair a round: quadratic, a review found) hands the rest
-    to the listed pairs' walk, the dense clusters gone by then."""
+    to the listed pairs' walk, the dense clusters gone by then. ``tree``: a ``cKDTree`` of ``xy`` already made (the
+    first round's)."""
     from scipy.spatial import cKDTree
 
     left = np.arange(len(xy))
@@ -278,7 +279,9 @@ def _closest_first(xy: np.ndarray, max_gap: float) -> np.ndarray:
     reach = float(np.nextafter(max_gap, np.inf))  # (the tree's bound is strict; the listed pairs take d <= max_gap)
     while left.size > 1:
         k = min(4, left.size)
-        d, nb = cKDTree(xy[left]).query(xy[left], k=k, distance_upper_bound=reach)
+        if tree is None or tree.n != left.size:
+            tree = cKDTree(xy[left])
+        d, nb = tree.query(xy[left], k=k, distance_upper_bound=reach)
         d, nb = d.reshape(left.size, k), nb.reshape(left.size, k)
         me = np.arange(left.size)[:, None]
         d = np.where(nb == me, np.inf, d)  # not itself (duplicates may come before it)
@@ -303,15 +306,15 @@ def _closest_first(xy: np.ndarray, max_gap: float) -> np.ndarray:
     return np.concatenate(out) if out else np.empty((0, 2), dtype=np.int64)
 
 
-def _few_pairs(xy: np.ndarray, max_gap: float) -> bool:
+def _few_pairs(xy: np.ndarray, max_gap: float, tree=None) -> bool:
     """Whether the points ``xy`` have at most :data:`_PAIRS_LISTED` pairs within ``max_gap`` per point, counted
     without listing them (a cluster of n free ends has ~n^2/2). The count's time grows with the pairs: those within a
     quarter of the gap are counted first, and where they are already too many, that is the answer (a benchy soup's
     640 layers: 0.69 s of counting against 1.16 s; where they are still few both counts are made: a bunny soup's,
-    0.54 s against 0.36 s)."""
+    0.54 s against 0.36 s). ``tree``: a ``cKDTree`` of ``xy`` already made."""
     from scipy.spatial import cKDTree
 
-    tree = cKDTree(xy)
+    tree = cKDTree(xy) if tree is None else tree
     n = tree.n
     return all((int(tree.count_neighbors(tree, r)) - n) // 2 <= _PAIRS_LISTED * n for r in (max_gap / 4, max_gap))
 
@@ -391,10 +394,14 @@ def _repair(points, offsets, chain_layer, closed, open_idx, head_slot, tail_slot
             if hi - lo < 2:
                 continue
             xy = xy_all[lo:hi]
-            if hi - lo <= _SMALL or _few_pairs(xy, max_gap):
+            if hi - lo <= _SMALL:
                 matched = _greedy_listed(xy, np.arange(hi - lo), max_gap)
-            else:
-                matched = _closest_first(xy, max_gap)
+            else:  # (one tree of the layer's free ends: counted, then the first round of _closest_first's)
+                from scipy.spatial import cKDTree
+
+                tree = cKDTree(xy)
+                matched = (_greedy_listed(xy, np.arange(hi - lo), max_gap) if _few_pairs(xy, max_gap, tree)
+                           else _closest_first(xy, max_gap, tree))
             if len(matched):
                 i, j = free[lo:hi][matched[:, 0]], free[lo:hi][matched[:, 1]]
                 link[i], link[j] = j, i
