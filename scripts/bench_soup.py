@@ -18,11 +18,13 @@ with the same shift and no jitter, is the reference.
 Measured (wall seconds, ``time.perf_counter``; median of ``--repeat`` runs):
 
 * ``python -m gpuslice.cli slice FILE -t T -o x.npz -q``, whole process, on the soup and on the clean mesh (one
-  untimed run first, so that the OpenCL kernels are built and cached);
+  untimed run first, so that the OpenCL kernels are built and cached), and on the soup with ``--join-edges 0``
+  (its open edges not joined on the mesh: chaining's gap closing alone, as before the twenty-sixth session);
 * ``prusa-slicer --export-sla ...`` (if on PATH), whole process, soup and clean; its time includes rasterising and
   zipping the SL1 layers, so it is an upper bound of its slicing; past ``--peer-timeout`` s: "> timeout";
-* trimesh, in process: ``trimesh.load(soup, process=False)``, ``section_multiplane`` and the areas of
-  ``polygons_full`` (trimesh builds polygons lazily; without them it has not sliced to polygons).
+* trimesh, in process (``--skip-trimesh`` leaves it out): ``trimesh.load(soup, process=False)``,
+  ``section_multiplane`` and the areas of ``polygons_full`` (trimesh builds polygons lazily; without them it has not
+  sliced to polygons).
 
 Planes: z = z0 + (k + 0.5) T, k = 0 .. floor(height / T) - 1, z0 the soup's lowest z.  Correctness, per layer:
 gpuslice's Python API (``slice_mesh(load_mesh(path), z=...)``) on the clean mesh at the same planes is the
@@ -155,9 +157,9 @@ def bench(name: str, src: Path, a: argparse.Namespace, out: Path) -> dict:
     log(f"{name}: {len(tri)} facets, {n} layers of {a.thickness} mm, height {top - z0:.2f} mm")
 
     g = [sys.executable, "-m", "gpuslice.cli", "slice"]
-    for kind, path in (("clean", clean), ("soup", soup)):
+    for kind, path, extra in (("clean", clean, []), ("soup", soup, []), ("soup_unjoined", soup, ["--join-edges", "0"])):
         npz = out / f"{name}_{kind}.npz"
-        r[f"gpuslice_{kind}_s"] = [timed([*g, str(path), "-t", str(a.thickness), "-o", str(npz), "-q"])
+        r[f"gpuslice_{kind}_s"] = [timed([*g, str(path), "-t", str(a.thickness), "-o", str(npz), "-q", *extra])
                                    for _ in range(a.repeat)]
         log(f"  gpuslice {kind}: {r[f'gpuslice_{kind}_s']}")
     prusa = shutil.which("prusa-slicer")
@@ -172,15 +174,18 @@ def bench(name: str, src: Path, a: argparse.Namespace, out: Path) -> dict:
         r[f"prusa_{kind}_s"] = runs
         log(f"  PrusaSlicer {kind}: {runs if prusa else 'not on PATH'}")
 
-    tm = [trimesh_areas(soup, z0, heights) for _ in range(a.repeat)]
-    r["trimesh_soup_s"], r["trimesh_empty_layers"] = [t[0] for t in tm], tm[0][2]
-    log(f"  trimesh soup: {r['trimesh_soup_s']}, {tm[0][2]} layers None or without polygons")
+    tm = [trimesh_areas(soup, z0, heights) for _ in range(0 if a.skip_trimesh else a.repeat)]
+    r["trimesh_soup_s"], r["trimesh_empty_layers"] = [t[0] for t in tm], tm[0][2] if tm else None
+    log(f"  trimesh soup: {r['trimesh_soup_s']}, {r['trimesh_empty_layers']} layers None or without polygons")
 
     ref = gpuslice.slice_mesh(gpuslice.load_mesh(clean), z=heights + (z0 - clean_z0))
     got = gpuslice.slice_mesh(gpuslice.load_mesh(soup), z=heights)
-    assert ref.n_layers == got.n_layers == n, (ref.n_layers, got.n_layers, n)
+    unjoined = gpuslice.slice_mesh(gpuslice.load_mesh(soup), z=heights, join_edges=0)
+    assert ref.n_layers == got.n_layers == unjoined.n_layers == n, (ref.n_layers, got.n_layers, n)
+    r["joined_edges"] = got.meta["repairs"].get("joined_edges", 0)
     r["err_gpuslice"] = errors(np.asarray(got.area), np.asarray(ref.area), z0 + heights)
-    r["err_trimesh"] = errors(tm[0][1], np.asarray(ref.area), z0 + heights)
+    r["err_gpuslice_unjoined"] = errors(np.asarray(unjoined.area), np.asarray(ref.area), z0 + heights)
+    r["err_trimesh"] = errors(tm[0][1], np.asarray(ref.area), z0 + heights) if tm else None
     return r
 
 
@@ -191,17 +196,18 @@ def table(rows: list[dict], prusa: bool) -> str:
         m = med(xs)
         return "> timeout" if m is None else f"{m:.2f}"
 
-    def e(d: dict) -> str:
-        return f"{d['median']:.2e} / {d['p99']:.2e} / {d['over_1pct']}"
+    def e(d: dict | None) -> str:
+        return "n/a" if d is None else f"{d['median']:.2e} / {d['p99']:.2e} / {d['over_1pct']}"
 
-    head = ["mesh", "facets", "layers", "gpuslice clean s", "gpuslice soup s", "PrusaSlicer soup s",
-            "PrusaSlicer clean s", "trimesh soup s", "trimesh empty layers", "gpuslice soup err med / p99 / >1%",
-            "trimesh soup err med / p99 / >1%"]
+    head = ["mesh", "facets", "layers", "gpuslice clean s", "gpuslice soup s", "gpuslice soup, --join-edges 0 s",
+            "PrusaSlicer soup s", "PrusaSlicer clean s", "trimesh soup s", "trimesh empty layers", "edges joined",
+            "gpuslice soup err med / p99 / >1%", "the same, --join-edges 0", "trimesh soup err med / p99 / >1%"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         cells = [r["mesh"], str(r["facets"]), str(r["layers"]), s(r["gpuslice_clean_s"]), s(r["gpuslice_soup_s"]),
-                 s(r["prusa_soup_s"]) if prusa else "n/a", s(r["prusa_clean_s"]) if prusa else "n/a",
-                 s(r["trimesh_soup_s"]), str(r["trimesh_empty_layers"]), e(r["err_gpuslice"]), e(r["err_trimesh"])]
+                 s(r["gpuslice_soup_unjoined_s"]), s(r["prusa_soup_s"]) if prusa else "n/a",
+                 s(r["prusa_clean_s"]) if prusa else "n/a", s(r["trimesh_soup_s"]), str(r["trimesh_empty_layers"]),
+                 str(r["joined_edges"]), e(r["err_gpuslice"]), e(r["err_gpuslice_unjoined"]), e(r["err_trimesh"])]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -216,6 +222,7 @@ def main() -> None:
     ap.add_argument("--peer-timeout", type=float, default=120.0, help="PrusaSlicer's limit per run, s")
     ap.add_argument("--out-dir", type=Path, help="keep the STLs and outputs here (default: a temporary folder)")
     ap.add_argument("--json", type=Path, help="write every sample here")
+    ap.add_argument("--skip-trimesh", action="store_true", help="leave trimesh out (it takes minutes on a soup)")
     a = ap.parse_args()
 
     load0 = os.getloadavg()
@@ -247,7 +254,9 @@ def main() -> None:
     print("\nPrusaSlicer's time includes rasterising and zipping the SL1 layers: an upper bound of its slicing."
           if prusa else "\nprusa-slicer not on PATH.")
     for r in rows:
-        for k in ("err_gpuslice", "err_trimesh"):
+        for k in ("err_gpuslice", "err_gpuslice_unjoined", "err_trimesh"):
+            if r[k] is None:
+                continue
             w = "; ".join(f"z={x['z']:.3f}: {x['area']:.2f} vs {x['clean']:.2f} mm² ({x['rel']:.1%})"
                           for x in r[k]["worst"])
             print(f"- {r['mesh']}, worst layers {k[4:]}: {w}")

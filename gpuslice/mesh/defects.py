@@ -1,7 +1,8 @@
 """Mesh defects the slicer works around, counted for the report: flipped facets, inside-out shells, non-manifold and
 open edges, degenerate facets.
 
-The slicer cuts a prepared copy where needed (:func:`wound_for_slicing`): a facet stored twice once, and a shell
+The slicer cuts a prepared copy where needed (:func:`wound_for_slicing`): open edges joined to the nearby open edge
+they were meant to share (:mod:`gpuslice.mesh.seams`: a triangle soup, a crack), a facet stored twice once, and a shell
 whose facets disagree on their winding turned outward (a loop's direction says which side is material, and a cavity
 whose walls were cut from facets mostly wound the wrong way was filled). Inside-out shells that are consistently
 wound stay as stored (the fill rules read them: ``positive`` as empty), open chains are joined in ``chain.py``,
@@ -36,6 +37,7 @@ import numpy as np
 
 from .graph import components
 from .mesh import Mesh, _directed_edges_paired, need_mesh
+from .seams import joined_open_edges
 
 __all__ = ["MESH_REPAIR_KINDS", "mesh_repairs", "outward_facets", "wound_for_slicing"]
 
@@ -241,9 +243,12 @@ def mesh_repairs(mesh: Mesh) -> dict[str, int]:
     return dict(mesh._cache["mesh_repairs"])
 
 
-def wound_for_slicing(mesh: Mesh) -> Mesh:
-    """The mesh the slicer cuts: ``mesh`` itself where every shell is consistently wound and no facet is repeated,
-    else a copy without the repeats of a facet (the same corners in the same turn: :func:`_without_repeats`) in
+def wound_for_slicing(mesh: Mesh, join: float = 0.0) -> Mesh:
+    """The mesh the slicer cuts: ``mesh`` itself where every shell is consistently wound, no facet is repeated and no
+    open edge is joined, else a copy whose open edges are joined to their nearby partners first (``join``: the
+    largest distance, mm, between the corners of two open edges that are one edge; 0: none joined;
+    :mod:`gpuslice.mesh.seams`; the number of pairs in the copy's ``_cache["joined_edges"]``), without the repeats
+    of a facet (the same corners in the same turn: :func:`_without_repeats`) in
     which the facets of each shell that mixes both windings face outward (:func:`outward_facets`; a facet turned has
     its corners 0, 2, 1 and its sides reordered to match, the same edge ids). Shells wound consistently, inside out
     or not, are left as stored, and non-orientable ones too.
@@ -255,12 +260,19 @@ def wound_for_slicing(mesh: Mesh) -> Mesh:
     the edge pairing); otherwise the repeats among the facets beside a crowded edge, and the shells' classes and
     volumes, as the mesh check computes them.
     """
-    if mesh.n_faces == 0 or (_directed_edges_paired(mesh) and not (mesh.edge_sides().count > 2).any()):
+    count = mesh.edge_sides().count
+    if mesh.n_faces == 0 or (_directed_edges_paired(mesh) and not (count > 2).any() and
+                             not (join > 0 and (count == 1).any())):
         return mesh
-    if "wound_for_slicing" not in mesh._cache:  # (a resin job slices its sub-planes' chunks from the same mesh)
-        once = _without_repeats(mesh)
-        mesh._cache["wound_for_slicing"] = once if _directed_edges_paired(once) else _turned_outward(once)
-    return mesh._cache["wound_for_slicing"]
+    key = ("wound_for_slicing", float(join))
+    if key not in mesh._cache:  # (a resin job slices its sub-planes' chunks from the same mesh)
+        joined, n = joined_open_edges(mesh, join)
+        once = _without_repeats(joined)
+        out = once if _directed_edges_paired(once) else _turned_outward(once)
+        if n:  # (the joined mesh is a new one)
+            out._cache["joined_edges"] = n
+        mesh._cache[key] = out
+    return mesh._cache[key]
 
 
 def _without_repeats(mesh: Mesh) -> Mesh:

@@ -27,6 +27,8 @@ class SliceParams:
     z_mode : ``"mid"`` (planes at the middle of each slab, z_i = (i + 0.5)·h) or ``"paper"`` (Z_i = i·h).
     fill_rule : ``"nonzero"``, ``"evenodd"`` or ``"positive"``.
     max_gap : open chain ends closer than this are joined (PrusaSlicer's default: 2 mm); 0 disables.
+    join_edges : open mesh edges are joined to a nearby open edge whose corners lie within this distance (mm) and a
+        quarter of the edge's length, before slicing (:mod:`gpuslice.mesh.seams`); 0 disables.
     backend : ``"opencl"`` (default) or ``"numpy"`` (the reference implementation of every kernel).
     device : OpenCL device spec (see :mod:`gpuslice.device`); None for the default.
     max_segments_per_batch : layers are processed in batches of at most about this many segments.
@@ -49,6 +51,9 @@ class SliceParams:
                             "positive, so an inside-out shell is empty)", choices=FILL_RULES)
     max_gap: float = option(2.0, "Join open chain ends closer than this (0: never); chains left open are not filled",
                             unit="mm")
+    join_edges: float = option(2.0, "Before slicing, join each open mesh edge to a nearby open edge whose corners lie "
+                               "within this distance and a quarter of the edge's length (a triangle soup, a crack; "
+                               "0: never)", unit="mm")
     backend: str = option("opencl", "The OpenCL kernels, or their numpy reference twins", choices=BACKENDS)
     device: str | None = option(None, "OpenCL device: 'P:D' index or a name piece (env GPUSLICE_DEVICE)")
     max_segments_per_batch: int = option(2_000_000, "Layers are sliced in batches of at most about this many "
@@ -85,8 +90,8 @@ class SliceParams:
     def __post_init__(self) -> None:
         # types first (a string or a bool where a number goes fails here, named, not deep in a stage); ranges are
         # checked where each value is used (uniform, adaptive_schedule), as the command line's messages expect
-        for name in ("thickness", "first_layer", "max_gap", "max_cusp", "max_area", "min_height", "max_height",
-                     "smooth", "roi_quantile", "max_segments_per_batch", "roi_windows"):
+        for name in ("thickness", "first_layer", "max_gap", "join_edges", "max_cusp", "max_area", "min_height",
+                     "max_height", "smooth", "roi_quantile", "max_segments_per_batch", "roi_windows"):
             v = getattr(self, name)
             if getattr(v, "ndim", None) == 0 and getattr(getattr(v, "dtype", None), "kind", "") in ("i", "u", "f"):
                 v = v.item()  # (a 0-d array, np.array(0.5): one number)
@@ -128,6 +133,8 @@ class SliceParams:
             raise ParameterError(f"unknown backend '{self.backend}' (use opencl or numpy)")
         if not (self.max_gap >= 0):
             raise ParameterError(f"max_gap must be >= 0 mm, got {self.max_gap}", param="max_gap")
+        if not (0 <= self.join_edges < float("inf")):
+            raise ParameterError(f"join_edges must be >= 0 mm and finite, got {self.join_edges}", param="join_edges")
         if self.max_segments_per_batch < 1:
             raise ParameterError("max_segments_per_batch must be positive", param="max_segments_per_batch")
 

@@ -162,7 +162,11 @@ def slice_mesh(
             from ..mesh.mesh import load_mesh
 
             mesh = load_mesh(mesh, device=device, **placement)  # welded on the slicing device, when there is one
-        mesh = wound_for_slicing(mesh)  # (shells of mixed winding turned outward: a loop's direction says its side)
+        # open edges joined to their nearby partners, shells of mixed winding turned outward (a loop's direction says
+        # which side is material): counted with the mesh's topology
+        t0 = time.perf_counter()
+        mesh = wound_for_slicing(mesh, params.join_edges)
+        timings["topology"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         sched = schedule if schedule is not None else make_schedule(mesh, params, z, layer_thickness)
         zs = _planes32(sched.z, mesh.name)
@@ -238,7 +242,9 @@ def slice_mesh(
             "loops": result.n_loops,
             "points": int(result.points.shape[0]),
             "open_chains": int((~result.loop_closed).sum()),
-            "repairs": {k: int(v.sum()) for k, v in result.repairs.items()},
+            # (open mesh edges joined before slicing: a mesh count, listed only where there were some)
+            "repairs": {k: int(v.sum()) for k, v in result.repairs.items()} | (
+                {"joined_edges": mesh._cache["joined_edges"]} if mesh._cache.get("joined_edges") else {}),
             "device": device_name,
             "backend": params.backend,
             "batches": len(batches),
