@@ -2,7 +2,8 @@
 open edges, degenerate facets.
 
 The slicer cuts a prepared copy where needed (:func:`wound_for_slicing`): open edges joined to the nearby open edge
-they were meant to share (:mod:`gpuslice.mesh.seams`: a triangle soup, a crack), a facet stored twice once, and a shell
+they were meant to share (:mod:`gpuslice.mesh.seams`: a triangle soup, a crack), the holes left closed by fans of
+facets (:mod:`gpuslice.mesh.holes`), a facet stored twice once, and a shell
 whose facets disagree on their winding turned outward (a loop's direction says which side is material, and a cavity
 whose walls were cut from facets mostly wound the wrong way was filled). Inside-out shells that are consistently
 wound stay as stored (the fill rules read them: ``positive`` as empty), open chains are joined in ``chain.py``,
@@ -36,6 +37,7 @@ from dataclasses import replace
 import numpy as np
 
 from .graph import components
+from .holes import filled_holes
 from .mesh import Mesh, _directed_edges_paired, need_mesh
 from .seams import joined_open_edges
 
@@ -243,12 +245,14 @@ def mesh_repairs(mesh: Mesh) -> dict[str, int]:
     return dict(mesh._cache["mesh_repairs"])
 
 
-def wound_for_slicing(mesh: Mesh, join: float = 0.0) -> Mesh:
+def wound_for_slicing(mesh: Mesh, join: float = 0.0, fill: bool = False, max_gap: float = 0.0) -> Mesh:
     """The mesh the slicer cuts: ``mesh`` itself where every shell is consistently wound, no facet is repeated and no
     open edge is joined, else a copy whose open edges are joined to their nearby partners first (``join``: the
     largest distance, mm, between the corners of two open edges that are one edge; 0: none joined;
-    :mod:`gpuslice.mesh.seams`; the number of pairs in the copy's ``_cache["joined_edges"]``), without the repeats
-    of a facet (the same corners in the same turn: :func:`_without_repeats`) in
+    :mod:`gpuslice.mesh.seams`; the number of pairs in the copy's ``_cache["joined_edges"]``) and, with ``fill``,
+    the loops of open edges left closed by fans of facets (:mod:`gpuslice.mesh.holes`, those wider than ``max_gap``,
+    mm; ``_cache["filled_holes"]``),
+    without the repeats of a facet (the same corners in the same turn: :func:`_without_repeats`) in
     which the facets of each shell that mixes both windings face outward (:func:`outward_facets`; a facet turned has
     its corners 0, 2, 1 and its sides reordered to match, the same edge ids). Shells wound consistently, inside out
     or not, are left as stored, and non-orientable ones too.
@@ -262,15 +266,16 @@ def wound_for_slicing(mesh: Mesh, join: float = 0.0) -> Mesh:
     """
     count = mesh.edge_sides().count
     if mesh.n_faces == 0 or (_directed_edges_paired(mesh) and not (count > 2).any() and
-                             not (join > 0 and (count == 1).any())):
+                             not ((join > 0 or fill) and (count == 1).any())):
         return mesh
-    key = ("wound_for_slicing", float(join))
+    key = ("wound_for_slicing", float(join), bool(fill), float(max_gap))
     if key not in mesh._cache:  # (a resin job slices its sub-planes' chunks from the same mesh)
         joined, n = joined_open_edges(mesh, join)
-        once = _without_repeats(joined)
+        filled, holes = filled_holes(joined, max_gap, n) if fill else (joined, 0)
+        once = _without_repeats(filled)
         out = once if _directed_edges_paired(once) else _turned_outward(once)
-        if n:  # (the joined mesh is a new one)
-            out._cache["joined_edges"] = n
+        if n or holes:  # (then a new mesh)
+            out._cache["joined_edges"], out._cache["filled_holes"] = n, holes
         mesh._cache[key] = out
     return mesh._cache[key]
 

@@ -114,8 +114,8 @@ def _candidates(mid, pa, pb, length, limit):
     own = np.arange(n)
     near = np.where(nb[:, 0] == own, nb[:, 1], nb[:, 0])  # (exact copies may list another before the side itself)
     i, j, cost, same = _allowed(own, near, pa, pb, length, limit)
-    found = np.zeros(n, dtype=bool)
-    found[i] = found[j] = True
+    found = np.zeros(n, dtype=bool)  # (a side whose nearest runs the same way, a copy of it, looks further: a review)
+    found[i[~same]] = found[j[~same]] = True
     rest = np.flatnonzero(~found)
     if rest.size > 1:
         kk = min(NEIGHBOURS + 1, rest.size)

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from ..errors import ParameterError
-from ..options import is_real, option, parse_floats, python_number
+from ..options import check_flag, is_real, option, parse_floats, python_number
 from ..schedule.adaptive import ADAPTIVE_MODES
 from .nest import FILL_RULES
 
@@ -29,6 +29,9 @@ class SliceParams:
     max_gap : open chain ends closer than this are joined (PrusaSlicer's default: 2 mm); 0 disables.
     join_edges : open mesh edges are joined to a nearby open edge whose corners lie within this distance (mm) and a
         quarter of the edge's length, before slicing (:mod:`gpuslice.mesh.seams`); 0 disables.
+    fill_holes : the loops of open edges left are closed by fans of facets before slicing
+        (:mod:`gpuslice.mesh.holes`); False leaves them open (their layers' chains are joined across gaps up to
+        ``max_gap``, and a chain left open is not filled).
     backend : ``"opencl"`` (default) or ``"numpy"`` (the reference implementation of every kernel).
     device : OpenCL device spec (see :mod:`gpuslice.device`); None for the default.
     max_segments_per_batch : layers are processed in batches of at most about this many segments.
@@ -51,9 +54,11 @@ class SliceParams:
                             "positive, so an inside-out shell is empty)", choices=FILL_RULES)
     max_gap: float = option(2.0, "Join open chain ends closer than this (0: never); chains left open are not filled",
                             unit="mm")
-    join_edges: float = option(2.0, "Before slicing, join each open mesh edge to a nearby open edge whose corners lie "
-                               "within this distance and a quarter of the edge's length (a triangle soup, a crack; "
-                               "0: never)", unit="mm")
+    join_edges: float = option(0.01, "Before slicing, join each open mesh edge to a nearby open edge whose corners "
+                               "lie within this distance and a quarter of the edge's length (a triangle soup, edges "
+                               "an exporter did not weld; 0: never)", unit="mm")
+    fill_holes: bool = option(True, "Before slicing, close each loop of open mesh edges (a hole: an open scan's, a "
+                              "missing facet) with a fan of facets, as PrusaSlicer's loader does", negatable=True)
     backend: str = option("opencl", "The OpenCL kernels, or their numpy reference twins", choices=BACKENDS)
     device: str | None = option(None, "OpenCL device: 'P:D' index or a name piece (env GPUSLICE_DEVICE)")
     max_segments_per_batch: int = option(2_000_000, "Layers are sliced in batches of at most about this many "
@@ -133,6 +138,7 @@ class SliceParams:
             raise ParameterError(f"unknown backend '{self.backend}' (use opencl or numpy)")
         if not (self.max_gap >= 0):
             raise ParameterError(f"max_gap must be >= 0 mm, got {self.max_gap}", param="max_gap")
+        object.__setattr__(self, "fill_holes", check_flag(self.fill_holes, "fill_holes"))
         if not (0 <= self.join_edges < float("inf")):
             raise ParameterError(f"join_edges must be >= 0 mm and finite, got {self.join_edges}", param="join_edges")
         if self.max_segments_per_batch < 1:

@@ -162,10 +162,10 @@ def slice_mesh(
             from ..mesh.mesh import load_mesh
 
             mesh = load_mesh(mesh, device=device, **placement)  # welded on the slicing device, when there is one
-        # open edges joined to their nearby partners, shells of mixed winding turned outward (a loop's direction says
-        # which side is material): counted with the mesh's topology
+        # open edges joined to their nearby partners, holes filled, shells of mixed winding turned outward (a loop's
+        # direction says which side is material): counted with the mesh's topology
         t0 = time.perf_counter()
-        mesh = wound_for_slicing(mesh, params.join_edges)
+        mesh = wound_for_slicing(mesh, params.join_edges, params.fill_holes, params.max_gap)
         timings["topology"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         sched = schedule if schedule is not None else make_schedule(mesh, params, z, layer_thickness)
@@ -242,9 +242,9 @@ def slice_mesh(
             "loops": result.n_loops,
             "points": int(result.points.shape[0]),
             "open_chains": int((~result.loop_closed).sum()),
-            # (open mesh edges joined before slicing: a mesh count, listed only where there were some)
-            "repairs": {k: int(v.sum()) for k, v in result.repairs.items()} | (
-                {"joined_edges": mesh._cache["joined_edges"]} if mesh._cache.get("joined_edges") else {}),
+            # (open mesh edges joined and holes filled before slicing: mesh counts, listed only where there were some)
+            "repairs": {k: int(v.sum()) for k, v in result.repairs.items()} | {
+                k: mesh._cache[k] for k in ("joined_edges", "filled_holes") if mesh._cache.get(k)},
             "device": device_name,
             "backend": params.backend,
             "batches": len(batches),

@@ -301,7 +301,7 @@ def test_missing_facet_gap_closed_within_max_gap(backend):
     side = int(np.flatnonzero(np.ptp(tri[:, :, 2], axis=1) > 0)[0])
     missing = tri[side]
     tri = np.delete(tri, side, axis=0)
-    kept = run(tri, backend, thickness=1.0, max_gap=2.0)
+    kept = run(tri, backend, thickness=1.0, max_gap=2.0, fill_holes=False)  # (filled, the hole has no gap: test_holes)
     # the gap is the missing triangle's section: left open where it is wider than max_gap, closed elsewhere
     z = kept.z
     lo, hi = missing[:, 2].min(), missing[:, 2].max()
@@ -309,7 +309,7 @@ def test_missing_facet_gap_closed_within_max_gap(backend):
     assert lo == 0 and hi == 20
     np.testing.assert_array_equal(kept.open_chains_per_layer, (width > 2.0).astype(int))
     np.testing.assert_array_equal(kept.repairs["gap_closed"], (width <= 2.0).astype(int))
-    closed = run(tri, backend, thickness=1.0, max_gap=30.0)
+    closed = run(tri, backend, thickness=1.0, max_gap=30.0, fill_holes=False)
     assert closed.meta["open_chains"] == 0 and closed.repairs["gap_closed"].sum() == closed.n_layers
     np.testing.assert_allclose(closed.area, 400.0, rtol=F32)
 
@@ -372,14 +372,15 @@ def test_expand_ranges_matches_a_loop():
 
 def test_open_chains_kept_in_layers_whose_overlaps_are_rebuilt(backend):
     """A layer whose loops cross is rebuilt (overlaps resolved), and the open chains of the same layer stay in the
-    result: two overlapping closed boxes plus an open box (one side wall missing, its gap wider than --max-gap)."""
+    result: two overlapping closed boxes plus an open box (one side wall missing, its gap wider than --max-gap, and
+    the hole not filled: ``fill_holes=False``)."""
     a = S.box((0, 0, 0), (10, 10, 10))
     b = S.box((5, 5, 0), (15, 15, 10))
     c = S.box((30, 0, 0), (40, 10, 10))
     side = np.all(np.isclose(c[:, :, 0], 30.0), axis=1)  # the two facets of the x = 30 wall
     assert side.sum() == 2
     tri = np.concatenate([a, b, c[~side]])
-    res = slice_mesh(mesh_from_triangles(tri), thickness=1.0, backend=backend)
+    res = slice_mesh(mesh_from_triangles(tri), thickness=1.0, backend=backend, fill_holes=False)
     assert res.n_layers == 10
     assert (res.repairs["overlaps_resolved"] == 1).all()
     open_per_layer = res.open_chains_per_layer

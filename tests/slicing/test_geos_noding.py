@@ -2,8 +2,8 @@
 of magnitude (float32 subnormals beside millimetres, found by ``scripts/fuzz_stl.py``: 20 bytes spliced into a
 binary STL) made ``shapely.node`` raise "Iterated noding failed to converge" out of the slicer, and the command line
 exit 1 with "internal error". Such a group is now noded alone, then on a 1e-6 mm grid; one that still fails is a
-one-line error naming the file. (The mesh's open edges are left unjoined, ``join_edges=0``: joined, its layers no
-longer make GEOS fail, and the retry would go untested.)"""
+one-line error naming the file. (The mesh's open edges are left unjoined and unfilled, ``join_edges=0,
+fill_holes=False``: joined, its layers no longer make GEOS fail, and the retry would go untested.)"""
 
 from __future__ import annotations
 
@@ -47,7 +47,7 @@ def test_geos_fails_on_these_lines_as_they_are():
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(rings, "node_lines", record)
-        gpuslice.slice_mesh(mesh, thickness=0.2, backend="numpy", join_edges=0)
+        gpuslice.slice_mesh(mesh, thickness=0.2, backend="numpy", join_edges=0, fill_holes=False)
     assert seen, "GEOS nodes these lines now: the retry of rings.node_groups is not exercised by this mesh"
 
 
@@ -55,9 +55,9 @@ def test_subnormal_coordinates_slice_as_zeros_do(backend):
     """The mesh slices into valid polygons, and every layer's area is that of the same mesh with the subnormals
     written as 0, within what the snap can move (each point by at most the grid: the perimeter times the grid)."""
     got = gpuslice.slice_mesh(gpuslice.mesh_from_triangles(_triangles((D1, D2, D3))), thickness=0.2, backend=backend,
-                              join_edges=0)
+                              join_edges=0, fill_holes=False)
     ref = gpuslice.slice_mesh(gpuslice.mesh_from_triangles(_triangles((0.0, 0.0, 0.0))), thickness=0.2,
-                              backend=backend, join_edges=0)
+                              backend=backend, join_edges=0, fill_holes=False)
     assert got.n_layers == ref.n_layers
     a, b = got.to_shapely(), ref.to_shapely()
     assert all(shapely.is_valid(g) for g in a)
@@ -73,7 +73,7 @@ def test_lines_geos_cannot_node_even_on_the_grid_are_a_one_line_error(monkeypatc
     monkeypatch.setattr(shapely, "node", never)
     mesh = gpuslice.mesh_from_triangles(_triangles((D1, D2, D3)), name="broken.stl")
     with pytest.raises(InvalidGeometryError) as info:
-        gpuslice.slice_mesh(mesh, thickness=0.2, backend="numpy", join_edges=0)
+        gpuslice.slice_mesh(mesh, thickness=0.2, backend="numpy", join_edges=0, fill_holes=False)
     msg = str(info.value)
     assert msg.startswith("broken.stl: layers 0-") and "GEOS could not node its crossing loops" in msg
     assert "\n" not in msg

@@ -42,8 +42,8 @@ def torus() -> gpuslice.SliceResult:
 
 @pytest.fixture(scope="module")
 def open_box() -> gpuslice.SliceResult:
-    """A box with a side facet missing and gap closing off: every layer is one open chain."""
-    return _slice(np.delete(shapes.box(), 5, axis=0), thickness=1.0, max_gap=0.0)
+    """A box with a side facet missing, gap closing and hole filling off: every layer is one open chain."""
+    return _slice(np.delete(shapes.box(), 5, axis=0), thickness=1.0, max_gap=0.0, fill_holes=False)
 
 
 # ---- the page and its data (no browser) ------------------------------------------------------------------------
