@@ -2,10 +2,10 @@
 open edges, degenerate facets.
 
 The slicer cuts a prepared copy where needed (:func:`wound_for_slicing`): open edges joined to the nearby open edge
-they were meant to share (:mod:`gpuslice.mesh.seams`: a triangle soup, a crack), the holes left closed by fans of
-facets (:mod:`gpuslice.mesh.holes`), a facet stored twice once, and a shell
-whose facets disagree on their winding turned outward (a loop's direction says which side is material, and a cavity
-whose walls were cut from facets mostly wound the wrong way was filled). Inside-out shells that are consistently
+they were meant to share (:mod:`gpuslice.mesh.seams`: a triangle soup, unwelded edges), the holes left closed by fans
+of facets (:mod:`gpuslice.mesh.holes`), a facet stored twice once, and a shell whose facets disagree on their
+winding turned outward (a loop's direction says which side is material, and a cavity whose walls were cut from facets
+mostly wound the wrong way was filled). Inside-out shells that are consistently
 wound stay as stored (the fill rules read them: ``positive`` as empty), open chains are joined in ``chain.py``,
 degenerate facets are dropped in ``mesh.py``. Otherwise this module only *counts* what was wrong, so that
 ``gpuslice slice`` can say which repairs a file needed. Everything is vectorised and linear in the facets: the

@@ -1,8 +1,8 @@
 """Open edges joined to the nearby open edge they were meant to share (a mesh repair before slicing).
 
 A triangle soup (an exporter that writes each facet's corners with its own rounding, so no two facets share a
-vertex), a mesh with a crack (a vertex nudged) or one put together from pieces whose seams do not quite meet has
-*open* edges (one facet each) where its surface is closed. Slicing it as stored leaves every crossing of such an edge
+vertex) or a mesh whose exporter did not weld some edges bit for bit has *open* edges (one facet each) where its
+surface is closed. Slicing it as stored leaves every crossing of such an edge
 an open chain end, joined to another only across a gap by distance (``chain._repair``), and a noisy soup's loops
 then double back or stay open. PrusaSlicer's loader (admesh's ``stl_check_facets_nearby``) joins them on the mesh
 instead; so does this module:
@@ -23,8 +23,10 @@ instead; so does this module:
   no facet is lost, and those sides stay open.
 
 Sides of clearly different lengths are not joined, nor edges already shared by two or more facets, nor the sides of
-a hole wider than a quarter of its edges (an open scan's holes stay open; chaining joins the ends of its loops
-across them). Meshes without an open edge are returned as they are, at the cost of one test of their edge counts.
+a hole wider than a quarter of its edges or than the slicer's ``join_edges`` (0.01 mm by default: wider gaps are
+holes, filled by :mod:`gpuslice.mesh.holes`; at 2 mm a cup without its 0.8 mm rim face had its inner and outer rims
+zipped together and its walls tilted, a review). Meshes without an open edge are returned as they are, at the cost
+of one test of their edge counts.
 """
 
 from __future__ import annotations
