@@ -250,4 +250,5 @@ def run_checks(result, spec=None, settings=None, *, options: CheckOptions | None
     return CheckReport(islands, cavities, peel["area"], peel["max_area"], peel["max_area_layer"],
                        peel["print_time_s"], peel["resin_ml"], peel["resin_g"], peel["resin_density"],
                        "pixels" if spec is not None else "contours", tol, display, np.asarray(result.z), timings,
-                       int(open_.sum()), int(np.unique(np.asarray(result.loop_layer)[open_]).size))
+                       int(open_.sum()), int(np.unique(np.asarray(result.loop_layer)[open_]).size),
+                       int(result.meta.get("repairs", {}).get("filled_holes", 0)))

@@ -50,7 +50,8 @@ class CheckReport:
     (``islands``, then ``cavities``: on the contours the cavities run alongside the islands, on a thread of their
     own, and their time is what is left to wait for once the islands are done).
     open_chains, open_chain_layers : the result's chains left open and the layers they are in (a broken mesh: they
-    bound no area, so no island, overhang, trap or cup is found along them).
+    bound no area, so no island, overhang, trap or cup is found along them). filled_holes : the mesh's holes closed by
+    fans of facets before slicing (:mod:`gpuslice.mesh.holes`): the checks are of the filled mesh.
     """
 
     islands: Islands
@@ -70,6 +71,8 @@ class CheckReport:
     #: chains left open (a broken mesh): they bound nothing, so nothing is checked along them
     open_chains: int = 0
     open_chain_layers: int = 0
+    #: holes filled before slicing (an open mesh): what is checked is the filled one
+    filled_holes: int = 0
 
     @property
     def n_islands(self) -> int:
@@ -100,7 +103,8 @@ class CheckReport:
             "overhang_tolerance_mm": self.overhang_tolerance,
             "trap_grid_mm": cav.grid_mm,
             "counts": {"islands": self.n_islands, "island_layers": int(self.island_layers.size),
-                       "traps": cav.n_traps, "suction_cups": cav.n_cups, "open_chains": self.open_chains},
+                       "traps": cav.n_traps, "suction_cups": cav.n_cups, "open_chains": self.open_chains,
+                       "filled_holes": self.filled_holes},
             "islands": islands,
             "unsupported_area_mm2": [float(v) if np.isfinite(v) else None for v in isl.unsupported],  # None: failed
             "traps": traps,
@@ -128,7 +132,9 @@ class CheckReport:
             f"largest cross-section: {self.max_area:.1f} mm2 at layer {self.max_area_layer}",
             f"print time: {hours_minutes(self.print_time_s)}, resin: {self.resin_ml:.2f} ml, {self.resin_g:.2f} g",
         ] + ([f"not checked: {self.open_chains} open chains in {self.open_chain_layers} layers (a broken mesh: "
-              "they bound nothing)"] if self.open_chains else [])
+              "they bound nothing)"] if self.open_chains else []) + (
+            [f"checked as filled: {self.filled_holes} holes of the mesh closed before slicing (--no-fill-holes: as "
+             "stored)"] if self.filled_holes else [])
 
     def view_data(self) -> dict[str, list]:
         """What the viewer marks: ``islands`` rows [layer, x, y, area, xmin, ymin, xmax, ymax] and ``cavities`` rows

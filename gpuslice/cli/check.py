@@ -69,6 +69,9 @@ def print_report(report, name: str, *, console=None, max_rows: int = MAX_ROWS) -
                   f"(z {z[report.max_area_layer]:.3f} mm)")
     t.add_row("print time", hours_minutes(report.print_time_s))
     t.add_row("resin", f"{report.resin_ml:.2f} ml, {report.resin_g:.2f} g at {report.resin_density:g} g/ml")
+    if report.filled_holes:  # an open mesh: what is checked is the filled one
+        t.add_row("checked as filled", f"[yellow]{report.filled_holes} holes of the mesh closed before slicing "
+                  "(--no-fill-holes: as stored)[/yellow]")
     if report.open_chains:  # a broken mesh: what bounds nothing is not checked (it read as a clean bill)
         t.add_row("not checked", f"[yellow]{report.open_chains} open chains in {report.open_chain_layers} layers: "
                   "they bound nothing (a broken mesh)[/yellow]")

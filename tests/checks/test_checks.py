@@ -766,6 +766,23 @@ def test_open_chains_are_said_not_checked(tmp_path, capsys):
     assert _check(res).open_chains == 0 and not any("not checked" in line for line in _check(res).lines())
 
 
+def test_a_filled_mesh_is_said_checked_as_filled(tmp_path, capsys):
+    """The same open box with its hole filled (the default): checked closed, and the table, the lines and the JSON
+    say the holes were filled first (a review: the check no longer said the mesh was open)."""
+    from gpuslice.mesh import shapes
+
+    tri = shapes.box((0, 0, 0), (10, 10, 10))
+    stl = tmp_path / "open.stl"
+    shapes.write_stl(tri[~np.all(np.isclose(tri[:, :, 0], 0.0), axis=1)], stl)
+    report = tmp_path / "r.json"
+    assert main(["check", str(stl), "-t", "1", "--json", str(report)]) == 0
+    out = capsys.readouterr().out
+    counts = json.loads(report.read_text())["counts"]
+    assert counts["filled_holes"] == 1 and counts["open_chains"] == 0 and "checked as filled" in out
+    rep = _check(_slice(floating_box()))
+    assert rep.filled_holes == 0 and not any("filled" in line for line in rep.lines())
+
+
 def test_pipeline_stage_and_timing(tmp_path):
     from gpuslice.pipeline import CheckOutput, Job, run_job
 
