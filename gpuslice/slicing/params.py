@@ -54,9 +54,9 @@ class SliceParams:
                             "positive, so an inside-out shell is empty)", choices=FILL_RULES)
     max_gap: float = option(2.0, "Join open chain ends closer than this (0: never); chains left open are not filled",
                             unit="mm")
-    join_edges: float = option(0.01, "Before slicing, join each open mesh edge to a nearby open edge whose corners "
-                               "lie within this distance and a quarter of the edge's length (a triangle soup, edges "
-                               "an exporter did not weld; 0: never)", unit="mm")
+    join_edges: float = option(0.01, "Before slicing, join each open mesh edge to one whose corners lie closer than "
+                               "this (0: never) and within a quarter of the edge's length: a triangle soup's edges, "
+                               "edges an exporter did not weld", unit="mm")
     fill_holes: bool = option(True, "Before slicing, close each loop of open mesh edges (a hole: an open scan's, a "
                               "missing facet) with a fan of facets, as PrusaSlicer's loader does", negatable=True)
     backend: str = option("opencl", "The OpenCL kernels, or their numpy reference twins", choices=BACKENDS)
