@@ -12,14 +12,16 @@ fills them on the mesh, before any crossing is cut:
   open sides fall into loops, the holes' rims;
 * a side that cannot be linked (a vertex where more sides arrive than leave: a facet flipped beside the hole) ends a
   path; sides on paths are left open (chaining joins their chains across gaps, as before);
-* each loop is closed by a fan from its corner ``v0`` that comes first by (x, y, z) (so the fan does not depend on
-  the order or the winding of the facets): the facet ``(v0, b, a)`` for every side ``a -> b`` of the loop that does
-  not touch ``v0``, where the rim's vector area is at least :data:`FLAT_SHARE` of the fan's facet area (else the fan
-  folds over itself, and the loop is left open: a crack, or a seam of failed joins in a soup that follows a curve,
-  whose fans on a benchy soup added up to 860 mm² of facets, up to 79 mm² each). Each new facet runs against its rim
-  side and against its fan neighbours,
-  so the filled shell is wound as the rim is; the fan of a planar rim covers the hole exactly (its facets' signed
-  areas add up to the rim polygon's, whatever its shape), a warped rim gets the surface of the fan.
+* each loop is closed by a fan from its corner ``v0`` whose fan has the least facet area (every corner of a loop of
+  up to :data:`FAN_SEARCH` sides tried; larger loops, and ties, the corner that comes first by (x, y, z): so the fan
+  does not depend on the order or the winding of the facets): the facet ``(v0, b, a)`` for every side ``a -> b`` of
+  the loop that does not touch ``v0``, where the rim's vector area is at least :data:`FLAT_SHARE` of the fan's facet
+  area (else the fan folds over itself, and the loop is left open: a crack, or a seam of failed joins in a soup that
+  follows a curve, whose fans on a benchy soup added up to 860 mm² of facets, up to 79 mm² each). Each new facet runs
+  against its rim side and against its fan neighbours, so the filled shell is wound as the rim is; the fan of a
+  planar rim covers the hole exactly (its facets' signed areas add up to the rim polygon's, whatever its shape), a
+  warped rim gets the surface of the fan (the least-area fan: the bunny's warped hole within 1.3e-3 of Slic3r's fill
+  in every layer, where the lowest corner's fan was 1.2 % off in 15 layers).
 
 Holes no wider than chaining's ``max_gap`` across the layers (the diagonal of the rim's x, y box) are left to it: it
 closes their gaps in every layer exactly (a slit 1.3 mm wide along a sphere's wall: a fan across its curved length
@@ -36,6 +38,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from ..ragged import expand_ranges
 from .graph import connected_labels
 from .mesh import Mesh
 from .weld import edge_table_numpy
@@ -58,6 +61,9 @@ FAILED_SIDES = 64
 #: a loop is filled only where its rim's vector area is at least this share of its fan's total facet area: below, the
 #: fan folds over itself (a seam of failed joins that runs along a curve, a crack), and it is left open
 FLAT_SHARE = 0.3
+#: loops of up to this many sides get the fan of least area (every corner tried: n^2 facets' areas); larger ones the
+#: fan from their lowest corner
+FAN_SEARCH = 512
 
 
 def filled_holes(mesh: Mesh, min_size: float = 0.0, joined: int = 0) -> tuple[Mesh, int]:
@@ -81,18 +87,14 @@ def filled_holes(mesh: Mesh, min_size: float = 0.0, joined: int = 0) -> tuple[Me
         return mesh, 0
     idx = np.flatnonzero(on_loop)
     label = connected_labels(s.size, idx, nxt[idx])  # each loop labelled with its smallest side
-    # each loop's fan from its lowest corner by (x, y, z): the same fan whatever the facets' order or winding
-    p = mesh.vertices[a[idx]]
-    o = idx[np.lexsort((p[:, 2], p[:, 1], p[:, 0], label[idx]))]
-    lead = np.ones(o.size, dtype=bool)
-    lead[1:] = label[o][1:] != label[o][:-1]
-    start = np.full(s.size, -1, dtype=np.int64)
-    start[label[o][lead]] = a[o][lead]
-    v0 = start[label]
-    # each loop's rim vector area against its fan's facet area (float64)
     v = mesh.vertices.astype(np.float64)
     pa, pb = v[a[idx]], v[b[idx]]
     loop, at = np.unique(label[idx], return_inverse=True)
+    # each loop's fan from the corner whose fan has the least area (the lowest by (x, y, z) among equals): the same
+    # fan whatever the facets' order or winding
+    v0 = np.full(s.size, -1, dtype=np.int64)
+    v0[idx] = a[idx][_fan_corners(pa, pb, at, loop.size)][at]
+    # each loop's rim vector area against its fan's facet area
     rim = np.zeros((loop.size, 3))
     np.add.at(rim, at, 0.5 * np.cross(pa, pb))
     q = v[v0[idx]]
@@ -119,6 +121,29 @@ def filled_holes(mesh: Mesh, min_size: float = 0.0, joined: int = 0) -> tuple[Me
     if mesh.device is not None:
         out._cache["device"] = mesh.device
     return out, int(np.count_nonzero(flat & (fan_area > 0)))
+
+
+def _fan_corners(pa: np.ndarray, pb: np.ndarray, at: np.ndarray, n_loops: int) -> np.ndarray:
+    """For each of ``n_loops`` loops (its sides ``pa[i] -> pb[i]`` with ``at[i]`` its loop), the side whose start
+    corner makes the fan of least facet area (up to :data:`FAN_SEARCH` sides a loop: every corner tried; larger
+    loops, and ties, the lowest corner by (x, y, z)). Returns (n_loops,) side indices."""
+    order = np.lexsort((pa[:, 2], pa[:, 1], pa[:, 0], at))  # sides by loop, lowest corner first
+    cnt = np.bincount(at, minlength=n_loops)
+    first = np.cumsum(cnt) - cnt
+    best = order[first]
+    small = np.flatnonzero((cnt <= FAN_SEARCH) & (cnt > 3))
+    if small.size:
+        cand_of, cand = expand_ranges(first[small], cnt[small])  # every corner of every small loop ...
+        pair_of, side = expand_ranges(first[small][cand_of], cnt[small][cand_of])  # ... against each side of it
+        c, s = order[cand][pair_of], order[side]
+        q = pa[c]
+        area = np.bincount(pair_of, 0.5 * np.linalg.norm(np.cross(pb[s] - q, pa[s] - q), axis=1),
+                           minlength=cand.size)
+        pick = np.lexsort((cand, area, cand_of))  # least area, then the lowest corner (cand is in that order)
+        lead = np.ones(pick.size, dtype=bool)
+        lead[1:] = cand_of[pick][1:] != cand_of[pick][:-1]
+        best[small] = order[cand[pick[lead]]]
+    return best
 
 
 def _linked(a: np.ndarray, b: np.ndarray) -> np.ndarray:
