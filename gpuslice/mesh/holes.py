@@ -64,6 +64,9 @@ FLAT_SHARE = 0.3
 #: loops of up to this many sides get the fan of least area (every corner tried: n^2 facets' areas); larger ones the
 #: fan from their lowest corner
 FAN_SEARCH = 512
+#: ... and up to this many (corner, side) pairs in all, smallest loops first (bounded memory: a scan with a thousand
+#: holes of 500 sides would need 250 million), the rest from their lowest corner
+FAN_WORK = 1 << 22
 
 
 def filled_holes(mesh: Mesh, min_size: float = 0.0, joined: int = 0) -> tuple[Mesh, int]:
@@ -125,13 +128,16 @@ def filled_holes(mesh: Mesh, min_size: float = 0.0, joined: int = 0) -> tuple[Me
 
 def _fan_corners(pa: np.ndarray, pb: np.ndarray, at: np.ndarray, n_loops: int) -> np.ndarray:
     """For each of ``n_loops`` loops (its sides ``pa[i] -> pb[i]`` with ``at[i]`` its loop), the side whose start
-    corner makes the fan of least facet area (up to :data:`FAN_SEARCH` sides a loop: every corner tried; larger
-    loops, and ties, the lowest corner by (x, y, z)). Returns (n_loops,) side indices."""
+    corner makes the fan of least facet area (up to :data:`FAN_SEARCH` sides a loop, and :data:`FAN_WORK` pairs in
+    all: every corner tried; larger loops, and ties, the lowest corner by (x, y, z)). Returns (n_loops,) side
+    indices."""
     order = np.lexsort((pa[:, 2], pa[:, 1], pa[:, 0], at))  # sides by loop, lowest corner first
     cnt = np.bincount(at, minlength=n_loops)
     first = np.cumsum(cnt) - cnt
     best = order[first]
     small = np.flatnonzero((cnt <= FAN_SEARCH) & (cnt > 3))
+    small = small[np.argsort(cnt[small], kind="stable")]
+    small = np.sort(small[np.cumsum(cnt[small] ** 2) <= FAN_WORK])
     if small.size:
         cand_of, cand = expand_ranges(first[small], cnt[small])  # every corner of every small loop ...
         pair_of, side = expand_ranges(first[small][cand_of], cnt[small][cand_of])  # ... against each side of it

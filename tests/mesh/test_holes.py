@@ -143,3 +143,23 @@ def test_holes_that_touch_at_a_vertex_are_filled():
     # the loop's lowest corner it spanned both facets' planes, 5.3e-4 off)
     np.testing.assert_allclose(got.area, slice_mesh(closed, z=z).area, rtol=1e-9)
     assert not slice_mesh(mesh_from_triangles(tri), z=z, max_gap=0.0, fill_holes=False).loop_closed.all()
+
+
+def test_the_least_area_search_is_bounded(monkeypatch):
+    """Loops past the pairs' budget (FAN_WORK, smallest loops first) get the fan from their lowest corner: a planar
+    hole is filled exactly either way, and no more (corner, side) pairs than the budget are made."""
+    from gpuslice.mesh import holes
+
+    made = []
+    real = holes.expand_ranges
+
+    def counting(starts, counts):
+        out = real(starts, counts)
+        made.append(out[0].size)
+        return out
+
+    monkeypatch.setattr(holes, "expand_ranges", counting)
+    monkeypatch.setattr(holes, "FAN_WORK", 40)  # (the cylinder's 32-sided cap: 1,024 pairs, over the budget)
+    tri = _on_its_side(S.cylinder(radius=8.0, height=30.0, n=32))
+    filled, n = filled_holes(mesh_from_triangles(_without_cap(tri)))
+    assert n == 1 and (filled.edge_sides().count == 2).all() and max(made, default=0) <= 40
