@@ -34,14 +34,12 @@ surface model is left to chaining. No vertex is added or moved. Meshes without a
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import numpy as np
 
-from ..ragged import expand_ranges
+from ..ragged import expand_ranges, group_ranks
 from .graph import connected_labels
-from .mesh import Mesh
-from .weld import edge_table_numpy
+from .mesh import Mesh, with_faces
 
 __all__ = ["filled_holes", "OPEN_SHARE"]
 
@@ -114,16 +112,10 @@ def filled_holes(mesh: Mesh, min_size: float = 0.0, joined: int = 0) -> tuple[Me
     new = np.stack([v0[fan], b[fan], a[fan]], axis=1).astype(np.int32)
     if new.shape[0] == 0:
         return mesh, 0
-    faces = np.ascontiguousarray(np.concatenate([mesh.faces, new]))
-    face_edges, edge_vertices, new_sides = edge_table_numpy(faces, mesh.vertices.shape[0])
     normals = mesh.stored_normals
-    out = replace(mesh, faces=faces, face_edges=face_edges, edge_vertices=edge_vertices,
-                  stored_normals=None if normals is None else np.concatenate(
-                      [normals, np.zeros((new.shape[0], 3), normals.dtype)]))
-    out._cache["edge_sides"] = new_sides
-    if mesh.device is not None:
-        out._cache["device"] = mesh.device
-    return out, int(np.count_nonzero(flat & (fan_area > 0)))
+    out = with_faces(mesh, np.concatenate([mesh.faces, new]), stored_normals=None if normals is None else
+                     np.concatenate([normals, np.zeros((new.shape[0], 3), normals.dtype)]))
+    return out, int(np.count_nonzero(flat))
 
 
 def _fan_corners(pa: np.ndarray, pb: np.ndarray, at: np.ndarray, n_loops: int) -> np.ndarray:
@@ -158,7 +150,7 @@ def _linked(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     n = a.size
     idx = np.arange(n)
     out_o, in_o = np.lexsort((idx, a)), np.lexsort((idx, b))  # leaving and arriving sides, by vertex then index
-    out_rank, in_rank = _rank_in_group(a[out_o]), _rank_in_group(b[in_o])
+    out_rank, in_rank = group_ranks(a[out_o]), group_ranks(b[in_o])
     width = int(max(out_rank.max(), in_rank.max())) + 1
     key_out = a[out_o] * width + out_rank  # (sorted: by vertex, then rank)
     key_in = b[in_o] * width + in_rank
@@ -167,14 +159,6 @@ def _linked(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     nxt = np.full(n, -1, dtype=np.int64)
     nxt[in_o[found]] = out_o[pos[found]]
     return nxt
-
-
-def _rank_in_group(keys: np.ndarray) -> np.ndarray:
-    """For sorted ``keys``, each element's place among the equal ones before it (0, 1, ...)."""
-    start = np.ones(keys.size, dtype=bool)
-    start[1:] = keys[1:] != keys[:-1]
-    first = np.maximum.accumulate(np.where(start, np.arange(keys.size), 0))
-    return np.arange(keys.size) - first
 
 
 def _on_loops(nxt: np.ndarray) -> np.ndarray:

@@ -23,7 +23,7 @@ compared with them (``stored_normal_mismatch``).
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -210,6 +210,19 @@ def _directed_edges_paired(mesh: Mesh) -> bool:
     """True when every edge shared by exactly two facets is used once in each direction (consistent winding)."""
     sides = mesh.edge_sides()
     return bool(np.all(sides.forward[sides.count == 2] == 1))
+
+
+def with_faces(mesh: Mesh, faces: np.ndarray, **changes) -> Mesh:
+    """A copy of ``mesh`` (the same vertices) with other ``faces`` (F, 3) and their edge numbering (host), other
+    fields as ``changes``; its edge sides kept, the device it was welded on too (the slicer's prepared copies:
+    :mod:`gpuslice.mesh.seams`, :mod:`gpuslice.mesh.holes`)."""
+    faces = np.ascontiguousarray(faces, dtype=np.int32)
+    face_edges, edge_vertices, sides = edge_table_numpy(faces, mesh.vertices.shape[0])
+    out = replace(mesh, faces=faces, face_edges=face_edges, edge_vertices=edge_vertices, **changes)
+    out._cache["edge_sides"] = sides
+    if mesh.device is not None:
+        out._cache["device"] = mesh.device
+    return out
 
 
 def count_bodies(mesh: Mesh) -> int:

@@ -31,13 +31,10 @@ of one test of their edge counts.
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 
 from .graph import connected_labels
-from .mesh import Mesh
-from .weld import edge_table_numpy
+from .mesh import Mesh, with_faces
 
 __all__ = ["joined_open_edges", "RELATIVE", "NEIGHBOURS"]
 
@@ -92,13 +89,7 @@ def joined_open_edges(mesh: Mesh, limit: float) -> tuple[Mesh, int]:
     lead[1:] = label[o][1:] != label[o][:-1]
     onto = np.empty(v.shape[0], dtype=np.int64)
     onto[label[o][lead]] = o[lead]
-    new_faces = np.ascontiguousarray(onto[new_faces], dtype=np.int32)
-    face_edges, edge_vertices, new_sides = edge_table_numpy(new_faces, v.shape[0])
-    out = replace(mesh, faces=new_faces, face_edges=face_edges, edge_vertices=edge_vertices)
-    out._cache["edge_sides"] = new_sides
-    if mesh.device is not None:
-        out._cache["device"] = mesh.device
-    return out, int(mi.size)
+    return with_faces(mesh, onto[new_faces]), int(mi.size)
 
 
 def _candidates(mid, pa, pb, length, limit):
