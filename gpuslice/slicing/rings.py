@@ -157,8 +157,11 @@ def _winding_numbers(pc, offsets, pairs_i, pairs_j, q) -> np.ndarray:
 
 
 def _groups(layer, closed, layers, seeds, lo, hi):
-    """(layer, ids) of every suspect layer (``layers``) with a closed loop: the loops the exact rebuild
-    (:mod:`.overlaps`) takes, ascending: those that may share a face with a ``seeds`` loop (:func:`_affected_all`)."""
+    """(layer, ids) of every group of loops the exact rebuild (:mod:`.overlaps`) takes in the suspect layers
+    (``layers``), ascending: those that may share a face with a ``seeds`` loop (:func:`_affected_all`), a group per
+    cluster of them (loops whose boxes meet no other cluster's loop box, e.g. the parts of a plate: what one cluster
+    bounds does not depend on another's, so a cluster the arrangement path cannot take goes to GEOS alone), in order
+    of layer and then of their smallest loop."""
     cand = np.flatnonzero(closed)
     cand = cand[np.argsort(layer[cand], kind="stable")]
     is_seed = np.zeros(layer.size, dtype=bool)
@@ -167,10 +170,13 @@ def _groups(layer, closed, layers, seeds, lo, hi):
     size = bounds[1] - bounds[0]
     owner, at = expand_ranges(bounds[0], size)  # every candidate of every suspect layer (g: its layer's place)
     x = cand[at]
-    take = _affected_all(owner, lo[x], hi[x], is_seed[x], size)
-    kept = np.bincount(owner[take], minlength=layers.size)
-    parts = np.split(x[take], np.cumsum(kept)[:-1])
-    return [(lay, ids) for lay, ids, n in zip(layers.tolist(), parts, size.tolist(), strict=True) if n]
+    take, label = _affected_all(owner, lo[x], hi[x], is_seed[x], size, with_label=True)
+    ids, label = x[take], label[take]  # (in order of layer, then id: a label is its cluster's first place)
+    o = np.argsort(label, kind="stable")
+    ids, label = ids[o], label[o]
+    cut = np.flatnonzero(label[1:] != label[:-1]) + 1
+    parts = np.split(ids, cut)
+    return [(int(layer[p[0]]), p) for p in parts if p.size]
 
 
 #: pairs of loops whose boxes are compared at once (memory: ~80 bytes a pair in flight)
@@ -199,13 +205,16 @@ def _meeting_pairs(g, first, size, lo, hi) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(ii), np.concatenate(jj)
 
 
-def _affected_all(g, lo, hi, seed, size):
+def _affected_all(g, lo, hi, seed, size, with_label=False):
     """Which loops (``g``: layer place of each, sorted; ``size``: loops per layer; boxes ``lo``, ``hi``) can share
     a face of their layer's arrangement with the ``seed`` loops (those that cross): per layer, the groups of loops
     joined by overlapping boxes that hold a seed, grown by every loop whose box meets a group's hull box until none
     does (all layers at once). A loop left out has a box apart from each group's hull, so no face of the group's
     arrangement (inside that hull) lies inside it or around it: its classification and the group's region do not
-    depend on each other. Layers of more than 4000 loops, or without a seed: all their loops."""
+    depend on each other. Layers of more than 4000 loops, or without a seed: all their loops. Returns the (n,) mask
+    of the loops taken; ``with_label``: and each one's cluster, the smallest place among its loops (the loops of a
+    layer taken whole: one cluster, its layer's first place), so that two clusters' loops' boxes never meet and the
+    labels ascend with the layers."""
     n = g.size
     first = np.cumsum(size) - size
     whole = (size > 4000) | (np.bincount(g, weights=seed, minlength=size.size) == 0)  # all loops, untested
@@ -226,6 +235,8 @@ def _affected_all(g, lo, hi, seed, size):
         touch = np.all((g_lo[gi] <= hi[gx]) & (lo[gx] <= g_hi[gi]), axis=1) & (label[gx] != gi)
         touch &= ~all_in[gx]
         if not touch.any():
+            if with_label:
+                return member | all_in, np.where(all_in, first[g], label)
             return member | all_in
         t, k = gx[touch], gi[touch]  # joined to the group's smallest index
         ii, jj = np.concatenate([ii, t, k]), np.concatenate([jj, k, t])

@@ -221,7 +221,7 @@ def affected_one_layer(lo: np.ndarray, hi: np.ndarray, seed: np.ndarray) -> np.n
 
 def test_affected_all_matches_layer_by_layer():
     rng = np.random.default_rng(7)
-    grew = 0
+    grew = clusters = 0
     for _ in range(400):
         sizes = rng.integers(0, 9, rng.integers(1, 6))
         g = np.repeat(np.arange(sizes.size), sizes)
@@ -234,7 +234,18 @@ def test_affected_all_matches_layer_by_layer():
                 for f, s in zip(first, sizes, strict=True)]
         np.testing.assert_array_equal(got, np.concatenate(want))
         grew += int(0 < got.sum() < got.size)
+        # clusters: the same loops, labelled in layer order; two loops of a layer in different clusters never have
+        # meeting boxes (so each cluster is rebuilt alone)
+        taken, label = _affected_all(g, lo, hi, seed, sizes, with_label=True)
+        np.testing.assert_array_equal(taken, got)
+        t = np.flatnonzero(taken)
+        assert np.all(np.diff(g[t][np.argsort(label[t], kind="stable")]) >= 0)
+        i, j = np.meshgrid(t, t, indexing="ij")
+        meet = np.all((lo[i] <= hi[j]) & (lo[j] <= hi[i]), axis=2) & (g[i] == g[j])
+        assert not np.any(meet & (label[i] != label[j]))
+        clusters += int(np.unique(label[t]).size > np.unique(g[t]).size)
     assert grew > 50  # the cases where only some loops are taken are well represented
+    assert clusters > 20  # and those where a layer's taken loops form several clusters
 
 
 def test_winding_numbers_match_edge_by_edge():
