@@ -8,6 +8,9 @@ from __future__ import annotations
 import subprocess
 import sys
 import textwrap
+import time
+
+import pytest
 
 CHILD = textwrap.dedent("""
     import os, signal, threading, time
@@ -27,3 +30,67 @@ def test_a_sigterm_another_thread_takes_ends_a_blocked_worker():
     p = subprocess.run([sys.executable, "-c", CHILD], capture_output=True, text=True, timeout=60)
     assert p.returncode == 143, (p.returncode, p.stderr[-500:])
     assert "read returned" not in p.stdout
+
+
+# A worker between models whose SIGTERM's ``SystemExit`` the pool's own code takes for a result to send back (as
+# ``concurrent.futures.process._sendback_result`` does): it went back to waiting for a task, SIGTERM ignored from then
+# on, and lived on holding the caller's pipes (one group SIGTERM in about 12 on a loaded machine).
+SWALLOWED = textwrap.dedent("""
+    import os, signal, threading, time
+    from gpuslice.batch import task
+
+    task.init_worker(backend="numpy")
+    {setup}
+    r, w = os.pipe()
+    threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGTERM)).start()
+    for _ in range(2):
+        try:
+            os.read(r, 1)  # (blocked, as an idle worker on its task queue)
+        except BaseException as exc:  # (taken for a result, as the pool's code does)
+            print("swallowed", type(exc).__name__, flush=True)
+    print("read returned", flush=True)
+""")
+
+
+def test_a_sigterm_between_models_ends_the_worker_at_once():
+    p = subprocess.run([sys.executable, "-c", SWALLOWED.format(setup="")], capture_output=True, text=True, timeout=60)
+    assert p.returncode == 143, (p.returncode, p.stdout, p.stderr[-500:])
+    assert "swallowed" not in p.stdout and "read returned" not in p.stdout
+
+
+def test_a_worker_whose_unwinding_is_swallowed_ends_after_the_grace():
+    """Mid-model (``in_model``) SIGTERM unwinds; should code outside the model take that ``SystemExit``, the watching
+    thread ends the worker :data:`~gpuslice.batch.task.STOP_GRACE` s later."""
+    setup = 'task._WORKER["in_model"] = True; task.STOP_GRACE = 1.0'
+    t = time.monotonic()
+    p = subprocess.run([sys.executable, "-c", SWALLOWED.format(setup=setup)], capture_output=True, text=True,
+                       timeout=60)
+    assert p.returncode == 143, (p.returncode, p.stdout, p.stderr[-500:])
+    assert "swallowed SystemExit" in p.stdout and "read returned" not in p.stdout
+    assert time.monotonic() - t < 30
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a zombie is read from /proc (Linux)")
+def test_a_worker_whose_driver_is_a_zombie_ends():
+    """The driver ended but not yet reaped (its caller reads its pipes to the end first): a worker still in the
+    group took it for alive and waited for its next task for ever."""
+    driver = subprocess.Popen([sys.executable, "-c", "pass"])  # (not waited for: a zombie once it ends)
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        with open(f"/proc/{driver.pid}/stat", "rb") as f:
+            if f.read().rsplit(b")", 1)[1].split()[0] == b"Z":
+                break
+        time.sleep(0.05)
+    child = textwrap.dedent(f"""
+        import os
+        from gpuslice.batch.task import init_worker
+        init_worker(backend="numpy", driver={driver.pid})
+        r, w = os.pipe()
+        os.read(r, 1)
+        print("read returned", flush=True)
+    """)
+    try:
+        p = subprocess.run([sys.executable, "-c", child], capture_output=True, text=True, timeout=60)
+    finally:
+        driver.wait()
+    assert p.returncode == 143, (p.returncode, p.stdout, p.stderr[-500:])
