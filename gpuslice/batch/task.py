@@ -126,13 +126,14 @@ def _terminated(*_) -> None:
     """A worker's SIGTERM handler: the model unwinds (``SystemExit``), once; a worker between models (waiting for
     the next, or handing its last result back) ends at once: there, the pool's own code takes a ``SystemExit`` for a
     result to send back and waits for the next task, SIGTERM ignored from then on (one group SIGTERM in about 12 on
-    a loaded machine left a worker so, holding the caller's pipes). Later SIGTERMs (the driver stops its workers too,
-    a moment after the group's) are ignored: raised again inside the unwinding they cut its cleanup short and printed
-    tracebacks (a review, 6 runs in 70)."""
+    a loaded machine left a worker so, holding the caller's pipes); should the pool's code take the ``SystemExit`` of a
+    model's unwinding so, the watching thread ends the worker once it is out of the model (:func:`_watch_driver`).
+    Later SIGTERMs (the driver stops its workers too, a moment after the group's) are ignored: raised again inside the
+    unwinding they cut its cleanup short and printed tracebacks (a review, 6 runs in 70)."""
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     if not _WORKER.get("in_model"):
         _exit_now()
-    _WORKER["stopping"] = time.monotonic()
+    _WORKER["stopping"] = True
     sys.exit(143)
 
 
@@ -141,11 +142,6 @@ def _exit_now() -> None:
     with contextlib.suppress(Exception):
         sys.stdout.flush()
     os._exit(143)
-
-
-#: s: a worker still running this long after its SIGTERM (its ``SystemExit`` taken for a result by code outside the
-#: model, or a model's unwinding stuck in a long call) is ended by its watching thread
-STOP_GRACE = 5.0
 
 
 def _gone(pid: int) -> bool:
@@ -168,15 +164,14 @@ def _watch_driver(pid: int | None, woken: int, main: int, every: float = 1.0) ->
     """The worker's watching thread: on each SIGTERM the process takes (a byte on the signals' wake-up pipe
     ``woken``), poke the ``main`` thread (SIGUSR1) so that its handler runs there even when that thread is blocked
     in a read; and once the process ``pid`` (the batch's driver) no longer exists (polled every ``every`` seconds),
-    send this worker SIGTERM (its own handling then removes its temporaries and ends it); and end the process
-    :data:`STOP_GRACE` seconds after a SIGTERM it is still running after (:func:`_terminated`)."""
+    send this worker SIGTERM (its own handling then removes its temporaries and ends it); and end the process when
+    it is out of its model after a SIGTERM and still running (:func:`_terminated`)."""
     import select
 
     signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM, signal.SIGUSR1})  # (this thread takes neither)
     while True:
         ready, _, _ = select.select([woken], [], [], every)
-        stopping = _WORKER.get("stopping")
-        if stopping is not None and time.monotonic() - stopping > STOP_GRACE:
+        if _WORKER.get("stopping") and not _WORKER.get("in_model"):  # (a model's unwinding is never cut short)
             _exit_now()
         if ready and signal.SIGTERM in os.read(woken, 256):
             signal.pthread_kill(main, signal.SIGUSR1)
@@ -256,8 +251,8 @@ def run_model(model: Model, opts: BatchOptions, out_root: str | None, data: byte
     if mine and opts.check:
         mine.append(check_path(mine[0]))
     timings: dict[str, float] = {}
-    _WORKER["in_model"] = True  # (a SIGTERM now unwinds the model: _terminated)
     try:
+        _WORKER["in_model"] = True  # (a SIGTERM now unwinds the model: _terminated)
         from ..pipeline import run_job
 
         dev = None
@@ -308,7 +303,8 @@ def run_model(model: Model, opts: BatchOptions, out_root: str | None, data: byte
         if isinstance(exc, SystemExit) and _WORKER.get("local"):  # (a local worker's SIGTERM: the process ends)
             _exit_now()
         raise
-    _WORKER["in_model"] = False
+    finally:
+        _WORKER["in_model"] = False
     timings["total"] = time.perf_counter() - t0
     rec["timings_s"] = timings
     if "distributed" in sys.modules:  # on a Dask worker: its address, so a retry can avoid it

@@ -32,7 +32,8 @@ def beside(fn, *args) -> Future:
 def in_halves(fn, work: np.ndarray, *arrays: np.ndarray) -> np.ndarray:
     """``fn(*arrays)`` for a function of arrays element by element (a shapely predicate or constructor): its first
     half (cut where the cumulative ``work``, e.g. each element's points, reaches half) :func:`beside` the second,
-    concatenated, when the work is large (else, or on the worker thread itself, one call)."""
+    concatenated, when the work is large (else, or on the worker thread itself, one call). When a half raises, the
+    other is waited for and the first half's exception, if any, is raised (the one a single call would raise)."""
     from ..prefetch import current_name
 
     total = np.cumsum(work)
@@ -41,7 +42,13 @@ def in_halves(fn, work: np.ndarray, *arrays: np.ndarray) -> np.ndarray:
         return fn(*arrays)
     half = max(1, min(int(np.searchsorted(total, total[-1] / 2)), n - 1))
     first = beside(fn, *(x[:half] for x in arrays))
-    rest = fn(*(x[half:] for x in arrays))
+    try:
+        rest = fn(*(x[half:] for x in arrays))
+    except BaseException:
+        early = first.exception()  # (waited for: nothing of the call runs on once it has raised)
+        if early is not None:  # the first half's failure, as one call over all the elements would raise it
+            raise early from None
+        raise
     return np.concatenate([first.result(), rest])
 
 

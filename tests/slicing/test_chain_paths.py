@@ -160,6 +160,34 @@ def test_in_halves_splits_once_not_again_on_its_own_thread():
     assert np.array_equal(rings.beside(rings.in_halves, fn, work, x).result(10), x * 2) and calls == [100_000]
 
 
+@pytest.mark.parametrize("bad", [(3, 80), (80,), (3,)])
+def test_in_halves_raises_what_one_call_raises_after_both_halves(bad):
+    """A half that raises: the other half is waited for (nothing of the call runs on after it has raised: a review
+    found the first half still at work), and the exception is the one a single call over all the elements raises
+    (the first failing element's)."""
+    import time
+
+    from gpuslice.slicing import rings
+
+    calls, done = [], []
+
+    def fn(x):
+        calls.append(int(x[0]))
+        time.sleep(0.2 if x[0] == 0 else 0.0)  # (the first half, beside, is the slower)
+        for v in bad:
+            if v in x:
+                raise ValueError(f"element {v}")
+        done.append(int(x[0]))
+        return x
+
+    x = np.arange(100)
+    with pytest.raises(ValueError, match=f"^element {bad[0]}$"):
+        rings.in_halves(fn, np.full(x.size, 1_000_000), x)
+    ended = len(calls), len(done)
+    time.sleep(0.3)
+    assert (len(calls), len(done)) == ended and len(calls) == 2
+
+
 @pytest.mark.parametrize("n_squares", [5, 90])  # few reversed loops (turned after the run copy), many (a gather)
 def test_nesting_turns_clockwise_outer_loops(n_squares):
     """Separate squares in one layer, every other one clockwise: each comes out counter-clockwise as an outer loop,
