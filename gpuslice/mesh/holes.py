@@ -88,8 +88,8 @@ def filled_holes(mesh: Mesh, min_size: float = 0.0, joined: int = 0) -> tuple[Me
         return mesh, 0
     idx = np.flatnonzero(on_loop)
     label = connected_labels(s.size, idx, nxt[idx])  # each loop labelled with its smallest side
-    v = mesh.vertices.astype(np.float64)
-    pa, pb = v[a[idx]], v[b[idx]]
+    v = mesh.vertices  # (only the rims' corners in float64, not every vertex)
+    pa, pb = v[a[idx]].astype(np.float64), v[b[idx]].astype(np.float64)
     loop, at = np.unique(label[idx], return_inverse=True)
     # each loop's fan from the corner whose fan has the least area (the lowest by (x, y, z) among equals): the same
     # fan whatever the facets' order or winding
@@ -98,7 +98,7 @@ def filled_holes(mesh: Mesh, min_size: float = 0.0, joined: int = 0) -> tuple[Me
     # each loop's rim vector area against its fan's facet area
     rim = np.zeros((loop.size, 3))
     np.add.at(rim, at, 0.5 * np.cross(pa, pb))
-    q = v[v0[idx]]
+    q = v[v0[idx]].astype(np.float64)
     fan_area = np.bincount(at, 0.5 * np.linalg.norm(np.cross(pb - q, pa - q), axis=1), minlength=loop.size)
     flat = (np.linalg.norm(rim, axis=1) >= FLAT_SHARE * fan_area) & (fan_area > 0)
     # the rim's extent across the layers (its x, y box): no wider than max_gap, every layer's gap is one chaining closes

@@ -58,8 +58,8 @@ def joined_open_edges(mesh: Mesh, limit: float) -> tuple[Mesh, int]:
     f, k = s // 3, s % 3
     faces = mesh.faces
     a, b = faces[f, k].astype(np.int64), faces[f, (k + 1) % 3].astype(np.int64)
-    v = mesh.vertices.astype(np.float64)
-    pa, pb = v[a], v[b]
+    v = mesh.vertices  # (only the open sides' corners in float64, not every vertex)
+    pa, pb = v[a].astype(np.float64), v[b].astype(np.float64)
     length = np.linalg.norm(pb - pa, axis=1)
     mid = 0.5 * (pa + pb)
     i, j, cost, same = _candidates(mid, pa, pb, length, limit)
