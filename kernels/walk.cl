@@ -21,14 +21,25 @@ void edge_ranges(__global const int *vub, __global const int *edge_vertices, con
     count[e] = max(a, b) - min(a, b);
 }
 
+// Each layer's segment list is filled in LAYER_SPLIT parts, one per stripe of work-groups (segment s is in stripe
+// (s / LOCAL_SIZE) % LAYER_SPLIT), each part counted by its own counter: work-groups that run at the same time
+// (neighbouring facets, so the same layers) then count on different counters. One counter a layer, which every
+// core incremented, cost 4x the rest of the linking on PoCL (the cores fought over its cache line).
+#ifndef LAYER_SPLIT
+#define LAYER_SPLIT 16
+#endif
+
+inline int stripe_of(const int s) { return (s / LOCAL_SIZE) % LAYER_SPLIT; }
+
 // Per segment: its start and end slot; record the segment starting at each slot and count the segments ending
-// there (a second start or end at one slot sets `conflict`: the driver then pairs on the host); with
-// `count_layers`, count the segments per layer (else the driver knows the counts: one atomic less per segment).
+// there (a second start or end at one slot sets `conflict`: the driver then pairs on the host); count it in its
+// layer's part (part_count[stripe * n_layers + layer]) and keep its rank there in `rank` (the driver passes the
+// buffer that link_segments then fills with the successors: each reads its own entry before overwriting it).
 __kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
 void place_segments(__global const int *seg_layer, __global const int2 *seg_edges, const int n_segments,
                     __global const int *k0, __global const int *edge_off,
                     __global int *starter, __global int *n_enders, __global int *end_slot,
-                    __global int *layer_count, __global int *conflict, const int count_layers) {
+                    __global int *part_count, const int n_layers, __global int *rank, __global int *conflict) {
     const int s = get_global_id(0);
     if (s >= n_segments) return;
     const int k = seg_layer[s];
@@ -38,23 +49,43 @@ void place_segments(__global const int *seg_layer, __global const int2 *seg_edge
     end_slot[s] = b;
     if (atomic_xchg(&starter[a], s) != -1) atomic_or(conflict, 1);
     if (atomic_inc(&n_enders[b]) != 0) atomic_or(conflict, 1);
-    if (count_layers) atomic_inc(&layer_count[k]);
+    rank[s] = atomic_inc(&part_count[stripe_of(s) * n_layers + k]);
 }
 
-// Per segment: its successor and its place in its layer's list. A segment without successor (an open chain: the
-// driver repairs those on the host) or a layer with more segments than its range holds (the driver's counts were
-// wrong) sets `conflict`; without either, every chain is a closed loop (no slot has two starts or two ends).
+// Per layer: its parts' counts turned into their first positions within the layer's list (in place), and the
+// layer's total checked against layer_off (its counts came from the driver: wrong ones set `conflict`). With
+// `totals`, the layer's total is also written there (the driver's count when it did not know them).
+__kernel
+void part_starts(__global int *part_count, const int n_layers, __global const long *layer_off,
+                 __global int *totals, const int write_totals, __global int *conflict) {
+    const int k = get_global_id(0);
+    if (k >= n_layers) return;
+    int acc = 0;
+    for (int p = 0; p < LAYER_SPLIT; ++p) {
+        const int c = part_count[p * n_layers + k];
+        part_count[p * n_layers + k] = acc;
+        acc += c;
+    }
+    if (write_totals) totals[k] = acc;
+    else if (acc != layer_off[k + 1] - layer_off[k]) atomic_or(conflict, 2);
+}
+
+// Per segment: its successor and its place in its layer's list (its part's start plus its rank there: no atomics).
+// A segment without successor (an open chain: the driver repairs those on the host) sets `conflict`; without
+// that (or wrong layer counts), every chain is a closed loop (no slot has two starts or two ends). `next` holds the
+// segments' ranks from place_segments on entry.
 __kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
 void link_segments(__global const int *seg_layer, __global const int *end_slot, const int n_segments,
-                   __global const int *starter, __global const long *layer_off, __global int *layer_fill,
-                   __global int *next, __global int *perm, __global int *conflict) {
+                   __global const int *starter, __global const long *layer_off, __global const int *part_start,
+                   const int n_layers, __global int *next, __global int *perm, __global int *conflict) {
     const int s = get_global_id(0);
     if (s >= n_segments) return;
     const int t = starter[end_slot[s]];
+    const int r = next[s];
     next[s] = t;
     if (t < 0) atomic_or(conflict, 4);
     const int k = seg_layer[s];
-    const long at = layer_off[k] + atomic_inc(&layer_fill[k]);
+    const long at = layer_off[k] + part_start[stripe_of(s) * n_layers + k] + r;
     if (at < layer_off[k + 1]) perm[at] = s;
     else atomic_or(conflict, 2);
 }

@@ -22,6 +22,9 @@ from .rings import move_chains as _move_chains
 
 __all__ = ["ChainKernels", "walk_chains", "chain_kernels", "canonical_chain_order"]
 
+#: parts of each layer's segment list, counted apart (``LAYER_SPLIT`` in ``kernels/walk.cl``; the same value)
+LAYER_SPLIT = 16
+
 
 def layer_lists(layer: np.ndarray, n_layers: int) -> tuple[np.ndarray, np.ndarray]:
     """Segment ids sorted by layer (stable, so increasing within a layer) and the layer offsets (L + 1,)."""
@@ -60,6 +63,7 @@ class ChainKernels(KernelDriver):
         self._edge_ranges = prg.edge_ranges
         self._place = prg.place_segments
         self._link = prg.link_segments
+        self._starts = prg.part_starts
         self._walk = prg.walk_layers
         try:  # absent on devices without float64 (kernels/walk.cl builds it under cl_khr_fp64)
             self._simple = prg.simple_loops
@@ -157,27 +161,32 @@ class ChainKernels(KernelDriver):
         d_enders = self._fill("n_enders", 4 * n_slots, np.int32(0))
         d_end = self._buffer("end_slot", 4 * n)
         known = layer_counts is not None and layer_counts.size == n_layers and int(layer_counts.sum()) == n
-        d_lcount = self._buffer("layer_count", 4 * n_layers) if known else self._fill(
-            "layer_count", 4 * n_layers, np.int32(0))
+        d_parts = self._fill("part_count", 4 * LAYER_SPLIT * n_layers, np.int32(0))
         d_conflict = self._fill("conflict", 4, np.int32(0))
+        d_next = self._buffer("next", 4 * n)  # (the segments' ranks in their layer's part, then their successors)
         grid = self._grid(n)
         self._place(q, *grid, dseg.layer, dseg.edges, np.int32(n), d_k0, d_off, d_starter, d_enders, d_end,
-                    d_lcount, d_conflict, np.int32(not known))
+                    d_parts, np.int32(n_layers), d_next, d_conflict)
         conflict = np.zeros(1, dtype=np.int32)
+        layer_off = np.zeros(n_layers + 1, dtype=np.int64)
         if known:  # the conflict flag is read with the walk's results (the walk skips everything when it is set)
-            lcount = layer_counts
+            np.cumsum(layer_counts, out=layer_off[1:])
+            d_loff = self._put("layer_off", layer_off)
+            self._starts(q, *self._grid(n_layers), d_parts, np.int32(n_layers), d_loff, d_loff, np.int32(0),
+                         d_conflict)
         else:
             lcount = np.empty(n_layers, dtype=np.int32)
-            self._read((conflict, d_conflict), (lcount, d_lcount))
+            d_totals = self._buffer("layer_count", 4 * n_layers)
+            self._starts(q, *self._grid(n_layers), d_parts, np.int32(n_layers), d_totals, d_totals,
+                         np.int32(1), d_conflict)
+            self._read((conflict, d_conflict), (lcount, d_totals))
             if conflict[0]:
                 return None
-        layer_off = np.zeros(n_layers + 1, dtype=np.int64)
-        np.cumsum(lcount, out=layer_off[1:])
-        d_loff = self._put("layer_off", layer_off)
-        d_fill = self._fill("layer_fill", 4 * n_layers, np.int32(0))
-        d_next = self._buffer("next", 4 * n)
+            np.cumsum(lcount, out=layer_off[1:])
+            d_loff = self._put("layer_off", layer_off)
         d_perm = self._buffer("perm", 4 * n)
-        self._link(q, *grid, dseg.layer, d_end, np.int32(n), d_starter, d_loff, d_fill, d_next, d_perm, d_conflict)
+        self._link(q, *grid, dseg.layer, d_end, np.int32(n), d_starter, d_loff, d_parts, np.int32(n_layers), d_next,
+                   d_perm, d_conflict)
         # (kept: a pyopencl transfer event waits for its transfer when dropped)
         read_conflict = cl.enqueue_copy(q, conflict, d_conflict, is_blocking=False)
         # (every chain closed, so the walk reads no predecessor flags: the list stands in for them)
