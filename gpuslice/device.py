@@ -37,6 +37,10 @@ __all__ = ["Device", "KernelDriver", "aligned_empty", "drained", "input_buffer",
 
 ENV_VAR = "GPUSLICE_DEVICE"
 
+#: Counters that neighbouring work-groups would share are kept this many times, one per stripe of work-groups
+#: (``kernels/_stripes.cl``; a build option of every kernel)
+STRIPES = 16
+
 
 @dataclass(eq=False)
 class Device:
@@ -370,7 +374,8 @@ def _build(dev: Device, local_size: int):
 
     files = sorted(p for p in resources.files("gpuslice.kernels").iterdir() if p.name.endswith(".cl"))
     source = "\n".join(f"// ---- {p.name}\n{p.read_text()}" for p in files)
-    options = [f"-DLOCAL_SIZE={local_size}", "-cl-std=CL1.2", "-cl-fp32-correctly-rounded-divide-sqrt"]
+    options = [f"-DLOCAL_SIZE={local_size}", f"-DSTRIPES={STRIPES}", "-cl-std=CL1.2",
+               "-cl-fp32-correctly-rounded-divide-sqrt"]
     path = None if _cache_off() else _cache_path(dev, source, options)
     binary = _cached_binary(path) if path is not None else None
     if binary is not None:

@@ -21,16 +21,8 @@ void edge_ranges(__global const int *vub, __global const int *edge_vertices, con
     count[e] = max(a, b) - min(a, b);
 }
 
-// Each layer's segment list is filled in LAYER_SPLIT parts, one per stripe of work-groups (segment s is in stripe
-// (s / LOCAL_SIZE) % LAYER_SPLIT), each part counted by its own counter: work-groups that run at the same time
-// (neighbouring facets, so the same layers) then count on different counters. One counter a layer, which every
-// core incremented, cost 4x the rest of the linking on PoCL (the cores fought over its cache line).
-#ifndef LAYER_SPLIT
-#define LAYER_SPLIT 16
-#endif
-
-inline int stripe_of(const int s) { return (s / LOCAL_SIZE) % LAYER_SPLIT; }
-
+// Each layer's segment list is filled in STRIPES parts (_stripes.cl), segment s in part stripe_of(s), each part
+// counted by its own counter.
 // Per segment: its start and end slot; record the segment starting at each slot and count the segments ending
 // there (a second start or end at one slot sets `conflict`: the driver then pairs on the host); count it in its
 // layer's part (part_count[stripe * n_layers + layer]) and keep its rank there in `rank` (the driver passes the
@@ -61,7 +53,7 @@ void part_starts(__global int *part_count, const int n_layers, __global const lo
     const int k = get_global_id(0);
     if (k >= n_layers) return;
     int acc = 0;
-    for (int p = 0; p < LAYER_SPLIT; ++p) {
+    for (int p = 0; p < STRIPES; ++p) {
         const int c = part_count[p * n_layers + k];
         part_count[p * n_layers + k] = acc;
         acc += c;

@@ -54,7 +54,7 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from ..device import KernelDriver
+from ..device import STRIPES, KernelDriver
 from ..slicing.crossings import DeviceSegments, Segments
 from .edges import LayerEdges, box_tiles, iter_layer_edges, merge_tiles, splice_layers
 from .spec import RasterSpec
@@ -281,19 +281,24 @@ class SegmentEdgesKernel(KernelDriver):
         return tuple(m[j].view(cl.cltypes.double4)[0] for j in (0, 1))
 
     def _bounds_pass(self, seg: DeviceSegments, n_planes: int, k: int, au, av):
-        """segment_bounds: (box (P, 4) int32, count (L,) int32, short (L,) int32) of the planes and layers."""
+        """segment_bounds: (box (P, 4) int32, count (S, G) int32, short (G,) int32) of the planes, and per stripe of
+        work-groups (``STRIPES``) and group of ``k`` planes; each segment's rank in its stripe's count stays on the
+        device (``rank``) for the scatter."""
         q, n, groups = self.device.queue, seg.n, n_planes // k
-        box = np.empty((n_planes, 4), np.int32)
-        box[:, 0::2], box[:, 1::2] = _BIG, -_BIG - 1
+        box = np.empty((STRIPES, n_planes, 4), np.int32)
+        box[..., 0::2], box[..., 1::2] = _BIG, -_BIG - 1
         b_box = self._put("box", box)
-        b_count = self._fill("count", 4 * max(groups, 1), np.int32(0))
+        b_count = self._fill("count", 4 * max(STRIPES * groups, 1), np.int32(0))
         b_short = self._fill("short", 4 * max(groups, 1), np.int32(0))
-        count, short = np.zeros(groups, np.int32), np.zeros(groups, np.int32)
+        count, short = np.zeros((STRIPES, groups), np.int32), np.zeros(groups, np.int32)
         if n:
-            self._bounds(q, *self._grid(n), np.int32(n), seg.layer, seg.points, au, av, np.int32(k), b_box, b_count,
-                         b_short)
+            b_rank = self._buffer("rank", 4 * n)
+            self._bounds(q, *self._grid(n), np.int32(n), seg.layer, seg.points, au, av, np.int32(k),
+                         np.int32(n_planes), b_box, b_count, b_short, b_rank)
             self._read((box, b_box), (short, b_short), (count, b_count))
-        return box, count, short
+        joined = np.empty((n_planes, 4), np.int32)
+        joined[:, 0::2], joined[:, 1::2] = box[..., 0::2].min(axis=0), box[..., 1::2].max(axis=0)
+        return joined, count, short
 
     @property
     def available(self) -> bool:
@@ -321,14 +326,17 @@ class SegmentEdgesKernel(KernelDriver):
         grid = self._grid(max(n, 1))
         tiles = _group_tiles(box.astype(np.int64), k, spec)
         offsets = np.zeros(groups + 1, np.int64)
-        np.cumsum(count, out=offsets[1:])
+        np.cumsum(count.sum(axis=0), out=offsets[1:])
         edges = np.empty((n, 4), np.float32)
         if n:
-            first = self._put("first", offsets[:-1].astype(np.int32))
+            # each stripe's first slot in each group: the group's first, then the stripes before it (int32: n fits)
+            first = np.cumsum(count, axis=0, dtype=np.int32)
+            first -= count
+            first += offsets[:-1].astype(np.int32)
+            first = self._put("first", first)
             corner = self._put("corner", np.ascontiguousarray(tiles[:, :2], np.int32))
-            cursor = self._fill("cursor", 4 * max(groups, 1), np.int32(0))
             out = self._buffer("edges", 16 * n)
-            self._scatter(q, *grid, np.int32(n), seg.layer, seg.points, au, av, np.int32(k), first, corner, cursor,
-                          out)
+            self._scatter(q, *grid, np.int32(n), seg.layer, seg.points, au, av, np.int32(k), np.int32(groups), first,
+                          corner, self.buffer("rank"), out)
             cl.enqueue_copy(q, edges, out, is_blocking=True)
         return LayerEdges(edges, offsets, tiles), short.astype(bool)

@@ -17,13 +17,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..device import KernelDriver
+from ..device import STRIPES, KernelDriver
 from .rings import move_chains as _move_chains
 
 __all__ = ["ChainKernels", "walk_chains", "chain_kernels", "canonical_chain_order"]
-
-#: parts of each layer's segment list, counted apart (``LAYER_SPLIT`` in ``kernels/walk.cl``; the same value)
-LAYER_SPLIT = 16
 
 
 def layer_lists(layer: np.ndarray, n_layers: int) -> tuple[np.ndarray, np.ndarray]:
@@ -161,7 +158,7 @@ class ChainKernels(KernelDriver):
         d_enders = self._fill("n_enders", 4 * n_slots, np.int32(0))
         d_end = self._buffer("end_slot", 4 * n)
         known = layer_counts is not None and layer_counts.size == n_layers and int(layer_counts.sum()) == n
-        d_parts = self._fill("part_count", 4 * LAYER_SPLIT * n_layers, np.int32(0))
+        d_parts = self._fill("part_count", 4 * STRIPES * n_layers, np.int32(0))
         d_conflict = self._fill("conflict", 4, np.int32(0))
         d_next = self._buffer("next", 4 * n)  # (the segments' ranks in their layer's part, then their successors)
         grid = self._grid(n)

@@ -209,13 +209,11 @@ def test_nesting_turns_clockwise_outer_loops(n_squares):
 
 
 def test_layer_lists_in_parts_give_the_host_chains(device, monkeypatch):
-    """Each layer's segment list is filled in parts, one per stripe of work-groups (``LAYER_SPLIT``): on a sphere cut
+    """Each layer's segment list is filled in parts, one per stripe of work-groups (``STRIPES``): on a sphere cut
     finely enough that every stripe holds segments of most layers, with the slicer's counts and without them, the
-    device's chains are the host's; the driver sizes its counters with the kernel's own number of parts."""
-    import re
-    from importlib import resources
-
-    from gpuslice.slicing.walk import LAYER_SPLIT, ChainKernels
+    device's chains are the host's."""
+    from gpuslice.device import STRIPES
+    from gpuslice.slicing.walk import ChainKernels
 
     chained_on_device = []
     plain = ChainKernels.chain_on_device
@@ -227,15 +225,13 @@ def test_layer_lists_in_parts_give_the_host_chains(device, monkeypatch):
 
     monkeypatch.setattr(ChainKernels, "chain_on_device", spy)
 
-    source = resources.files("gpuslice.kernels").joinpath("walk.cl").read_text()
-    assert int(re.search(r"#define LAYER_SPLIT (\d+)", source).group(1)) == LAYER_SPLIT
     sphere = mesh_from_triangles(S.uv_sphere(10.0, 96, 192))
     zs = np.linspace(0.05, sphere.height - 0.05, 120).astype(np.float32)
     host = chain_segments(crossings_numpy(sphere, zs), sphere, zs, zs.size)
     lo, count = facet_layer_ranges(sphere, zs)
     n = zs.size + 1
     counts = np.cumsum(np.bincount(lo, minlength=n) - np.bincount(lo + count, minlength=n))[:-1]
-    assert counts.sum() > 8 * LAYER_SPLIT * device.local_size  # (every stripe used several times)
+    assert counts.sum() > 8 * STRIPES * device.local_size  # (every stripe used several times)
     for given in (counts, None):
         dev = chain_segments(compute_crossings(sphere, zs, device, read_back=False), sphere, zs, zs.size,
                              device=device, layer_counts=given)
