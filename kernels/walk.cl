@@ -23,14 +23,15 @@ void edge_ranges(__global const int *vub, __global const int *edge_vertices, con
 
 // Each layer's segment list is filled in STRIPES parts (_stripes.cl), segment s in part stripe_of(s), each part
 // counted by its own counter.
-// Per segment: its start and end slot; record the segment starting at each slot and count the segments ending
-// there (a second start or end at one slot sets `conflict`: the driver then pairs on the host); count it in its
-// layer's part (part_count[stripe * n_layers + layer]) and keep its rank there in `rank` (the driver passes the
-// buffer that link_segments then fills with the successors: each reads its own entry before overwriting it).
+// Per segment: its start and end slot; record the segment starting at each slot (a second start at one slot sets
+// `conflict`: the driver then pairs on the host; a second end at one slot leaves some segment without predecessor,
+// which walk_layers finds); count it in its layer's part (part_count[stripe * n_layers + layer]) and keep its rank
+// there in `rank` (the driver passes the buffer that link_segments then fills with the successors: each reads its
+// own entry before overwriting it).
 __kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
 void place_segments(__global const int *seg_layer, __global const int2 *seg_edges, const int n_segments,
                     __global const int *k0, __global const int *edge_off,
-                    __global int *starter, __global int *n_enders, __global int *end_slot,
+                    __global int *starter, __global int *end_slot,
                     __global int *part_count, const int n_layers, __global int *rank, __global int *conflict) {
     const int s = get_global_id(0);
     if (s >= n_segments) return;
@@ -40,7 +41,6 @@ void place_segments(__global const int *seg_layer, __global const int2 *seg_edge
     const int b = edge_off[e.y] + k - k0[e.y];
     end_slot[s] = b;
     if (atomic_xchg(&starter[a], s) != -1) atomic_or(conflict, 1);
-    if (atomic_inc(&n_enders[b]) != 0) atomic_or(conflict, 1);
     rank[s] = atomic_inc(&part_count[stripe_of(s) * n_layers + k]);
 }
 
@@ -63,9 +63,9 @@ void part_starts(__global int *part_count, const int n_layers, __global const lo
 }
 
 // Per segment: its successor and its place in its layer's list (its part's start plus its rank there: no atomics).
-// A segment without successor (an open chain: the driver repairs those on the host) sets `conflict`; without
-// that (or wrong layer counts), every chain is a closed loop (no slot has two starts or two ends). `next` holds the
-// segments' ranks from place_segments on entry.
+// A segment without successor (an open chain: the driver repairs those on the host) sets `conflict`; without that
+// (or wrong layer counts), every segment has one successor, in its own layer (a slot is an edge's crossing of one
+// layer). `next` holds the segments' ranks from place_segments on entry.
 __kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
 void link_segments(__global const int *seg_layer, __global const int *end_slot, const int n_segments,
                    __global const int *starter, __global const long *layer_off, __global const int *part_start,
@@ -128,9 +128,9 @@ void walk_layers(__global const int *next, __global const uchar *has_prev, __glo
                  __global const long *layer_off, const int n_layers,
                  __global uchar *visited, __global int *order, __global uchar *start_flag,
                  const int gather, __global const float *seg_points, __global float *out,
-                 __global uchar *zero_length, __global const int *conflict) {
+                 __global uchar *zero_length, __global int *conflict) {
     const int k = get_global_id(0);
-    if (k >= n_layers || conflict[0]) return;
+    if (k >= n_layers || atomic_or(conflict, 0)) return;  // (an atomic read: other layers may set it meanwhile)
     const long a = layer_off[k], b = layer_off[k + 1];
     long at = a;
     for (long i = a; i < b && !gather; ++i) {  // open chains, from their heads
@@ -150,6 +150,12 @@ void walk_layers(__global const int *next, __global const uchar *has_prev, __glo
         long smallest = at;
         int m = s0, s = s0;
         do {
+            // a segment met twice: the successors are no permutation (two segments ending at one slot); `conflict`
+            // set, the driver chains on the host (without this test the walk would not come back to s0)
+            if (visited[s]) {
+                atomic_or(conflict, 8);
+                return;
+            }
             visited[s] = 1;
             if (s < m) {
                 m = s;

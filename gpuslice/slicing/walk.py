@@ -87,7 +87,7 @@ class ChainKernels(KernelDriver):
             return (*empty, np.zeros(0, np.complex64), np.zeros(0, bool)) if gather else empty
         q = self.device.queue
         if d_conflict is None:
-            d_conflict = self._fill("no_conflict", 4, np.int32(0))
+            d_conflict = self._fill("no_conflict", 4, np.int32(0))  # (set by the walk if a segment is met twice)
         d_visited = self._fill("visited", n, np.uint8(0))
         d_flag = self._fill("flag", n, np.uint8(0))
         d_order = self._buffer("order", 4 * n)
@@ -114,8 +114,14 @@ class ChainKernels(KernelDriver):
         perm, off = layer_lists(layer, n_layers)
         has_prev = np.zeros(n, dtype=np.uint8)
         has_prev[nxt[nxt >= 0]] = 1
+        d_conflict = self._fill("no_conflict", 4, np.int32(0))
         order, flag = self._run_walk(self._put("next", nxt.astype(np.int32)), self._put("has_prev", has_prev),
-                                     self._put("perm", perm), self._put("layer_off", off), n, n_layers)
+                                     self._put("perm", perm), self._put("layer_off", off), n, n_layers,
+                                     d_conflict=d_conflict)
+        met_twice = np.zeros(1, np.int32)
+        self._read((met_twice, d_conflict))
+        if met_twice[0]:  # (the host pairs each slot's i-th incoming segment with its i-th outgoing one: never)
+            raise RuntimeError("walk_layers: the host's successor array gives some segment two predecessors")
         order, offsets, closed, _ = canonical_chain_order(order, flag, off)
         return order, offsets, closed
 
@@ -155,14 +161,13 @@ class ChainKernels(KernelDriver):
         np.cumsum(count[:-1], dtype=np.int32, out=off[1:])
         d_off = self._put("edge_off", off)
         d_starter = self._fill("starter", 4 * n_slots, np.int32(-1))
-        d_enders = self._fill("n_enders", 4 * n_slots, np.int32(0))
         d_end = self._buffer("end_slot", 4 * n)
         known = layer_counts is not None and layer_counts.size == n_layers and int(layer_counts.sum()) == n
         d_parts = self._fill("part_count", 4 * STRIPES * n_layers, np.int32(0))
         d_conflict = self._fill("conflict", 4, np.int32(0))
         d_next = self._buffer("next", 4 * n)  # (the segments' ranks in their layer's part, then their successors)
         grid = self._grid(n)
-        self._place(q, *grid, dseg.layer, dseg.edges, np.int32(n), d_k0, d_off, d_starter, d_enders, d_end,
+        self._place(q, *grid, dseg.layer, dseg.edges, np.int32(n), d_k0, d_off, d_starter, d_end,
                     d_parts, np.int32(n_layers), d_next, d_conflict)
         conflict = np.zeros(1, dtype=np.int32)
         layer_off = np.zeros(n_layers + 1, dtype=np.int64)
@@ -184,12 +189,10 @@ class ChainKernels(KernelDriver):
         d_perm = self._buffer("perm", 4 * n)
         self._link(q, *grid, dseg.layer, d_end, np.int32(n), d_starter, d_loff, d_parts, np.int32(n_layers), d_next,
                    d_perm, d_conflict)
-        # (kept: a pyopencl transfer event waits for its transfer when dropped)
-        read_conflict = cl.enqueue_copy(q, conflict, d_conflict, is_blocking=False)
         # (every chain closed, so the walk reads no predecessor flags: the list stands in for them)
         order, flag, starts, zero = self._run_walk(d_next, d_perm, d_perm, d_loff, n, n_layers, True, dseg.points,
                                                    d_conflict)
-        read_conflict.wait()
+        cl.enqueue_copy(q, conflict, d_conflict, is_blocking=True)  # (the queue is done: the walk's results are read)
         if conflict[0]:
             return None  # several segments at one slot, open chains (or wrong layer counts): chained on the host
         out = canonical_chain_order(order, flag, layer_off, starts, zero)

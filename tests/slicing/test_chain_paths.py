@@ -238,3 +238,29 @@ def test_layer_lists_in_parts_give_the_host_chains(device, monkeypatch):
         assert chained_on_device.pop() is True  # (not the host's fallback)
         for name in ("points", "offsets", "layer", "closed"):
             assert np.array_equal(getattr(dev, name), getattr(host, name)), name
+
+
+@pytest.mark.parametrize("fin", [[(10, 0, 0), (10, 0, 10), (15, -5, 5)], [(10, 0, 10), (10, 0, 0), (15, -5, 5)]])
+def test_a_slot_with_two_ends_falls_back_to_the_host(device, fin, monkeypatch):
+    """A box with a fin on one of its upright edges: the fin's segment starts at its open side and ends at the box's
+    edge, where a box segment ends too (the first fin; the walk finds a segment met twice), or starts there beside
+    a box segment (the second; two starts at one slot): either way the device gives up and the host's chains are
+    the numpy backend's."""
+    from gpuslice import slice_mesh
+    from gpuslice.slicing.walk import ChainKernels
+
+    on_device = []
+    plain = ChainKernels.chain_on_device
+
+    def spy(self, *args, **kwargs):
+        out = plain(self, *args, **kwargs)
+        on_device.append(out is not None)
+        return out
+
+    monkeypatch.setattr(ChainKernels, "chain_on_device", spy)
+    mesh = mesh_from_triangles(np.concatenate([S.box((0, 0, 0), (10, 10, 10)), np.array([fin], float)]))
+    want = slice_mesh(mesh, thickness=2.5, backend="numpy")
+    got = slice_mesh(mesh, thickness=2.5, backend="opencl", device=device)
+    assert on_device == [False]
+    for name in ("points", "loop_offsets", "layer_offsets", "area"):
+        assert np.array_equal(getattr(got, name), getattr(want, name)), name
