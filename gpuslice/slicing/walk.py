@@ -32,9 +32,11 @@ def layer_lists(layer: np.ndarray, n_layers: int) -> tuple[np.ndarray, np.ndarra
     return perm, off
 
 
-def canonical_chain_order(order: np.ndarray, flag: np.ndarray, layer_off: np.ndarray, *along: np.ndarray):
+def canonical_chain_order(order: np.ndarray, flag: np.ndarray, layer_off: np.ndarray, *along: np.ndarray,
+                          move_order: bool = True):
     """Sort walked chains by (layer, open before closed, first segment): (order, chain_offsets, closed, layer), then
-    each array of ``along`` (one entry per position of ``order``) in the same order."""
+    each array of ``along`` (one entry per position of ``order``) in the same order. Without ``move_order``, ``order``
+    only gives the chains' first segments (the sort key) and None stands in its place."""
     n = order.size
     starts = np.flatnonzero(flag != 0)  # (a bool mask: ~10x faster than on the uint8 flags)
     lengths = np.diff(np.append(starts, n))
@@ -43,8 +45,13 @@ def canonical_chain_order(order: np.ndarray, flag: np.ndarray, layer_off: np.nda
     o = np.lexsort((order[starts], kind, chain_layer))
     offsets = np.zeros(starts.size + 1, dtype=np.int64)
     np.cumsum(lengths[o], out=offsets[1:])
-    if not np.array_equal(o, np.arange(o.size)):
-        order, *along = _move_chains(starts[o], offsets, (order, *along))
+    moved = (order, *along) if move_order else along
+    if moved and not np.array_equal(o, np.arange(o.size)):
+        moved = _move_chains(starts[o], offsets, moved)
+    if move_order:
+        order, *along = moved
+    else:
+        order, along = None, moved
     return (order, offsets, kind[o] == 2, chain_layer[o], *along)
 
 
@@ -132,12 +139,12 @@ class ChainKernels(KernelDriver):
         ``mesh_on_device``: the call before uploaded this mesh's edges and nothing has used this driver since, as in
         the slicer's later layer batches under :meth:`~gpuslice.device.Device.exclusive`).
 
-        Returns (order, chain_offsets, chain_closed, chain_layer, starts, zero_length, resident): the chains and, per
-        position of ``order``, its segment's start point ((S,) complex64, x + iy mm) and whether that segment has
-        zero length ((S,) bool); ``resident``: the points are also on the device in that order (for
-        :meth:`simple_loops`). None when the mesh needs the host's general pairing (a slot with several segments
-        starting or ending: non-manifold or flipped facets) or leaves open chains to repair; the caller then
-        fetches the segments and chains them on the host.
+        Returns (None, chain_offsets, chain_closed, chain_layer, starts, zero_length, resident): the chains (their
+        segments are not returned: the caller needs their points) and, per position in chain order, its segment's
+        start point ((S,) complex64, x + iy mm) and whether that segment has zero length ((S,) bool); ``resident``:
+        the points are also on the device in that order (for :meth:`simple_loops`). None when the mesh needs the
+        host's general pairing (a slot with several segments starting or ending: non-manifold or flipped facets) or
+        leaves open chains to repair; the caller then fetches the segments and chains them on the host.
         """
         import pyopencl as cl
 
@@ -195,8 +202,9 @@ class ChainKernels(KernelDriver):
         cl.enqueue_copy(q, conflict, d_conflict, is_blocking=True)  # (the queue is done: the walk's results are read)
         if conflict[0]:
             return None  # several segments at one slot, open chains (or wrong layer counts): chained on the host
-        out = canonical_chain_order(order, flag, layer_off, starts, zero)
-        return (*out, out[0] is order)  # the device holds the points in the walk's order: resident if unchanged
+        # (the chains' segments are not needed further: only the points and zero-length flags are moved)
+        out = canonical_chain_order(order, flag, layer_off, starts, zero, move_order=False)
+        return (*out, out[4] is starts)  # the device holds the points in the walk's order: resident if unchanged
 
     def simple_loops(self, points: np.ndarray, offsets: np.ndarray, *, resident: bool = False, wait: bool = True):
         """(R,) bool: True for each loop ``points[offsets[r]:offsets[r + 1]]`` (float32 (P, 2), mm, closed) that
