@@ -89,42 +89,92 @@ void link_segments(__global const int *seg_layer, __global const int *end_slot, 
 // Nothing is walked when `conflict` is set (the successors or the lists may be inconsistent: the driver then
 // chains on the host). With `gather` (segments left on the device by the crossings kernel and linked by
 // link_segments, so every chain is closed and has_prev is not read; seg_points: x0, y0, x1, y1 each) the walk
-// also writes every position's segment start point to `out` (x, y) and whether that segment has zero length (starts
-// where it ends: the host drops its point, as the numpy path does) to `zero_length`.
-inline void walk_put(__global int *order, __global const float *seg_points, __global float *out,
-                     __global uchar *zero_length, const int gather, const long at, const int s) {
-    order[at] = s;
-    if (gather) {
-        __global const float *q = seg_points + 4 * (long)s;
-        const float x = q[0], y = q[1];
-        out[2 * at] = x;
-        out[2 * at + 1] = y;
-        zero_length[at] = x == q[2] && y == q[3];
-    }
+// writes, in the canonical order itself (loops by smallest segment, each from it), every position's segment start
+// point to `out` (x, y) and whether that segment has zero length (starts where it ends: the host drops its point,
+// as the numpy path does) to `zero_length`, and not `order`: a first pass finds the loops and their smallest
+// segments (written over the list entries it has read), which are sorted, and a second walks each from it.
+// the gather walk's output at position at: segment s's start point and whether s has zero length
+inline void gather_put(__global const float *seg_points, __global float *out, __global uchar *zero_length,
+                       const long at, const int s) {
+    __global const float *q = seg_points + 4 * (long)s;
+    const float x = q[0], y = q[1];
+    out[2 * at] = x;
+    out[2 * at + 1] = y;
+    zero_length[at] = x == q[2] && y == q[3];
 }
 
-// reverse positions [i, j) of what walk_put wrote
-inline void walk_reverse(__global int *order, __global float *out, __global uchar *zero_length, const int gather,
-                         long i, long j) {
+// reverse order[i .. j)
+inline void walk_reverse(__global int *order, long i, long j) {
     for (--j; i < j; ++i, --j) {
         const int t = order[i];
         order[i] = order[j];
         order[j] = t;
-        if (gather) {
-            const float x = out[2 * i], y = out[2 * i + 1];
-            out[2 * i] = out[2 * j];
-            out[2 * i + 1] = out[2 * j + 1];
-            out[2 * j] = x;
-            out[2 * j + 1] = y;
-            const uchar z = zero_length[i];
-            zero_length[i] = zero_length[j];
-            zero_length[j] = z;
-        }
+    }
+}
+
+// v[root] moved down the max-heap v[0 .. n)
+inline void walk_sift(__global int *v, long root, const long n) {
+    const int x = v[root];
+    for (;;) {
+        long c = 2 * root + 1;
+        if (c >= n) break;
+        if (c + 1 < n && v[c + 1] > v[c]) ++c;
+        if (v[c] <= x) break;
+        v[root] = v[c];
+        root = c;
+    }
+    v[root] = x;
+}
+
+// v[0 .. n) sorted ascending in place (heap sort: O(n log n) whatever the order)
+inline void walk_sort(__global int *v, const long n) {
+    for (long i = n / 2 - 1; i >= 0; --i) walk_sift(v, i, n);
+    for (long e = n - 1; e > 0; --e) {
+        const int t = v[0];
+        v[0] = v[e];
+        v[e] = t;
+        walk_sift(v, 0, e);
+    }
+}
+
+// the gather walk of one layer's loops (see walk_layers), in the canonical order; perm[a .. b) is overwritten
+inline void walk_gather(__global const int *next, __global int *perm, const long a, const long b,
+                        __global uchar *visited, __global uchar *start_flag, __global const float *seg_points,
+                        __global float *out, __global uchar *zero_length, __global int *conflict) {
+    long n_loops = 0, placed = 0;
+    for (long i = a; i < b && placed < b - a; ++i) {  // each loop once, until every segment is placed
+        const int s0 = perm[i];
+        if (visited[s0]) continue;
+        int m = s0, s = s0;
+        do {
+            // a segment met twice: the successors are no permutation (two segments ending at one slot); `conflict`
+            // set, the driver chains on the host (without this test the walk would not come back to s0)
+            if (visited[s]) {
+                atomic_or(conflict, 8);
+                return;
+            }
+            visited[s] = 1;
+            ++placed;
+            m = s < m ? s : m;
+            s = next[s];
+        } while (s != s0);
+        perm[a + n_loops++] = m;  // (a + n_loops <= i: an entry already read)
+    }
+    walk_sort(perm + a, n_loops);
+    long at = a;
+    for (long j = 0; j < n_loops; ++j) {
+        const int h = perm[a + j];
+        start_flag[at] = 2;
+        int s = h;
+        do {
+            gather_put(seg_points, out, zero_length, at++, s);
+            s = next[s];
+        } while (s != h);
     }
 }
 
 __kernel
-void walk_layers(__global const int *next, __global const uchar *has_prev, __global const int *perm,
+void walk_layers(__global const int *next, __global const uchar *has_prev, __global int *perm,
                  __global const long *layer_off, const int n_layers,
                  __global uchar *visited, __global int *order, __global uchar *start_flag,
                  const int gather, __global const float *seg_points, __global float *out,
@@ -132,14 +182,18 @@ void walk_layers(__global const int *next, __global const uchar *has_prev, __glo
     const int k = get_global_id(0);
     if (k >= n_layers || atomic_or(conflict, 0)) return;  // (an atomic read: other layers may set it meanwhile)
     const long a = layer_off[k], b = layer_off[k + 1];
+    if (gather) {
+        walk_gather(next, perm, a, b, visited, start_flag, seg_points, out, zero_length, conflict);
+        return;
+    }
     long at = a;
-    for (long i = a; i < b && !gather; ++i) {  // open chains, from their heads
+    for (long i = a; i < b; ++i) {  // open chains, from their heads
         int s = perm[i];
         if (has_prev[s]) continue;
         start_flag[at] = 1;
         while (s >= 0 && !visited[s]) {
             visited[s] = 1;
-            walk_put(order, seg_points, out, zero_length, gather, at++, s);
+            order[at++] = s;
             s = next[s];
         }
     }
@@ -150,8 +204,7 @@ void walk_layers(__global const int *next, __global const uchar *has_prev, __glo
         long smallest = at;
         int m = s0, s = s0;
         do {
-            // a segment met twice: the successors are no permutation (two segments ending at one slot); `conflict`
-            // set, the driver chains on the host (without this test the walk would not come back to s0)
+            // a segment met twice: some segment has two predecessors (never in the host's pairing)
             if (visited[s]) {
                 atomic_or(conflict, 8);
                 return;
@@ -161,14 +214,14 @@ void walk_layers(__global const int *next, __global const uchar *has_prev, __glo
                 m = s;
                 smallest = at;
             }
-            walk_put(order, seg_points, out, zero_length, gather, at++, s);
+            order[at++] = s;
             s = next[s];
         } while (s != s0);
         start_flag[first] = 2;
         if (smallest != first) {  // rotate [first, at) left to start at the smallest: three reversals
-            walk_reverse(order, out, zero_length, gather, first, smallest);
-            walk_reverse(order, out, zero_length, gather, smallest, at);
-            walk_reverse(order, out, zero_length, gather, first, at);
+            walk_reverse(order, first, smallest);
+            walk_reverse(order, smallest, at);
+            walk_reverse(order, first, at);
         }
     }
 }

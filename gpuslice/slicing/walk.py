@@ -6,8 +6,9 @@ twin, pointer jumping), which the tests check:
 - :func:`walk_chains` walks a successor array computed on the host (used when a mesh needs the host's general
   pairing of non-manifold slots or repairs of open chains);
 - :meth:`ChainKernels.chain_on_device` does everything on the device from the segment buffers the crossings kernel
-  left there: edge slots, successors, per-layer lists and the walk, which also gathers the loops' points in chain
-  order; it reads back the chain order, the points and their zero-length flags.
+  left there: edge slots, successors, per-layer lists and the walk, which finds each layer's loops, sorts them by
+  smallest segment and gathers their points from it, so the device leaves them in the canonical order; it reads
+  back the loops' first positions, their points and the points' zero-length flags (not the segment ids).
 
 :meth:`ChainKernels.simple_loops` is nesting's screen: it proves loops simple so that GEOS's self-crossing test
 runs only on the others (its oracle is GEOS itself: ``tests/slicing/test_simple_screen.py``).
@@ -32,11 +33,9 @@ def layer_lists(layer: np.ndarray, n_layers: int) -> tuple[np.ndarray, np.ndarra
     return perm, off
 
 
-def canonical_chain_order(order: np.ndarray, flag: np.ndarray, layer_off: np.ndarray, *along: np.ndarray,
-                          move_order: bool = True):
+def canonical_chain_order(order: np.ndarray, flag: np.ndarray, layer_off: np.ndarray, *along: np.ndarray):
     """Sort walked chains by (layer, open before closed, first segment): (order, chain_offsets, closed, layer), then
-    each array of ``along`` (one entry per position of ``order``) in the same order. Without ``move_order``, ``order``
-    only gives the chains' first segments (the sort key) and None stands in its place."""
+    each array of ``along`` (one entry per position of ``order``) in the same order."""
     n = order.size
     starts = np.flatnonzero(flag != 0)  # (a bool mask: ~10x faster than on the uint8 flags)
     lengths = np.diff(np.append(starts, n))
@@ -45,13 +44,8 @@ def canonical_chain_order(order: np.ndarray, flag: np.ndarray, layer_off: np.nda
     o = np.lexsort((order[starts], kind, chain_layer))
     offsets = np.zeros(starts.size + 1, dtype=np.int64)
     np.cumsum(lengths[o], out=offsets[1:])
-    moved = (order, *along) if move_order else along
-    if moved and not np.array_equal(o, np.arange(o.size)):
-        moved = _move_chains(starts[o], offsets, moved)
-    if move_order:
-        order, *along = moved
-    else:
-        order, along = None, moved
+    if not np.array_equal(o, np.arange(o.size)):
+        order, *along = _move_chains(starts[o], offsets, (order, *along))
     return (order, offsets, kind[o] == 2, chain_layer[o], *along)
 
 
@@ -85,33 +79,35 @@ class ChainKernels(KernelDriver):
 
     def _run_walk(self, d_next, d_has_prev, d_perm, d_off, n: int, n_layers: int, gather: bool = False,
                   d_seg_points=None, d_conflict=None):
-        """The walk: (order, flag), and with ``gather``, from ``d_seg_points`` (the crossings kernel's segments),
-        also the start point of the segment at each position, (n,) complex64, and its zero-length flag, (n,) bool;
-        the points stay on the device in the buffer ``loop_points`` (for :meth:`simple_loops`). Nothing is walked
-        where the device int ``d_conflict`` is set."""
+        """The walk: (order, flag); with ``gather`` (closed loops only: see ``walk_layers``), instead (flag,
+        starts, zero): the loops in the canonical order, and from ``d_seg_points`` (the crossings kernel's
+        segments) the start point of the segment at each position, (n,) complex64, and its zero-length flag, (n,)
+        bool; the points stay on the device in the buffer ``loop_points`` (for :meth:`simple_loops`); ``d_perm``
+        (the per-layer lists) is overwritten. Nothing is walked where the device int ``d_conflict`` is set."""
         if n == 0:
-            empty = np.zeros(0, np.int32), np.zeros(0, np.uint8)
-            return (*empty, np.zeros(0, np.complex64), np.zeros(0, bool)) if gather else empty
+            if gather:
+                return np.zeros(0, np.uint8), np.zeros(0, np.complex64), np.zeros(0, bool)
+            return np.zeros(0, np.int32), np.zeros(0, np.uint8)
         q = self.device.queue
         if d_conflict is None:
             d_conflict = self._fill("no_conflict", 4, np.int32(0))  # (set by the walk if a segment is met twice)
         d_visited = self._fill("visited", n, np.uint8(0))
         d_flag = self._fill("flag", n, np.uint8(0))
-        d_order = self._buffer("order", 4 * n)
+        d_order = self._buffer("order", 4 * n) if not gather else d_flag  # (a dummy argument with gather)
         d_out = self._buffer("loop_points", 8 * n) if gather else d_flag  # (a dummy argument without gather)
         d_zero = self._buffer("zero_length", n) if gather else d_flag
         d_points = d_seg_points if d_seg_points is not None else d_flag
         self._walk(q, *self._task_grid(n_layers), d_next, d_has_prev, d_perm, d_off, np.int32(n_layers),
                    d_visited, d_order, d_flag, np.int32(gather), d_points, d_out, d_zero, d_conflict)
-        order = np.empty(n, dtype=np.int32)
         flag = np.empty(n, dtype=np.uint8)
         if not gather:
+            order = np.empty(n, dtype=np.int32)
             self._read((order, d_order), (flag, d_flag))
             return order, flag
         starts = np.empty(n, dtype=np.complex64)
         zero = np.empty(n, dtype=np.uint8)
-        self._read((order, d_order), (flag, d_flag), (zero, d_zero), (starts, d_out))
-        return order, flag, starts, zero.view(bool)
+        self._read((flag, d_flag), (zero, d_zero), (starts, d_out))
+        return flag, starts, zero.view(bool)
 
     def walk(self, nxt: np.ndarray, layer: np.ndarray, n_layers: int):
         """Chains of a host successor array ``nxt`` (see :func:`walk_chains`)."""
@@ -196,15 +192,18 @@ class ChainKernels(KernelDriver):
         d_perm = self._buffer("perm", 4 * n)
         self._link(q, *grid, dseg.layer, d_end, np.int32(n), d_starter, d_loff, d_parts, np.int32(n_layers), d_next,
                    d_perm, d_conflict)
-        # (every chain closed, so the walk reads no predecessor flags: the list stands in for them)
-        order, flag, starts, zero = self._run_walk(d_next, d_perm, d_perm, d_loff, n, n_layers, True, dseg.points,
-                                                   d_conflict)
+        # (every chain closed, so the walk reads no predecessor flags: `next` stands in for them)
+        flag, starts, zero = self._run_walk(d_next, d_next, d_perm, d_loff, n, n_layers, True, dseg.points,
+                                            d_conflict)
         cl.enqueue_copy(q, conflict, d_conflict, is_blocking=True)  # (the queue is done: the walk's results are read)
         if conflict[0]:
             return None  # several segments at one slot, open chains (or wrong layer counts): chained on the host
-        # (the chains' segments are not needed further: only the points and zero-length flags are moved)
-        out = canonical_chain_order(order, flag, layer_off, starts, zero, move_order=False)
-        return (*out, out[4] is starts)  # the device holds the points in the walk's order: resident if unchanged
+        # the walk left the loops in the canonical order (by layer, then smallest segment: every chain is closed)
+        first = np.flatnonzero(flag != 0)  # (a bool mask: ~10x faster than on the uint8 flags)
+        offsets = np.empty(first.size + 1, dtype=np.int64)
+        offsets[:-1], offsets[-1] = first, n
+        chain_layer = (np.searchsorted(layer_off, first, side="right") - 1).astype(np.int32)
+        return None, offsets, np.ones(first.size, dtype=bool), chain_layer, starts, zero, True
 
     def simple_loops(self, points: np.ndarray, offsets: np.ndarray, *, resident: bool = False, wait: bool = True):
         """(R,) bool: True for each loop ``points[offsets[r]:offsets[r + 1]]`` (float32 (P, 2), mm, closed) that
