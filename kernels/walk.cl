@@ -2,9 +2,10 @@
 // lists, and a walk of each layer's chains (one work-item per layer).
 //
 // Canonical result (the same as gpuslice.chain.order_chains, the numpy reference): every open chain starts at its
-// head (the segment without predecessor), every closed loop at its smallest segment index. The walk emits chains in
-// whatever order the per-layer lists hold them (filled with atomics); the driver then sorts the chains by (layer,
-// open before closed, first segment), which is cheap (one key per chain) and makes the output deterministic.
+// head (the segment without predecessor), every closed loop at its smallest segment index, chains by (layer, open
+// before closed, first segment). Walking a host successor array, the walk emits a layer's chains in whatever order
+// its list holds them and the driver sorts them (one key per chain); walking the device's own segments (`gather`:
+// closed loops only) it sorts each layer's loops itself, so the output is deterministic either way.
 
 #ifndef LOCAL_SIZE
 #define LOCAL_SIZE 64
@@ -21,13 +22,12 @@ void edge_ranges(__global const int *vub, __global const int *edge_vertices, con
     count[e] = max(a, b) - min(a, b);
 }
 
-// Each layer's segment list is filled in STRIPES parts (_stripes.cl), segment s in part stripe_of(s), each part
-// counted by its own counter.
 // Per segment: its start and end slot; record the segment starting at each slot (a second start at one slot sets
-// `conflict`: the driver then pairs on the host; a second end at one slot leaves some segment without predecessor,
-// which walk_layers finds); count it in its layer's part (part_count[stripe * n_layers + layer]) and keep its rank
-// there in `rank` (the driver passes the buffer that link_segments then fills with the successors: each reads its
-// own entry before overwriting it).
+// `conflict`: the driver then pairs on the host; a second end at one slot gives some segment two predecessors,
+// which walk_layers finds: it meets a segment twice). Each layer's segment list is filled in STRIPES parts
+// (_stripes.cl), segment s in part stripe_of(s): count s in its layer's part (part_count[stripe * n_layers + layer])
+// and keep its rank there in `rank` (the driver passes the buffer that link_segments then fills with the
+// successors: each reads its own entry before overwriting it).
 __kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
 void place_segments(__global const int *seg_layer, __global const int2 *seg_edges, const int n_segments,
                     __global const int *k0, __global const int *edge_off,
@@ -46,7 +46,7 @@ void place_segments(__global const int *seg_layer, __global const int2 *seg_edge
 
 // Per layer: its parts' counts turned into their first positions within the layer's list (in place), and the
 // layer's total checked against layer_off (its counts came from the driver: wrong ones set `conflict`). With
-// `totals`, the layer's total is also written there (the driver's count when it did not know them).
+// `write_totals`, the layer's total is written to `totals` instead (the driver did not know the counts).
 __kernel
 void part_starts(__global int *part_count, const int n_layers, __global const long *layer_off,
                  __global int *totals, const int write_totals, __global int *conflict) {

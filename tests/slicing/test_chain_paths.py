@@ -208,22 +208,28 @@ def test_nesting_turns_clockwise_outer_loops(n_squares):
     assert not got.loop_is_hole.any() and got.area[0] == n_squares and got.unfilled_loops[0] == 1
 
 
-def test_layer_lists_in_parts_give_the_host_chains(device, monkeypatch):
-    """Each layer's segment list is filled in parts, one per stripe of work-groups (``STRIPES``): on a sphere cut
-    finely enough that every stripe holds segments of most layers, with the slicer's counts and without them, the
-    device's chains are the host's."""
-    from gpuslice.device import STRIPES
+@pytest.fixture
+def chained_on_device(monkeypatch) -> list[bool]:
+    """Whether each call of ``ChainKernels.chain_on_device`` chained on the device (False: the host's fallback)."""
     from gpuslice.slicing.walk import ChainKernels
 
-    chained_on_device = []
+    calls: list[bool] = []
     plain = ChainKernels.chain_on_device
 
     def spy(self, *args, **kwargs):
         out = plain(self, *args, **kwargs)
-        chained_on_device.append(out is not None)
+        calls.append(out is not None)
         return out
 
     monkeypatch.setattr(ChainKernels, "chain_on_device", spy)
+    return calls
+
+
+def test_layer_lists_in_parts_give_the_host_chains(device, chained_on_device):
+    """Each layer's segment list is filled in parts, one per stripe of work-groups (``STRIPES``): on a sphere cut
+    finely enough that every stripe holds segments of most layers, with the slicer's counts and without them, the
+    device's chains are the host's."""
+    from gpuslice.device import STRIPES
 
     sphere = mesh_from_triangles(S.uv_sphere(10.0, 96, 192))
     zs = np.linspace(0.05, sphere.height - 0.05, 120).astype(np.float32)
@@ -241,26 +247,16 @@ def test_layer_lists_in_parts_give_the_host_chains(device, monkeypatch):
 
 
 @pytest.mark.parametrize("fin", [[(10, 0, 0), (10, 0, 10), (15, -5, 5)], [(10, 0, 10), (10, 0, 0), (15, -5, 5)]])
-def test_a_slot_with_two_ends_falls_back_to_the_host(device, fin, monkeypatch):
+def test_a_slot_with_two_ends_falls_back_to_the_host(device, fin, chained_on_device):
     """A box with a fin on one of its upright edges: the fin's segment starts at its open side and ends at the box's
     edge, where a box segment ends too (the first fin; the walk finds a segment met twice), or starts there beside
     a box segment (the second; two starts at one slot): either way the device gives up and the host's chains are
     the numpy backend's."""
     from gpuslice import slice_mesh
-    from gpuslice.slicing.walk import ChainKernels
 
-    on_device = []
-    plain = ChainKernels.chain_on_device
-
-    def spy(self, *args, **kwargs):
-        out = plain(self, *args, **kwargs)
-        on_device.append(out is not None)
-        return out
-
-    monkeypatch.setattr(ChainKernels, "chain_on_device", spy)
     mesh = mesh_from_triangles(np.concatenate([S.box((0, 0, 0), (10, 10, 10)), np.array([fin], float)]))
     want = slice_mesh(mesh, thickness=2.5, backend="numpy")
     got = slice_mesh(mesh, thickness=2.5, backend="opencl", device=device)
-    assert on_device == [False]
+    assert chained_on_device == [False]
     for name in ("points", "loop_offsets", "layer_offsets", "area"):
         assert np.array_equal(getattr(got, name), getattr(want, name)), name
