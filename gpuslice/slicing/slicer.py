@@ -177,11 +177,12 @@ def slice_mesh(
             timings[key] = 0.0
         parts = []
         n_segments = 0
+        t0 = time.perf_counter()  # (the facets' layer ranges, which the crossings take: counted with them)
         batches, per_layer, ranges = _batches(mesh, zs, params.max_segments_per_batch) if n_layers else ([], None, None)
-
         # several batches on a device: each visits only the facets that cross its planes
         facets = batch_facets(ranges, batches) if len(batches) > 1 and device is not None else None
         scratch = np.empty(ranges[0].shape, np.int32) if facets is not None else None  # (the vertices' layers)
+        timings["crossings"] += time.perf_counter() - t0
 
         def chained():  # crossings and chaining of each batch (on the prefetch thread when there are several)
             for k, (a, b) in enumerate(batches):
