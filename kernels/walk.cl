@@ -82,17 +82,19 @@ void link_segments(__global const int *seg_layer, __global const int *end_slot, 
     else atomic_or(conflict, 2);
 }
 
-// One work-item per layer: walk the chains of the segments listed in perm[layer_off[k] .. layer_off[k + 1]),
-// writing them to the same range of `order`; start_flag marks each chain's first position (1: open chain,
-// 2: closed loop; zeroed by the driver). Open chains are walked from their heads first; each closed loop is walked
-// once from the first of its segments met in the list, then rotated in place to start at its smallest segment.
-// Nothing is walked when `conflict` is set (the successors or the lists may be inconsistent: the driver then
-// chains on the host). With `gather` (segments left on the device by the crossings kernel and linked by
-// link_segments, so every chain is closed and has_prev is not read; seg_points: x0, y0, x1, y1 each) the walk
-// writes, in the canonical order itself (loops by smallest segment, each from it), every position's segment start
-// point to `out` (x, y) and whether that segment has zero length (starts where it ends: the host drops its point,
-// as the numpy path does) to `zero_length`, and not `order`: a first pass finds the loops and their smallest
-// segments (written over the list entries it has read), which are sorted, and a second walks each from it.
+// walk_layers, one work-item per layer: walk the chains of the segments listed in
+// perm[layer_off[k] .. layer_off[k + 1]), writing them to the same range of `order`; start_flag marks each chain's
+// first position (1: open chain, 2: closed loop; zeroed by the driver). Open chains are walked from their heads
+// first; each closed loop is walked once from the first of its segments met in the list, then rotated in place to
+// start at its smallest segment. Nothing is walked when `conflict` is set (the successors or the lists may be
+// inconsistent: the driver then chains on the host). With `gather` (segments left on the device by the crossings
+// kernel and linked by link_segments, so every chain is closed and has_prev is not read; seg_points: x0, y0, x1, y1
+// each) the walk writes, in the canonical order itself (loops by smallest segment, each from it), every position's
+// segment start point to `out` (x, y) and whether that segment has zero length (starts where it ends: the host
+// drops its point, as the numpy path does) to `zero_length`, and not `order`: a first pass finds the loops and
+// their smallest segments (written over the list entries it has read), which are sorted, and a second walks each
+// from it. (Its helpers first.)
+
 // the gather walk's output at position at: segment s's start point and whether s has zero length
 inline void gather_put(__global const float *seg_points, __global float *out, __global uchar *zero_length,
                        const long at, const int s) {
