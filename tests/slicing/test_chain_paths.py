@@ -246,8 +246,9 @@ def test_layer_lists_in_parts_give_the_host_chains(device, chained_on_device):
             assert np.array_equal(getattr(dev, name), getattr(host, name)), name
 
 
-@pytest.mark.parametrize("fin", [[(10, 0, 0), (10, 0, 10), (15, -5, 5)], [(10, 0, 10), (10, 0, 0), (15, -5, 5)]])
-def test_a_slot_with_two_ends_falls_back_to_the_host(device, fin, chained_on_device):
+@pytest.mark.parametrize("fin, why", [([(10, 0, 0), (10, 0, 10), (15, -5, 5)], 8),  # (walk_layers: met twice)
+                                     ([(10, 0, 10), (10, 0, 0), (15, -5, 5)], 1)])  # (place_segments: two starts)
+def test_a_slot_with_two_ends_falls_back_to_the_host(device, fin, why, chained_on_device):
     """A box with a fin on one of its upright edges: the fin's segment starts at its open side and ends at the box's
     edge, where a box segment ends too (the first fin; the walk finds a segment met twice), or starts there beside
     a box segment (the second; two starts at one slot): either way the device gives up and the host's chains are
@@ -258,5 +259,12 @@ def test_a_slot_with_two_ends_falls_back_to_the_host(device, fin, chained_on_dev
     want = slice_mesh(mesh, thickness=2.5, backend="numpy")
     got = slice_mesh(mesh, thickness=2.5, backend="opencl", device=device)
     assert chained_on_device == [False]
+    import pyopencl as cl
+
+    from gpuslice.slicing.walk import chain_kernels
+
+    flags = np.zeros(1, np.int32)  # (the conflict flags the device's chaining left)
+    cl.enqueue_copy(device.queue, flags, chain_kernels(device).buffer("conflict"), is_blocking=True)
+    assert flags[0] & why
     for name in ("points", "loop_offsets", "layer_offsets", "area"):
         assert np.array_equal(getattr(got, name), getattr(want, name)), name
