@@ -37,9 +37,7 @@ __all__ = ["Device", "KernelDriver", "aligned_empty", "drained", "input_buffer",
 
 ENV_VAR = "GPUSLICE_DEVICE"
 
-#: Counters that neighbouring work-groups would share are kept this many times, one per stripe of work-groups
-#: (``kernels/_stripes.cl``; a build option of every kernel)
-STRIPES = 16
+STRIPES = 16  #: counters neighbouring work-groups would share, kept once per stripe of them (a build option)
 
 
 @dataclass(eq=False)
@@ -355,8 +353,7 @@ def _store_binary(path: Path, prg) -> None:
             return
         path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(path, hashlib.sha256(binary).digest() + bytes(binary))
-        old = sorted(path.parent.glob("*.bin"), key=lambda f: f.stat().st_mtime)[:-CACHE_ENTRIES]
-        for f in old:
+        for f in sorted(path.parent.glob("*.bin"), key=lambda f: f.stat().st_mtime)[:-CACHE_ENTRIES]:  # the oldest
             f.unlink(missing_ok=True)
     except Exception:  # noqa: BLE001 - an unwritable or full cache directory, a driver without binaries
         pass
