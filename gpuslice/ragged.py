@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["expand_ranges", "group_ranks"]
+__all__ = ["expand_ranges", "group_ranks", "loop_chunks", "LOOP_CHUNK"]
 
 
 def expand_ranges(starts: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -35,3 +35,26 @@ def group_ranks(g: np.ndarray) -> np.ndarray:
     np.not_equal(g[1:], g[:-1], out=start[1:])
     first = np.flatnonzero(start)
     return np.arange(g.size) - np.repeat(first, np.diff(np.append(first, g.size)))
+
+
+#: edges per chunk of a loop in nesting's containment tests (:class:`gpuslice.slicing.contain.Chunks`), whose boxes
+#: the device makes beside chaining (``chunk_boxes`` in ``kernels/walk.cl``)
+LOOP_CHUNK = 64
+
+
+def loop_chunks(offsets: np.ndarray, size: int = LOOP_CHUNK, ids: np.ndarray | None = None):
+    """The closed loops ``offsets[r] .. offsets[r + 1] - 1`` of ``ids`` (all when None) cut into chunks of ``size``
+    edges from each loop's first point (edge k: point k to the next, the last back to the first). Returns ``(off,
+    loop, start, end, nxt)``: loop r's chunks are ``off[r]`` to ``off[r + 1] - 1`` (none for the loops not in
+    ``ids``); chunk c holds the edges from points ``start[c]`` to ``end[c] - 1`` of loop ``loop[c]``, and ``nxt[c]``
+    is the point its last edge ends at (the loop's first point after its last chunk)."""
+    first, last = offsets[:-1], offsets[1:]
+    n = np.zeros(first.size, dtype=np.int64)
+    at = slice(None) if ids is None else ids
+    n[at] = np.maximum((last[at] - first[at] + size - 1) // size, 1)
+    off = np.zeros(n.size + 1, dtype=np.int64)
+    np.cumsum(n, out=off[1:])
+    loop, rank = expand_ranges(np.zeros(n.size, dtype=np.int64), n)
+    start = first[loop] + size * rank
+    end = np.minimum(start + size, last[loop])
+    return off, loop, start, end, np.where(end < last[loop], end, first[loop])

@@ -435,3 +435,35 @@ void simple_loops(__global const float *points, __global const long *offsets, co
     simple[r] = 1;
 }
 #endif
+
+// ---- the boxes of nesting's chunks (gpuslice.slicing.contain.Chunks, whose host twin computes the same): chunk c
+// holds the edges start[c] .. end[c] - 1 of a loop, so its box spans the points start[c] .. end[c] - 1 and the last
+// edge's end point nxt[c]; box[4c .. 4c + 3] = (x min, y min, x max, y max). One work-item per chunk (at most CHUNK
+// points). A NaN met makes the bound NaN, as numpy's minimum and maximum do. Scalars, as in simple_loops.
+inline float chunk_min(const float a, const float p) {
+    return (p < a || isnan(p)) ? p : a;
+}
+
+inline float chunk_max(const float a, const float p) {
+    return (p > a || isnan(p)) ? p : a;
+}
+
+__kernel void chunk_boxes(__global const float *points, __global const long *start, __global const long *end,
+                          __global const long *nxt, const int n_chunks, __global float *box) {
+    const int c = get_global_id(0);
+    if (c >= n_chunks) return;
+    const long k = nxt[c];
+    float x0 = points[2 * k], y0 = points[2 * k + 1];
+    float x1 = x0, y1 = y0;
+    for (long i = start[c]; i < end[c]; ++i) {
+        const float x = points[2 * i], y = points[2 * i + 1];
+        x0 = chunk_min(x0, x);
+        y0 = chunk_min(y0, y);
+        x1 = chunk_max(x1, x);
+        y1 = chunk_max(y1, y);
+    }
+    box[4 * c] = x0;
+    box[4 * c + 1] = y0;
+    box[4 * c + 2] = x1;
+    box[4 * c + 3] = y1;
+}

@@ -45,8 +45,9 @@ REPAIR_KINDS = ("joined_by_id", "reversed", "gap_closed", "open_chains", "degene
 @dataclass
 class Loops:
     """Chained loops before nesting: ``points`` (P, 2) float32, ``offsets`` (R + 1,) int64, ``layer`` (R,)
-    int32, ``closed`` (R,) bool, per-layer repair counts, and :attr:`simple`. ``screen`` holds the screen's answer,
-    or a callable that waits for it: the device computes it while the host goes on (nesting needs it last)."""
+    int32, ``closed`` (R,) bool, per-layer repair counts, :attr:`simple` and :attr:`chunk_boxes`. ``screen`` and
+    ``boxes`` hold the device's answers, or callables that wait for them: the device computes them while the host
+    goes on."""
 
     points: np.ndarray
     offsets: np.ndarray
@@ -54,6 +55,16 @@ class Loops:
     closed: np.ndarray
     repairs: dict[str, np.ndarray] = field(default_factory=dict)
     screen: np.ndarray | Callable[[], np.ndarray | None] | None = None
+    boxes: np.ndarray | Callable[[], np.ndarray] | None = None
+
+    @property
+    def chunk_boxes(self) -> np.ndarray | None:
+        """(C, 4) float32 boxes of the loops' chunks for nesting's containment tests, as
+        :class:`gpuslice.slicing.contain.Chunks` would compute them (None: no device made them; the host does).
+        Waits for the device the first time."""
+        if callable(self.boxes):
+            self.boxes = self.boxes()
+        return self.boxes
 
     @property
     def simple(self) -> np.ndarray | None:
@@ -252,12 +263,14 @@ def _finish(points, offsets, chain_layer, cclosed, open_ends, max_gap, n_layers,
         chain_layer, cclosed = chain_layer[keep], cclosed[keep]
         resident = False
     np.add.at(repairs["open_chains"], chain_layer[~cclosed], 1)
-    simple = None
-    if device is not None:  # the self-crossing screen, left running on the device (see Loops)
+    simple = boxes = None
+    if device is not None:  # the chunks' boxes and the self-crossing screen, left running on the device (see Loops)
         from .walk import chain_kernels
 
-        simple = chain_kernels(device).simple_loops(points, offsets, resident=resident, wait=False)
-    return Loops(points, offsets, chain_layer.astype(np.int32), cclosed, repairs, simple)
+        kernels = chain_kernels(device)
+        boxes = kernels.chunk_boxes(points, offsets, resident=resident, wait=False)
+        simple = kernels.simple_loops(points, offsets, resident=True, wait=False)
+    return Loops(points, offsets, chain_layer.astype(np.int32), cclosed, repairs, simple, boxes)
 
 
 _PAIRS_LISTED = 16  # a layer's free ends with more pairs within max_gap than this many per end: _closest_first

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..ragged import expand_ranges
+from ..ragged import LOOP_CHUNK, expand_ranges, loop_chunks
 from .rings import _polygons, in_halves
 
 __all__ = ["containment_pairs", "point_in_loops", "rings_meet_numpy", "Chunks", "MAX_PAIRS", "MAX_EDGE_PAIRS"]
@@ -38,7 +38,7 @@ __all__ = ["containment_pairs", "point_in_loops", "rings_meet_numpy", "Chunks", 
 #: unordered pairs of closed loops sharing a layer above which the caller's R-tree finds the candidates
 MAX_PAIRS = 200_000
 #: edges per chunk
-CHUNK = 64
+CHUNK = LOOP_CHUNK
 #: edge pairs of two loops tested in numpy for one pair of loops, above which GEOS tests the pair
 MAX_EDGE_PAIRS = 1024
 #: edge pairs tested in numpy for all pairs of loops together (the pairs with the fewest first; the others: GEOS)
@@ -70,26 +70,31 @@ class Chunks:
     the chosen loops cut into runs of :data:`CHUNK` edges (edge k: point k to the next one, the last back to the
     loop's first), each with its closed box: ``lo``, ``hi`` (C, 2) float64; chunk c holds edges ``start[c]`` to
     ``end[c] - 1`` of loop ``loop[c]``; loop r's chunks are ``off[r]`` to ``off[r + 1] - 1`` (none for the loops
-    not cut)."""
+    not cut). ``boxes``: the (C, 4) float32 boxes (x min, y min, x max, y max) of every loop's chunks, as
+    :func:`~gpuslice.ragged.loop_chunks` lays them out, when the device made them (``chunk_boxes`` in
+    ``kernels/walk.cl``, the same values): then every loop is cut already and no pass over the points is made."""
 
-    def __init__(self, points: np.ndarray, offsets: np.ndarray):
-        self.first, self.last = offsets[:-1], offsets[1:]
+    def __init__(self, points: np.ndarray, offsets: np.ndarray, boxes: np.ndarray | None = None):
+        self.offsets, self.first, self.last = offsets, offsets[:-1], offsets[1:]
+        self._all = boxes is not None
+        if self._all:
+            self.off, self.loop, self.start, self.end, _ = loop_chunks(offsets)
+            b = boxes.astype(np.float64)
+            self.lo, self.hi = np.ascontiguousarray(b[:, :2]), np.ascontiguousarray(b[:, 2:])
+            self.loop_lo = np.minimum.reduceat(self.lo, self.off[:-1], axis=0)
+            self.loop_hi = np.maximum.reduceat(self.hi, self.off[:-1], axis=0)
+            return
         # (reduceat runs ~2x faster on contiguous data)
         self.cols = [np.ascontiguousarray(points[:, k]) for k in (0, 1)]
         self.loop_lo = np.stack([np.minimum.reduceat(c, self.first) for c in self.cols], axis=1).astype(np.float64)
         self.loop_hi = np.stack([np.maximum.reduceat(c, self.first) for c in self.cols], axis=1).astype(np.float64)
 
     def cut(self, ids: np.ndarray) -> None:
-        """Cut the loops ``ids`` (ascending, unique) into chunks (a reduction over the points, a segment per chunk)."""
-        n = np.zeros(self.first.size, dtype=np.int64)
-        n[ids] = np.maximum((self.last[ids] - self.first[ids] + CHUNK - 1) // CHUNK, 1)
-        self.off = np.zeros(n.size + 1, dtype=np.int64)
-        np.cumsum(n, out=self.off[1:])
-        self.loop, rank = expand_ranges(np.zeros(n.size, dtype=np.int64), n)
-        self.start = self.first[self.loop] + CHUNK * rank
-        last = self.last[self.loop]
-        self.end = np.minimum(self.start + CHUNK, last)
-        nxt = np.where(self.end < last, self.end, self.first[self.loop])  # the last edge's end point
+        """Cut the loops ``ids`` (ascending, unique) into chunks (a reduction over the points, a segment per chunk;
+        nothing to do when the device's boxes came with every loop cut)."""
+        if self._all:
+            return
+        self.off, self.loop, self.start, self.end, nxt = loop_chunks(self.offsets, CHUNK, ids)
         # segments: the chunks, and the gaps after the loops cut that the next one cut does not follow (unused)
         end = self.last[ids]
         gap = np.append(end[:-1] != self.first[ids][1:], end[-1:] < self.cols[0].size)
@@ -243,16 +248,17 @@ def rings_meet(points, pc, offsets, bi, bj) -> np.ndarray:
                      rings[np.searchsorted(both, bj)])
 
 
-def containment_pairs(points, pc, offsets, layer, ids, q, area):
+def containment_pairs(points, pc, offsets, layer, ids, q, area, chunk_boxes=None):
     """The answers of ``nest._containment_pairs`` for the closed loops ``ids`` (ascending) without an R-tree:
     (ci, cj) with loop cj[k] containing the query point ``q[ci[k]]`` (strictly), the layers with loops whose
     boundaries meet, those loops, and the boxes of all loops ((R, 2) float64 lo, hi) (see the module docstring).
-    ``area``: the loops' signed areas. None when the pairs are too many or a loop has two containing loops of
+    ``area``: the loops' signed areas; ``chunk_boxes``: the device's boxes of every loop's chunks (:class:`Chunks`),
+    or None. None when the pairs are too many or a loop has two containing loops of
     equal area: then the R-tree path answers."""
     pairs = layer_pairs(layer, ids)
     if pairs is None:
         return None
-    chunks = Chunks(points, offsets)
+    chunks = Chunks(points, offsets, chunk_boxes)
     lo, hi = chunks.loop_lo, chunks.loop_hi
     x, y = pairs
     meet = np.all((lo[x] <= hi[y]) & (lo[y] <= hi[x]), axis=1)

@@ -52,17 +52,18 @@ def _loop_boxes(points: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np
     return lo, hi
 
 
-def _containment_pairs(points, pc, offsets, layer, closed, q, area):
+def _containment_pairs(points, pc, offsets, layer, closed, q, area, chunk_boxes=None):
     """Pairs (i, j), i != j, both closed and in the same layer, where loop j contains loop i's query point; the
     layers and loops whose boundaries may cross; the polygons made for the tests and their loops (sorted; (None,
     None) when numpy made the tests, :func:`~gpuslice.slicing.contain.containment_pairs`); the loops' boxes (None
-    when no layer has two closed loops: then nothing is tested, and shapely is not imported)."""
+    when no layer has two closed loops: then nothing is tested, and shapely is not imported). ``chunk_boxes``:
+    the device's boxes of the loops' chunks (:attr:`~gpuslice.slicing.chain.Loops.chunk_boxes`), or None."""
     idx = np.flatnonzero(closed)
     # (the tree below keeps every loop: the order of its answers decides ties between equal-area parents)
     if idx.size < 2 or np.bincount(layer[idx]).max() < 2:
         empty = np.zeros(0, np.int64)
         return empty, empty, empty, empty, (None, empty), None
-    fast = containment_pairs(points, pc, offsets, layer, idx, q, area)
+    fast = containment_pairs(points, pc, offsets, layer, idx, q, area, chunk_boxes)
     if fast is not None:
         return (*fast[:4], (None, None), fast[4])
     import shapely
@@ -131,7 +132,8 @@ def nest_loops(loops: Loops, n_layers: int, fill_rule: str = "nonzero") -> Neste
     crossing_of = lambda: _self_crossing_loops(points, offsets, closed, loops.simple, pc)  # noqa: E731
     crossing_f = beside(crossing_of) if points.shape[0] >= BESIDE_MIN_POINTS else None
     ci, cj, crossing_layers, seeds, (polys, involved), boxes = _containment_pairs(points, pc, offsets, layer,
-                                                                                  closed & (s != 0), q, area)
+                                                                                  closed & (s != 0), q, area,
+                                                                                  loops.chunk_boxes)
     w_out = np.bincount(ci, weights=s[cj], minlength=n).astype(np.int64)
     depth = np.bincount(ci, minlength=n)
     # the fill just outside each loop and just inside it (even-odd: one more loop around the point)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..device import STRIPES, KernelDriver
+from ..ragged import loop_chunks
 from .rings import move_chains as _move_chains
 
 __all__ = ["ChainKernels", "walk_chains", "chain_kernels", "canonical_chain_order"]
@@ -63,6 +64,7 @@ class ChainKernels(KernelDriver):
         self._link = prg.link_segments
         self._starts = prg.part_starts
         self._walk = prg.walk_layers
+        self._boxes = prg.chunk_boxes
         try:  # absent on devices without float64 (kernels/walk.cl builds it under cl_khr_fp64)
             self._simple = prg.simple_loops
         except AttributeError:  # pyopencl's answer for a kernel name the program lacks
@@ -204,6 +206,39 @@ class ChainKernels(KernelDriver):
         offsets[:-1], offsets[-1] = first, n
         chain_layer = (np.searchsorted(layer_off, first, side="right") - 1).astype(np.int32)
         return None, offsets, np.ones(first.size, dtype=bool), chain_layer, starts, zero, True
+
+    def chunk_boxes(self, points: np.ndarray, offsets: np.ndarray, *, resident: bool = False, wait: bool = True):
+        """(C, 4) float32 boxes (x min, y min, x max, y max) of the chunks of every closed loop
+        ``points[offsets[r]:offsets[r + 1]]`` (float32 (P, 2), mm) as :func:`gpuslice.ragged.loop_chunks` lays them
+        out: what :class:`gpuslice.slicing.contain.Chunks` computes on the host (its twin), made by ``chunk_boxes``
+        in ``kernels/walk.cl``. ``resident``: the points are on the device already (:meth:`chain_on_device`);
+        else they are uploaded and stay there (for :meth:`simple_loops`). Without ``wait``, returns at once a
+        callable that waits for the answer."""
+        import pyopencl as cl
+
+        _, _, start, end, nxt = loop_chunks(offsets)
+        n = int(start.size)
+        if n == 0 or points.shape[0] == 0:
+            return np.zeros((n, 4), dtype=np.float32)
+        q = self.device.queue
+        if resident:
+            d_points = self.buffer("loop_points")
+        else:
+            d_points = self._put("loop_points", np.ascontiguousarray(points, dtype=np.float32))
+        d_box = self._buffer("chunk_box", 16 * n)
+        self._boxes(q, *self._grid(n), d_points, self._put("chunk_start", start), self._put("chunk_end", end),
+                    self._put("chunk_next", nxt), np.int32(n), d_box)
+        out = np.empty((n, 4), dtype=np.float32)
+        done = cl.enqueue_copy(q, out, d_box, is_blocking=wait)
+        if wait:
+            return out
+        q.flush()
+
+        def result() -> np.ndarray:
+            done.wait()
+            return out
+
+        return result
 
     def simple_loops(self, points: np.ndarray, offsets: np.ndarray, *, resident: bool = False, wait: bool = True):
         """(R,) bool: True for each loop ``points[offsets[r]:offsets[r + 1]]`` (float32 (P, 2), mm, closed) that

@@ -282,6 +282,15 @@ def _workload(pass_name: str) -> dict:
     got = chain_kernels(dev).simple_loops(pts, offs.astype(np.int64))
     if got is not None:  # (None: a device without doubles has no screen)
         _same((np.asarray(got, np.uint8),), (np.array([0, 0, 0, 0, 0, 0, 1, 1], np.uint8),), "simple loops")
+    # walk.cl's boxes of nesting's chunks, against contain.Chunks on the host (a loop of three chunks among them)
+    from gpuslice.slicing.contain import Chunks
+
+    long_loop = np.stack([np.cos(np.arange(150) / 24.0), np.sin(np.arange(150) / 24.0)], axis=1) * 3
+    pts, offs = np.concatenate([pts, long_loop.astype(np.float32)]), np.append(offs, offs[-1] + 150).astype(np.int64)
+    host = Chunks(pts, offs)
+    host.cut(np.arange(offs.size - 1))
+    boxes = chain_kernels(dev).chunk_boxes(pts, offs).astype(np.float64)
+    _same((boxes[:, :2], boxes[:, 2:]), (host.lo, host.hi), "chunk boxes")
     # walk.cl's device chaining (closed), its open-chain and conflict exits (a missing facet, a non-manifold edge)
     open_box = box_tri[1:]
     two_cubes = np.concatenate([S.box((0, 0, 0), (6, 6, 6)), S.box((6, 6, 0), (12, 12, 6))])

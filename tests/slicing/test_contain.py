@@ -144,3 +144,41 @@ def test_real_mesh_same_with_and_without_the_numpy_path(shared_meshes, monkeypat
     for f in ("points", "loop_offsets", "loop_layer", "loop_is_hole", "loop_parent", "loop_closed", "area"):
         assert np.array_equal(getattr(fast, f), getattr(slow, f)), f
     assert fast.loop_is_hole.any()
+
+
+def test_device_chunk_boxes_match_the_host(device):
+    """``chunk_boxes`` in ``kernels/walk.cl`` against its twin, :class:`contain.Chunks` cutting every loop on the
+    host: the same float32 boxes (as float64), the same loop boxes, bit for bit; loops of 1 to 300 points (one and
+    several chunks, a last chunk of one edge), signed zeros, coordinates far apart in size."""
+    from gpuslice.slicing.walk import chain_kernels
+
+    rng = np.random.default_rng(11)
+    sizes = [1, 2, 3, 63, 64, 65, 127, 128, 129, 300] + list(rng.integers(1, 300, 40))
+    pts = [rng.normal(0, 10.0 ** rng.integers(-3, 4), (n, 2)).astype(np.float32) for n in sizes]
+    pts[3][::7] = np.float32(-0.0)
+    pts[4][::5] = np.float32(0.0)
+    points = np.concatenate(pts)
+    offsets = np.cumsum([0, *sizes]).astype(np.int64)
+    boxes = chain_kernels(device).chunk_boxes(points, offsets)
+    host = contain.Chunks(points, offsets)
+    host.cut(np.arange(len(sizes)))
+    made = contain.Chunks(points, offsets, boxes)
+    assert boxes.shape == (host.lo.shape[0], 4) and boxes.dtype == np.float32
+    for f in ("off", "loop", "start", "end", "lo", "hi", "loop_lo", "loop_hi"):
+        assert np.array_equal(getattr(made, f), getattr(host, f)), f
+    waiting = chain_kernels(device).chunk_boxes(points, offsets, wait=False)  # (the form chaining leaves running)
+    assert callable(waiting) and np.array_equal(waiting(), boxes)
+
+
+@pytest.mark.parametrize("fill_rule", ["nonzero", "evenodd", "positive"])
+def test_nesting_same_with_the_device_chunk_boxes(device, fill_rule):
+    """Nesting with the device's chunk boxes (as chaining on the device leaves them) gives, array for array, what it
+    gives with the host's."""
+    from gpuslice.slicing.walk import chain_kernels
+
+    rng = np.random.default_rng(4)
+    loops = make_loops(random_layers(rng, 30) + [[bowtie(0, 0, 4), square(-1, -1, 6)], [twice_around(0, 0)]])
+    host = nest_loops(loops, 32, fill_rule)
+    loops.boxes = chain_kernels(device).chunk_boxes(loops.points, loops.offsets, wait=False)
+    assert nested_equal(nest_loops(loops, 32, fill_rule), host)
+    assert isinstance(loops.boxes, np.ndarray)  # (waited for once, then kept)
