@@ -268,8 +268,10 @@ def _finish(points, offsets, chain_layer, cclosed, open_ends, max_gap, n_layers,
         from .walk import chain_kernels
 
         kernels = chain_kernels(device)
-        boxes = kernels.chunk_boxes(points, offsets, resident=resident, wait=False)
-        simple = kernels.simple_loops(points, offsets, resident=True, wait=False)
+        if cclosed.any() and np.bincount(chain_layer[cclosed]).max() >= 2:  # (containment tests to come)
+            boxes = kernels.chunk_boxes(points, offsets, resident=resident, wait=False)
+            resident = True
+        simple = kernels.simple_loops(points, offsets, resident=resident, wait=False)
     return Loops(points, offsets, chain_layer.astype(np.int32), cclosed, repairs, simple, boxes)
 
 

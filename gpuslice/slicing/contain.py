@@ -253,12 +253,12 @@ def containment_pairs(points, pc, offsets, layer, ids, q, area, chunk_boxes=None
     (ci, cj) with loop cj[k] containing the query point ``q[ci[k]]`` (strictly), the layers with loops whose
     boundaries meet, those loops, and the boxes of all loops ((R, 2) float64 lo, hi) (see the module docstring).
     ``area``: the loops' signed areas; ``chunk_boxes``: the device's boxes of every loop's chunks (:class:`Chunks`),
-    or None. None when the pairs are too many or a loop has two containing loops of
+    a callable giving them (or None), or None. None when the pairs are too many or a loop has two containing loops of
     equal area: then the R-tree path answers."""
     pairs = layer_pairs(layer, ids)
     if pairs is None:
         return None
-    chunks = Chunks(points, offsets, chunk_boxes)
+    chunks = Chunks(points, offsets, chunk_boxes() if callable(chunk_boxes) else chunk_boxes)
     lo, hi = chunks.loop_lo, chunks.loop_hi
     x, y = pairs
     meet = np.all((lo[x] <= hi[y]) & (lo[y] <= hi[x]), axis=1)

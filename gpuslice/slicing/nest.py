@@ -57,7 +57,8 @@ def _containment_pairs(points, pc, offsets, layer, closed, q, area, chunk_boxes=
     layers and loops whose boundaries may cross; the polygons made for the tests and their loops (sorted; (None,
     None) when numpy made the tests, :func:`~gpuslice.slicing.contain.containment_pairs`); the loops' boxes (None
     when no layer has two closed loops: then nothing is tested, and shapely is not imported). ``chunk_boxes``:
-    the device's boxes of the loops' chunks (:attr:`~gpuslice.slicing.chain.Loops.chunk_boxes`), or None."""
+    the device's boxes of the loops' chunks (:attr:`~gpuslice.slicing.chain.Loops.chunk_boxes`), or None, or a
+    callable giving them (called only when a layer has two closed loops)."""
     idx = np.flatnonzero(closed)
     # (the tree below keeps every loop: the order of its answers decides ties between equal-area parents)
     if idx.size < 2 or np.bincount(layer[idx]).max() < 2:
@@ -133,7 +134,7 @@ def nest_loops(loops: Loops, n_layers: int, fill_rule: str = "nonzero") -> Neste
     crossing_f = beside(crossing_of) if points.shape[0] >= BESIDE_MIN_POINTS else None
     ci, cj, crossing_layers, seeds, (polys, involved), boxes = _containment_pairs(points, pc, offsets, layer,
                                                                                   closed & (s != 0), q, area,
-                                                                                  loops.chunk_boxes)
+                                                                                  lambda: loops.chunk_boxes)
     w_out = np.bincount(ci, weights=s[cj], minlength=n).astype(np.int64)
     depth = np.bincount(ci, minlength=n)
     # the fill just outside each loop and just inside it (even-odd: one more loop around the point)

@@ -268,3 +268,24 @@ def test_a_slot_with_two_ends_falls_back_to_the_host(device, fin, why, chained_o
     assert flags[0] & why
     for name in ("points", "loop_offsets", "layer_offsets", "area"):
         assert np.array_equal(getattr(got, name), getattr(want, name)), name
+
+
+@pytest.mark.parametrize("bodies", [1, 2])
+def test_chunk_boxes_left_on_the_device_only_for_layers_of_two_loops(device, bodies):
+    """Chaining on the device leaves nesting the boxes of the loops' chunks (``Loops.chunk_boxes``) when some layer
+    has two closed loops, equal to the host's :class:`~gpuslice.slicing.contain.Chunks`; with one loop a layer
+    nesting tests no containment, and no boxes are made."""
+    from gpuslice.slicing.contain import Chunks
+
+    tri = np.concatenate([S.box((0, 0, 0), (6, 6, 6)), S.box((10, 0, 0), (16, 6, 6))][:bodies])
+    mesh = mesh_from_triangles(tri)
+    zs = np.linspace(0.5, 5.5, 6)
+    loops = chain_segments(compute_crossings(mesh, zs, device, read_back=False), mesh, zs, zs.size, device=device)
+    assert loops.closed.all() and np.bincount(loops.layer).max() == bodies
+    if bodies == 1:
+        assert loops.chunk_boxes is None
+        return
+    host = Chunks(loops.points, loops.offsets)
+    host.cut(np.arange(loops.layer.size))
+    boxes = loops.chunk_boxes.astype(np.float64)
+    assert np.array_equal(boxes[:, :2], host.lo) and np.array_equal(boxes[:, 2:], host.hi)
