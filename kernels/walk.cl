@@ -439,7 +439,8 @@ void simple_loops(__global const float *points, __global const long *offsets, co
 // ---- the boxes of nesting's chunks (gpuslice.slicing.contain.Chunks, whose host twin computes the same): chunk c
 // holds the edges start[c] .. end[c] - 1 of a loop, so its box spans the points start[c] .. end[c] - 1 and the last
 // edge's end point nxt[c]; box[4c .. 4c + 3] = (x min, y min, x max, y max). One work-item per chunk (at most CHUNK
-// points). A NaN met makes the bound NaN, as numpy's minimum and maximum do. Scalars, as in simple_loops.
+// points). A NaN met makes the bound NaN, as numpy's minimum and maximum do; of +0.0 and -0.0 the first met is kept
+// (numpy may keep the other: the boxes are only compared). Scalars, as in simple_loops.
 inline float chunk_min(const float a, const float p) {
     return (p < a || isnan(p)) ? p : a;
 }

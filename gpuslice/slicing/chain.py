@@ -270,7 +270,7 @@ def _finish(points, offsets, chain_layer, cclosed, open_ends, max_gap, n_layers,
         kernels = chain_kernels(device)
         if cclosed.any() and np.bincount(chain_layer[cclosed]).max() >= 2:  # (containment tests to come)
             boxes = kernels.chunk_boxes(points, offsets, resident=resident, wait=False)
-            resident = True
+            resident = resident or boxes is not None  # (the points uploaded for the boxes serve the screen)
         simple = kernels.simple_loops(points, offsets, resident=resident, wait=False)
     return Loops(points, offsets, chain_layer.astype(np.int32), cclosed, repairs, simple, boxes)
 

@@ -72,11 +72,12 @@ class Chunks:
     ``end[c] - 1`` of loop ``loop[c]``; loop r's chunks are ``off[r]`` to ``off[r + 1] - 1`` (none for the loops
     not cut). ``boxes``: the (C, 4) float32 boxes (x min, y min, x max, y max) of every loop's chunks, as
     :func:`~gpuslice.ragged.loop_chunks` lays them out, when the device made them (``chunk_boxes`` in
-    ``kernels/walk.cl``, the same values): then every loop is cut already and no pass over the points is made."""
+    ``kernels/walk.cl``, the same values; where +0.0 and -0.0 tie, either may be kept, as the boxes are only
+    compared): then every loop is cut already and no pass over the points is made."""
 
     def __init__(self, points: np.ndarray, offsets: np.ndarray, boxes: np.ndarray | None = None):
         self.offsets, self.first, self.last = offsets, offsets[:-1], offsets[1:]
-        self._all = boxes is not None
+        self._all = boxes is not None and CHUNK == LOOP_CHUNK  # (the device's layout: LOOP_CHUNK edges a chunk)
         if self._all:
             self.off, self.loop, self.start, self.end, _ = loop_chunks(offsets)
             b = boxes.astype(np.float64)

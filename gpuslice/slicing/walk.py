@@ -211,15 +211,17 @@ class ChainKernels(KernelDriver):
         """(C, 4) float32 boxes (x min, y min, x max, y max) of the chunks of every closed loop
         ``points[offsets[r]:offsets[r + 1]]`` (float32 (P, 2), mm) as :func:`gpuslice.ragged.loop_chunks` lays them
         out: what :class:`gpuslice.slicing.contain.Chunks` computes on the host (its twin), made by ``chunk_boxes``
-        in ``kernels/walk.cl``. ``resident``: the points are on the device already (:meth:`chain_on_device`);
+        in ``kernels/walk.cl`` (the same values; where +0.0 and -0.0 tie, either may be kept). None when there are
+        no points or a loop has none. ``resident``: the points are on the device already (:meth:`chain_on_device`);
         else they are uploaded and stay there (for :meth:`simple_loops`). Without ``wait``, returns at once a
         callable that waits for the answer."""
         import pyopencl as cl
 
+        counts = np.diff(offsets)
+        if counts.size == 0 or points.shape[0] == 0 or counts.min() < 1:  # (a loop without points: the host cuts)
+            return None
         _, _, start, end, nxt = loop_chunks(offsets)
         n = int(start.size)
-        if n == 0 or points.shape[0] == 0:
-            return np.zeros((n, 4), dtype=np.float32)
         q = self.device.queue
         if resident:
             d_points = self.buffer("loop_points")

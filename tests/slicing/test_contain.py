@@ -148,8 +148,9 @@ def test_real_mesh_same_with_and_without_the_numpy_path(shared_meshes, monkeypat
 
 def test_device_chunk_boxes_match_the_host(device):
     """``chunk_boxes`` in ``kernels/walk.cl`` against its twin, :class:`contain.Chunks` cutting every loop on the
-    host: the same float32 boxes (as float64), the same loop boxes, bit for bit; loops of 1 to 300 points (one and
-    several chunks, a last chunk of one edge), signed zeros, coordinates far apart in size."""
+    host: the same float32 boxes (as float64), the same loop boxes; loops of 1 to 300 points (one and several
+    chunks, a last chunk of one edge), signed zeros (of +0.0 and -0.0 tied, either sign may be kept: equal values),
+    coordinates far apart in size. A loop without points: no boxes (the host cuts)."""
     from gpuslice.slicing.walk import chain_kernels
 
     rng = np.random.default_rng(11)
@@ -157,6 +158,8 @@ def test_device_chunk_boxes_match_the_host(device):
     pts = [rng.normal(0, 10.0 ** rng.integers(-3, 4), (n, 2)).astype(np.float32) for n in sizes]
     pts[3][::7] = np.float32(-0.0)
     pts[4][::5] = np.float32(0.0)
+    pts[5][::2] = np.float32(-0.0)  # both zeros in one chunk
+    pts[5][1::4] = np.float32(0.0)
     points = np.concatenate(pts)
     offsets = np.cumsum([0, *sizes]).astype(np.int64)
     boxes = chain_kernels(device).chunk_boxes(points, offsets)
@@ -168,6 +171,7 @@ def test_device_chunk_boxes_match_the_host(device):
         assert np.array_equal(getattr(made, f), getattr(host, f)), f
     waiting = chain_kernels(device).chunk_boxes(points, offsets, wait=False)  # (the form chaining leaves running)
     assert callable(waiting) and np.array_equal(waiting(), boxes)
+    assert chain_kernels(device).chunk_boxes(points, np.append(offsets, offsets[-1])) is None
 
 
 @pytest.mark.parametrize("fill_rule", ["nonzero", "evenodd", "positive"])
