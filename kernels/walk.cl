@@ -449,8 +449,9 @@ inline float chunk_max(const float a, const float p) {
     return (p > a || isnan(p)) ? p : a;
 }
 
-__kernel void chunk_boxes(__global const float *points, __global const long *start, __global const long *end,
-                          __global const long *nxt, const int n_chunks, __global float *box) {
+__kernel __attribute__((reqd_work_group_size(LOCAL_SIZE, 1, 1)))
+void chunk_boxes(__global const float *points, __global const long *start, __global const long *end,
+                 __global const long *nxt, const int n_chunks, __global float *box) {
     const int c = get_global_id(0);
     if (c >= n_chunks) return;
     const long k = nxt[c];
