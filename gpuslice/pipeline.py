@@ -171,14 +171,15 @@ def prepare_device(params: SliceParams, device=None, timings: dict[str, float] |
     return dev
 
 
-def load_job_mesh(job: Job, device=None, timings: dict[str, float] | None = None) -> Mesh:
-    """Read ``job.source`` (or ``job.data``) and build its mesh, placed on the bed (stages ``load``, ``topology``)."""
+def load_job_mesh(job: Job, device=None, timings: dict[str, float] | None = None, reading=None) -> Mesh:
+    """Read ``job.source`` (or ``job.data``) and build its mesh, placed on the bed (stages ``load``, ``topology``).
+    ``reading``: a future of that read, already started (then ``load`` is the time waited for it)."""
     from .io.meshfile import read_mesh_source
     from .mesh.mesh import mesh_from_triangles
 
     timings = timings if timings is not None else {}
     t = time.perf_counter()
-    raw = read_mesh_source(job.source, job.data, job.label)
+    raw = read_mesh_source(job.source, job.data, job.label) if reading is None else reading.result()
     timings["load"] = time.perf_counter() - t
     t = time.perf_counter()
     # a resin job centres the part on the display anyway (unless --keep-xy): a far one is centred in float64 first
@@ -251,8 +252,19 @@ def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | Non
         else:
             if job.resin is not None:  # (first: the encoder processes start while pyopencl is imported)
                 _prestart_encoders(job.resin)
-            dev = prepare_device(job.params, device, timings)
-            mesh = load_job_mesh(job, dev, timings)
+            raw = None
+            if job.params.backend == "opencl" and device is None:  # the file read while PyOpenCL is imported
+                from .io.meshfile import read_mesh_source
+                from .prefetch import beside
+
+                raw = beside(read_mesh_source, job.source, job.data, job.label, name="gpuslice-read")
+            try:
+                dev = prepare_device(job.params, device, timings)
+            except Exception:
+                if raw is not None:  # (the read finished before the device's error is raised; an interrupt does
+                    raw.exception()  # not wait for it)
+                raise
+            mesh = load_job_mesh(job, dev, timings, raw)
             if job.resin is not None:  # before slicing: a model larger than the printer is refused now
                 from .raster.edges import check_printer_fits  # (not for contours: the raster modules cost 10 ms)
 

@@ -91,6 +91,48 @@ def test_mesh_check_beside_the_slicing_gives_its_counts_and_errors(model, device
     assert finished  # (the job waited for the mesh check before its error went up)
 
 
+def test_the_file_is_read_beside_the_device_set_up(model, reference, monkeypatch, tmp_path):
+    """A job that makes its own device reads the mesh file on a thread while PyOpenCL starts: the layers are the
+    same; a file that cannot be read is still the job's one-line error, and a device that cannot be made is the
+    error reported first, after the read has finished (no thread left reading)."""
+    import threading
+    import time
+
+    import gpuslice.io.meshfile as meshfile
+    import gpuslice.pipeline as pipeline
+    from gpuslice.errors import MeshFileError, ParameterError
+
+    read_on = []
+    real = meshfile.read_mesh_source
+
+    def spy(*args):
+        read_on.append(threading.current_thread() is threading.main_thread())
+        return real(*args)
+
+    monkeypatch.setattr(meshfile, "read_mesh_source", spy)
+    job = Job(source=str(model), placement=Placement(fit=30.0), params=SliceParams(thickness=0.25))
+    _same_layers(run_job(job).result, reference)
+    assert read_on == [False]
+    missing = Job(source=str(tmp_path / "none.stl"), params=SliceParams(thickness=0.25))
+    with pytest.raises(MeshFileError, match="none.stl: no such file"):
+        run_job(missing)
+    finished = []
+
+    def slow(*args):
+        time.sleep(0.2)
+        finished.append(True)
+        raise MeshFileError("late.stl: no such file")
+
+    def no_device(*args, **kwargs):
+        raise ParameterError("no OpenCL device matches 'nothing'")
+
+    monkeypatch.setattr(meshfile, "read_mesh_source", slow)
+    monkeypatch.setattr(pipeline, "prepare_device", no_device)
+    with pytest.raises(ParameterError, match="no OpenCL device"):
+        run_job(job)
+    assert finished
+
+
 def test_view_agrees(model, reference, tmp_path):
     page = tmp_path / "v.html"
     assert main(["view", str(model), *ARGS, "-o", str(page), "-q"]) == 0
