@@ -14,6 +14,7 @@ Timings are seconds, in :attr:`JobResult.timings`; nothing else of a run depends
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -172,8 +173,7 @@ def prepare_device(params: SliceParams, device=None, timings: dict[str, float] |
 
 
 def load_job_mesh(job: Job, device=None, timings: dict[str, float] | None = None, reading=None) -> Mesh:
-    """Read ``job.source`` (or ``job.data``) and build its mesh, placed on the bed (stages ``load``, ``topology``).
-    ``reading``: a future of that read, already started (then ``load`` is the time waited for it)."""
+    """Read the job's file (or wait for ``reading``: its read, started) and build the mesh (``load``, ``topology``)."""
     from .io.meshfile import read_mesh_source
     from .mesh.mesh import mesh_from_triangles
 
@@ -252,19 +252,18 @@ def run_job(job: Job, *, device=None, progress: Callable[[int, int], None] | Non
         else:
             if job.resin is not None:  # (first: the encoder processes start while pyopencl is imported)
                 _prestart_encoders(job.resin)
-            raw = None
+            reading = None
             if job.params.backend == "opencl" and device is None:  # the file read while PyOpenCL is imported
                 from .io.meshfile import read_mesh_source
                 from .prefetch import beside
 
-                raw = beside(read_mesh_source, job.source, job.data, job.label, name="gpuslice-read")
+                reading = beside(read_mesh_source, job.source, job.data, job.label, name="gpuslice-read")
             try:
                 dev = prepare_device(job.params, device, timings)
             except Exception:
-                if raw is not None:  # (the read finished before the device's error is raised; an interrupt does
-                    raw.exception()  # not wait for it)
+                _ = reading and reading.exception()  # (the read ends before the device's error goes up; not Ctrl-C)
                 raise
-            mesh = load_job_mesh(job, dev, timings, raw)
+            mesh = load_job_mesh(job, dev, timings, reading)
             if job.resin is not None:  # before slicing: a model larger than the printer is refused now
                 from .raster.edges import check_printer_fits  # (not for contours: the raster modules cost 10 ms)
 
@@ -321,8 +320,6 @@ def _prestart_encoders(r: ResinOutput) -> None:
 
     runs = choose_backend(r.options.raster_backend) == "opencl"  # layers as runs, PNGs straight from them
     if RESIN_FORMATS[r.format].png and r.options.png_level == 1 and runs and _png_processes():
-        import os
-
         from .raster.png_procs import prestart
 
         prestart(r.options.workers or os.cpu_count())
@@ -332,8 +329,6 @@ def _open_contour_stream(job: Job):
     """The contour output's stream (:func:`gpuslice.formats.open_stream`: the ``.npz`` written while the layers are
     sliced, its points never held twice), or None: no contour output, a format written at the end, or Windows
     (where a file mapped into memory, as the stream's points are, cannot be renamed)."""
-    import os
-
     if job.contours is None or os.name == "nt":
         return None
     from .formats import open_stream
@@ -448,8 +443,6 @@ def _write_resin(job: Job, out: JobResult, progress, now) -> None:
 def _png_processes() -> bool:
     """``GPUSLICE_PNG_PROCESSES=1``: PNG layers from runs made by numpy in processes (the numpy twin of the PNG
     kernel, as before it), not on the device; for comparisons and for devices where the kernel is slow."""
-    import os
-
     return os.environ.get("GPUSLICE_PNG_PROCESSES", "").strip().lower() in ("1", "yes", "true", "on")
 
 
