@@ -215,32 +215,16 @@ class ChainKernels(KernelDriver):
         no points or a loop has none. ``resident``: the points are on the device already (:meth:`chain_on_device`);
         else they are uploaded and stay there (for :meth:`simple_loops`). Without ``wait``, returns at once a
         callable that waits for the answer."""
-        import pyopencl as cl
-
         counts = np.diff(offsets)
         if counts.size == 0 or points.shape[0] == 0 or counts.min() < 1:  # (a loop without points: the host cuts)
             return None
         _, _, start, end, nxt = loop_chunks(offsets)
         n = int(start.size)
-        q = self.device.queue
-        if resident:
-            d_points = self.buffer("loop_points")
-        else:
-            d_points = self._put("loop_points", np.ascontiguousarray(points, dtype=np.float32))
         d_box = self._buffer("chunk_box", 16 * n)
-        self._boxes(q, *self._grid(n), d_points, self._put("chunk_start", start), self._put("chunk_end", end),
-                    self._put("chunk_next", nxt), np.int32(n), d_box)
-        out = np.empty((n, 4), dtype=np.float32)
-        done = cl.enqueue_copy(q, out, d_box, is_blocking=wait)
-        if wait:
-            return out
-        q.flush()
-
-        def result() -> np.ndarray:
-            done.wait()
-            return out
-
-        return result
+        self._boxes(self.device.queue, *self._grid(n), self._loop_points(points, resident),
+                    self._put("chunk_start", start), self._put("chunk_end", end), self._put("chunk_next", nxt),
+                    np.int32(n), d_box)
+        return self._fetch(np.empty((n, 4), dtype=np.float32), d_box, wait)
 
     def simple_loops(self, points: np.ndarray, offsets: np.ndarray, *, resident: bool = False, wait: bool = True):
         """(R,) bool: True for each loop ``points[offsets[r]:offsets[r + 1]]`` (float32 (P, 2), mm, closed) that
@@ -249,30 +233,38 @@ class ChainKernels(KernelDriver):
         ``resident``: the points are already on the device, as :meth:`chain_on_device` left them. Without
         ``wait``, returns at once a callable that waits for the device's answer and returns it (the kernel runs
         while the host does other work)."""
-        import pyopencl as cl
-
         n = int(offsets.size) - 1
         if self._simple is None:
             return None
         if n <= 0 or points.shape[0] == 0:
             return np.zeros(max(n, 0), dtype=bool)
-        q = self.device.queue
-        if resident:
-            d_points = self.buffer("loop_points")
-        else:
-            d_points = self._put("loop_points", np.ascontiguousarray(points, dtype=np.float32))
         d_offsets = self._put("loop_offsets", offsets.astype(np.int64, copy=False))
         d_simple = self._buffer("simple", n)
-        self._simple(q, *self._task_grid(n), d_points, d_offsets, np.int32(n), d_simple)
-        out = np.empty(n, dtype=np.uint8)
-        done = cl.enqueue_copy(q, out, d_simple, is_blocking=wait)
+        self._simple(self.device.queue, *self._task_grid(n), self._loop_points(points, resident), d_offsets,
+                     np.int32(n), d_simple)
+        return self._fetch(np.empty(n, dtype=bool), d_simple, wait)
+
+    def _loop_points(self, points: np.ndarray, resident: bool):
+        """The device buffer ``loop_points``: as :meth:`chain_on_device` left it (``resident``), else ``points``
+        uploaded into it (where they stay for the next kernel)."""
+        if resident:
+            return self.buffer("loop_points")
+        return self._put("loop_points", np.ascontiguousarray(points, dtype=np.float32))
+
+    def _fetch(self, out: np.ndarray, d_buf, wait: bool):
+        """``out`` read from ``d_buf`` after what the queue holds: filled (``wait``), or at once a callable that
+        waits for the read and returns it (the kernel runs while the host does other work)."""
+        import pyopencl as cl
+
+        q = self.device.queue
+        done = cl.enqueue_copy(q, out, d_buf, is_blocking=wait)
         if wait:
-            return out.view(bool)
+            return out
         q.flush()
 
         def result() -> np.ndarray:
             done.wait()
-            return out.view(bool)
+            return out
 
         return result
 
