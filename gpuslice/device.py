@@ -54,6 +54,11 @@ class Device:
     _lanes: dict = field(default_factory=dict, repr=False)
     _lock: threading.RLock = field(default_factory=threading.RLock, repr=False)
     _pid: int = field(default_factory=os.getpid, repr=False)  # the process that made the context
+    # read once here: a forked child may not ask the driver anything (NVIDIA's answers INVALID_DEVICE)
+    _name: str = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self._name = f"{self.device.platform.name.strip()} / {self.device.name.strip()}"
 
     def lane(self, k: int) -> Device:
         """This device with in-order queue number ``k`` of its own (``k`` = 0: this device itself), made once: work
@@ -72,7 +77,7 @@ class Device:
 
     @property
     def name(self) -> str:
-        return f"{self.device.platform.name.strip()} / {self.device.name.strip()}"
+        return self._name
 
     def exclusive(self) -> threading.RLock:
         """The lock of this device (and its lanes) for one job's use of the kernel drivers that keep no lock of

@@ -111,3 +111,19 @@ def test_a_forked_child_gets_an_error_not_a_hang(device, what):
         p.join()
     assert got.startswith("DeviceError:") and "fork" in got, got
     assert time.monotonic() - t0 < 30
+
+
+def test_the_fork_error_asks_the_driver_nothing(device):
+    """A forked child's error names the device without asking the driver: NVIDIA's driver answers a forked child's
+    every call with INVALID_DEVICE (seen on an H200), which surfaced as a ``LogicError`` instead of this error."""
+    import copy
+
+    class Gone:  # what a forked child's driver objects are: any attribute read is a refused driver call
+        def __getattr__(self, name):
+            raise AssertionError(f"asked the driver for {name}")
+
+    child = copy.copy(device)  # (a shallow copy: the real device is left as it is)
+    child.device, child._pid = Gone(), os.getpid() + 1
+    with pytest.raises(DeviceError, match="fork") as err:
+        child.check_process()
+    assert device.name in str(err.value)
