@@ -22,6 +22,7 @@ from abc import ABC, abstractmethod
 import numpy as np
 
 from ..device import KernelDriver, aligned_empty, drained, input_buffer
+from ..readback import OutputBuffers
 
 __all__ = ["RunKernels", "RunImageEncoder", "RUN_DTYPES"]
 
@@ -138,10 +139,7 @@ class RunImageEncoder(RunKernels, ABC):
 
     def _encode_group(self, q, got: tuple, cols: int, n_pixels: int) -> tuple[list[bytes], object] | None:
         """:meth:`encode_stats` of the group ``got`` (:meth:`_inputs`) on the queue ``q``."""
-        import pyopencl as cl
-
         m, n_img, img_off, b_off, b_runs = got
-        ctx, mf = self.device.context, cl.mem_flags
         head = (np.int32(m), np.int32(n_img), np.int32(cols), np.int64(n_pixels), b_off, *b_runs)
         counted = self._counted(q, head, m, img_off)
         if counted is None:
@@ -156,24 +154,19 @@ class RunImageEncoder(RunKernels, ABC):
         np.cumsum(size, out=start[1:])
         total = int(start[-1])
         base = start[:-1] + self.HEAD - before
-        out = aligned_empty(max(total, 1), np.uint8)  # (never 0 with correct kernels: a buffer cannot be empty)
-        b_out = cl.Buffer(ctx, mf.WRITE_ONLY | mf.USE_HOST_PTR, hostbuf=out)
+        # (never 0 bytes with correct kernels: a buffer cannot be empty)
+        outs = OutputBuffers(self.device, [aligned_empty(max(total, 1), np.uint8),
+                                           *(aligned_empty(m, dt) for dt in self.EXTRA)])
         b_base = input_buffer(self.device, base)
-        b_extra = [cl.Buffer(ctx, mf.WRITE_ONLY | mf.USE_HOST_PTR, hostbuf=aligned_empty(m, dt)) for dt in self.EXTRA]
         with self._lock:
-            self._write(q, grid, local, *head, b_cum, b_base, b_out, *b_extra)
-        img = cl.enqueue_map_buffer(q, b_out, cl.map_flags.READ | cl.map_flags.WRITE, 0, (total,), np.uint8,
-                                    is_blocking=False)[0]
-        extra = [cl.enqueue_map_buffer(q, buf, cl.map_flags.READ, 0, (m,), dt, is_blocking=False)[0]
-                 for buf, dt in zip(b_extra, self.EXTRA, strict=True)]
-        q.finish()
+            self._write(q, grid, local, *head, b_cum, b_base, *outs.buffers)
+        img, *extra = outs.fetch(q)
+        img = img[:total]
         stats = self.reduce(extra, first, nonempty, blank)
-        for arr in extra:
-            arr.base.release(q)
         for k in np.flatnonzero(~nonempty):
             img[start[k] + self.HEAD : start[k] + self.HEAD + len(blank)] = np.frombuffer(blank, np.uint8)
         self.finish(img, start, stats)
         data = [img[start[k] : start[k + 1]].tobytes() for k in range(n_img)]
-        img.base.release(q)
+        outs.release(q)
         q.finish()
         return data, stats

@@ -41,6 +41,7 @@ from ..device import KernelDriver, aligned_empty, get_device
 from ..errors import ParameterError
 from ..prefetch import Workers, current_name, prefetch
 from ..ragged import expand_ranges, group_ranks
+from ..readback import OutputBuffers
 from .edges import LayerEdges, check_fits, check_raster_args, iter_layer_edges
 from .runs_twin import Runs, _cells_to_runs, _piece_records, _rows, _sum_cells, runs_numpy, runs_to_mask
 from .spec import RasterSpec, gamma_lut
@@ -220,16 +221,15 @@ class RunsKernel(KernelDriver):
         np.cumsum(row_runs, out=run_off[1:])
         n_runs = int(run_off[-1])
         b_ro = self._put("run_off", run_off[:-1])
-        # the outputs: new host arrays that the device writes into (USE_HOST_PTR: no copy on a CPU device; a GPU
-        # driver copies when they are mapped); the reused scratch buffers never leave this call
+        # the outputs: new host arrays, written in place on a CPU device, copied into from a GPU's own buffers
+        # (gpuslice.readback); the reused scratch buffers never leave this call
         arrs = [aligned_empty(n_runs, d) for d in (np.int32, np.int32, np.int32, np.uint8)]
         if n_runs:
-            flags = cl.mem_flags.WRITE_ONLY | cl.mem_flags.USE_HOST_PTR
-            outs = [cl.Buffer(self.device.context, flags, hostbuf=a) for a in arrs]
-            self._emit(q, gr, lr, np.int32(n_rows), b_off, b_recs, b_m, b_rt, b_tiles, b_lut, b_ro, *outs)
+            outs = OutputBuffers(self.device, arrs)
+            self._emit(q, gr, lr, np.int32(n_rows), b_off, b_recs, b_m, b_rt, b_tiles, b_lut, b_ro, *outs.buffers)
             self._mark("emit")
-            for a, b in zip(arrs, outs, strict=True):
-                cl.enqueue_map_buffer(q, b, cl.map_flags.READ, 0, a.shape, a.dtype, is_blocking=True)[0].base.release(q)
+            outs.fetch(q)
+            outs.release(q)
             q.finish()
         row, x, length, grey = arrs
         if host is not None:
