@@ -22,11 +22,13 @@ class OutputBuffers:
     by the host until :meth:`release`). The arrays and this object must be held until then (on an exception, wait
     for the queue first: :func:`gpuslice.device.drained`)."""
 
+    IN_PLACE: bool | None = None  #: None: in the arrays on a CPU device only (tests: False, the copies on any)
+
     def __init__(self, device, arrays: list[np.ndarray]) -> None:
         import pyopencl as cl
 
         self.arrays = arrays
-        self._in_place = bool(device.is_cpu)
+        self._in_place = bool(device.is_cpu) if self.IN_PLACE is None else self.IN_PLACE
         mf = cl.mem_flags
         if self._in_place:
             self.buffers = [cl.Buffer(device.context, mf.WRITE_ONLY | mf.USE_HOST_PTR, hostbuf=a) for a in arrays]

@@ -15,6 +15,9 @@
 #   stages   scripts/gpu_stages.py: in-process stages on each device, the contour meshes and 1.6 M facets
 #   probe    OpenCL start-up per platform, the GL rasteriser's renderer and a small GL job against the runs,
 #            whole-process `gpuslice slice` on each device
+#   profile  scripts/profile_stages.py: the armadillo job to a 12K GOO, function by function, on each device
+#   abgpu    tests/raster on the GPU, then this tree against a copy of the code before in .old/ (carried), the
+#            armadillo job to GOO in process (scripts/profile_stages.py's timed run), alternated
 #   contours scripts/bench_contours.py (in-process stages, manifold3d) on each device
 #   large    scripts/make_large.py, then the big-mesh benchmark (whole process) on each device
 #   resin    scripts/bench_runs.py and scripts/bench_resin.py (armadillo job, 12K and 16K, GOO) on each device,
@@ -152,6 +155,41 @@ PYEOF
     done
   done
   cmp /tmp/s_nvidia.npz /tmp/s_pocl.npz && echo "npz identical"
+fi
+
+if has profile; then
+  stamp "profile: the armadillo job to GOO, function by function (scripts/profile_stages.py)"
+  mkdir -p /tmp/gpuslice-bench
+  job=$(python3 -c "import sys; sys.path.insert(0, 'scripts'); import bench_resin; from pathlib import Path; \
+print(bench_resin.job_stl('armadillo', Path('/tmp/gpuslice-bench')))")
+  for d in nvidia pocl; do
+    for g in 0 1; do
+      GPUSLICE_DEVICE=$d timeout 120 python3 scripts/profile_stages.py --top 30 -- raster "$job" --fit 95 -t 0.05 \
+        --resolution 11520x5120 --pixel 0.019 --gamma $g -o /tmp/prof.goo 2>&1 | grep -v warning > "$OUT/prof_${d}_$g.txt"
+      echo "## $d gamma $g"; grep -E '^(warm-up|timed)' "$OUT/prof_${d}_$g.txt"
+    done
+  done
+fi
+
+if has abgpu; then
+  stamp "raster tests on the GPU"
+  GPUSLICE_DEVICE=nvidia timeout 150 python3 -m pytest -q -n 12 -p no:cacheprovider --timeout 140 -o addopts="" \
+    tests/raster > "$OUT/raster_tests.log" 2>&1
+  echo "pytest exit $?"; tail -2 "$OUT/raster_tests.log"
+  stamp "A/B: this tree against .old/ (a copy of the code before), the armadillo job to GOO in process"
+  mkdir -p /tmp/gpuslice-bench
+  job=$(python3 -c "import sys; sys.path.insert(0, 'scripts'); import bench_resin; from pathlib import Path; \
+print(bench_resin.job_stl('armadillo', Path('/tmp/gpuslice-bench')))")
+  for rep in 1 2; do
+    for side in new old; do
+      pp=$PWD; [ $side = old ] && pp=$PWD/.old
+      for g in 0 1; do
+        echo -n "$side gamma $g: "
+        PYTHONPATH=$pp:/tmp/site GPUSLICE_DEVICE=nvidia timeout 60 python3 scripts/profile_stages.py --top 0 -- raster \
+          "$job" --fit 95 -t 0.05 --resolution 11520x5120 --pixel 0.019 --gamma $g -o /tmp/ab.goo 2>&1 | grep '^timed'
+      done
+    done
+  done
 fi
 
 if has contours; then
