@@ -18,11 +18,11 @@
 #   profile  scripts/profile_stages.py: the armadillo job to a 12K GOO, function by function, on each device
 #   abgpu    tests/raster on the GPU, then this tree against a copy of the code before in .old/ (carried), the
 #            armadillo job to GOO in process (scripts/profile_stages.py's timed run), alternated
-#   contours scripts/bench_contours.py (in-process stages, manifold3d) on each device
 #   large    scripts/make_large.py, then the big-mesh benchmark (whole process) on each device
 #   resin    scripts/bench_runs.py and scripts/bench_resin.py (armadillo job, 12K and 16K, GOO) on each device,
 #            and the GL rasteriser (--raster-backend gl) against the runs on the GPU
-# Every stage sources the environment of setup (/tmp/gpu-env.sh), so a later call on a warm machine may skip setup.
+# Every stage sources the environment setup writes (/tmp/gpu-env.sh). Begin every call with setup (~5 s): each call
+# sends the working tree afresh, without the gpuslice/kernels link that setup makes.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-/tmp/gpu-out}
@@ -189,15 +189,6 @@ print(bench_resin.job_stl('armadillo', Path('/tmp/gpuslice-bench')))")
           "$job" --fit 95 -t 0.05 --resolution 11520x5120 --pixel 0.019 --gamma $g -o /tmp/ab.goo 2>&1 | grep '^timed'
       done
     done
-  done
-fi
-
-if has contours; then
-  for d in nvidia pocl; do
-    stamp "contours $d"
-    GPUSLICE_DEVICE=$d timeout 240 python3 scripts/bench_contours.py --skip-paper --repeat 7 \
-      --json "$OUT/contours_$d.json" > "$OUT/contours_$d.log" 2>&1
-    echo "exit $?"; grep -E '^\|' "$OUT/contours_$d.log" | head -30
   done
 fi
 
