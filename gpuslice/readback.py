@@ -46,9 +46,11 @@ class OutputBuffers:
                           for a, b in zip(self.arrays, self.buffers, strict=True)]
             q.finish()
             return self._maps
+        events = []  # (held until the queue is finished: a dropped event waits holding the GIL, device.TRANSFERS)
         for a, b in zip(self.arrays, self.buffers, strict=True):
             if a.nbytes:
-                cl.enqueue_copy(q, a, b, is_blocking=False)
+                event = cl.enqueue_copy(q, a, b, is_blocking=False)
+                events.append(event)
         q.finish()
         return list(self.arrays)
 
