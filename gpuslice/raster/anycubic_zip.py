@@ -61,7 +61,7 @@ from .coverage import Tile
 from .layers import RunLayer, pixel_runs, run_groups
 from .photon import _stages, encode_pw0_batch, encode_pw0_runs
 from .png import encode_all
-from .settings import header_layer_height, layer_table, per_layer_mode, print_time_s, ramp_layers, resin_ml
+from .settings import header_layer_height, layer_table, median, per_layer_mode, print_time_s, ramp_layers, resin_ml
 
 __all__ = ["ZIP_MACHINES", "ZipMachine", "refuse_settings", "write_anycubic_zip", "write_target", "PREVIEWS",
            "SCENE_MAGIC", "VOLUMES_MAGIC"]
@@ -223,7 +223,7 @@ def _scene(box_mm: np.ndarray, z_top: np.ndarray, area: np.ndarray, objects: np.
 def _volumes(thickness: np.ndarray, area: np.ndarray) -> bytes:
     """``calc_layer_volumes.data``: the resin volume (mm³) of each slab of about :data:`VOLUME_SLAB_MM`."""
     n = thickness.size
-    layer_height = float(np.median(thickness)) if n else VOLUME_SLAB_MM
+    layer_height = median(thickness) if n else VOLUME_SLAB_MM
     per = max(1, round(VOLUME_SLAB_MM / layer_height)) if layer_height > 0 else 1
     starts = np.arange(0, n, per)
     z = np.concatenate([[0.0], np.cumsum(thickness)])

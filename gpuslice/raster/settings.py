@@ -313,13 +313,20 @@ def per_layer_mode(settings: PrintSettings, thickness_mm: np.ndarray) -> bool:
     return bool(settings.per_layer_settings) or (th.size > 1 and float(np.ptp(th)) > 1e-9)
 
 
+def median(values: np.ndarray) -> float:
+    """``np.median`` of a non-empty float64 array without NaNs, by a sort (numpy's imports ``numpy.ma``: ~15 ms)."""
+    s = np.sort(np.ravel(np.asarray(values, np.float64)))
+    k = s.size // 2
+    return float(s[k]) if s.size % 2 else float((s[k - 1] + s[k]) / 2.0)
+
+
 def header_layer_height(thickness_mm: np.ndarray, empty: float = 0.0) -> float:
     """The one layer height (mm) an archive header states for layers of these thicknesses: the median of the layers
     after the first (which may be thicker), the first's when it is alone, ``empty`` when there are none."""
     th = np.asarray(thickness_mm, np.float64)
     if th.size == 0:
         return float(empty)
-    return float(np.median(th[1:])) if th.size > 1 else float(th[0])
+    return median(th[1:]) if th.size > 1 else float(th[0])
 
 
 def resin_ml(area_mm2: np.ndarray, thickness_mm: np.ndarray) -> float:

@@ -26,7 +26,7 @@ from .coverage import Tile
 from .layers import HeightMap, RunLayer, encode_png, run_groups, top_view
 from .png import PngEncoder, encode_all
 from .png_runs import png_encoders, png_group
-from .settings import header_layer_height
+from .settings import header_layer_height, median
 from .spec import RasterSpec
 
 __all__ = ["SL1Info", "config_ini", "prusaslicer_ini", "read_sl1_config", "write_sl1", "info_from",
@@ -382,7 +382,7 @@ def check_one_layer_height(thickness: np.ndarray, path: Path, first_may_differ: 
     if hi - lo > 1e-6 * max(hi, 1.0):
         raise ParameterError(f"{path}: this format holds one layer height, the layers here are {lo:g} to {hi:g} mm "
                              f"thick (adaptive layers need another format)")
-    return float(np.median(rest))
+    return median(rest)
 
 
 def write_target(tiles: Iterable[Tile], target) -> dict[str, float]:

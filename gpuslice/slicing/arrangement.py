@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..mesh.graph import connected_labels
-from ..ragged import expand_ranges
+from ..ragged import expand_ranges, unique_ints
 from .rings import _winding_numbers, cycle_labels, filled
 
 __all__ = ["Noded", "arrangement"]
@@ -256,8 +256,8 @@ def _polygons_of(ring_g, h_seq, h_ring, z, ks, ke, s_piece, a_piece, p_lo, p_hi,
         test = np.full(n_ring, -1, dtype=np.int64)
         test[h_ring[inner][::-1]] = np.where(back, ke[piece] - 1, ks[piece] + 1)[inner][::-1]
         bad[ring_g[mh[test[mh] < 0]]] = True
-        ring, roff = _ring_points_of(h_seq, h_ring, n_ring, np.unique(ms), z, ks, ke, close=False)
-        contains[multi] = _winding_numbers(ring, roff, np.arange(mh.size), np.searchsorted(np.unique(ms), ms),
+        ring, roff = _ring_points_of(h_seq, h_ring, n_ring, unique_ints(ms), z, ks, ke, close=False)
+        contains[multi] = _winding_numbers(ring, roff, np.arange(mh.size), np.searchsorted(unique_ints(ms), ms),
                                            z[np.maximum(test[mh], 0)]) != 0
     hi_, sj = hi_[contains], sj[contains]
     o = np.lexsort((np.prod(hi[sj] - lo[sj], axis=1), hi_))

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..ragged import LOOP_CHUNK, expand_ranges, loop_chunks
+from ..ragged import LOOP_CHUNK, expand_ranges, isin_ints, loop_chunks, unique_ints
 from .rings import _polygons, in_halves
 
 __all__ = ["containment_pairs", "point_in_loops", "rings_meet_numpy", "Chunks", "MAX_PAIRS", "MAX_EDGE_PAIRS"]
@@ -232,7 +232,7 @@ def _geos_contains(points, pc, offsets, pi, pj, q) -> np.ndarray:
     """``shapely.contains_xy`` of loop ``pj[k]`` (as a polygon) and the query point ``q[pi[k]]``."""
     import shapely
 
-    involved = np.unique(pj)
+    involved = unique_ints(pj)
     polys = _polygons(points, offsets, involved, pc)
     counts = np.diff(offsets)
     return in_halves(shapely.contains_xy, counts[pj], polys[np.searchsorted(involved, pj)], q.real[pi], q.imag[pi])
@@ -242,7 +242,7 @@ def rings_meet(points, pc, offsets, bi, bj) -> np.ndarray:
     """``shapely.intersects`` of the rings of loops ``bi[k]`` and ``bj[k]`` (closed by their first point)."""
     import shapely
 
-    both = np.unique(np.concatenate([bi, bj]))
+    both = unique_ints(bi, bj)
     rings = shapely.get_exterior_ring(_polygons(points, offsets, both, pc))
     counts = np.diff(offsets)
     return in_halves(shapely.intersects, counts[bi] + counts[bj], rings[np.searchsorted(both, bi)],
@@ -264,7 +264,7 @@ def containment_pairs(points, pc, offsets, layer, ids, q, area, chunk_boxes=None
     x, y = pairs
     meet = np.all((lo[x] <= hi[y]) & (lo[y] <= hi[x]), axis=1)
     x, y = x[meet], y[meet]
-    chunks.cut(np.union1d(x, y))
+    chunks.cut(unique_ints(x, y))
     # candidates: a loop's query point in the other's closed box (as the R-tree's "intersects" finds them)
     qx, qy = q.real, q.imag
     in_y = (lo[y, 0] <= qx[x]) & (qx[x] <= hi[y, 0]) & (lo[y, 1] <= qy[x]) & (qy[x] <= hi[y, 1])
@@ -286,7 +286,7 @@ def containment_pairs(points, pc, offsets, layer, ids, q, area, chunk_boxes=None
     a = np.where(x_in_y, x, y)[~partial]  # the inner loop (x when the boxes are equal)
     b = np.where(x_in_y, y, x)[~partial]
     n = offsets.size - 1
-    out = ~np.isin(a * n + b, ci * n + cj)
+    out = ~isin_ints(a * n + b, ci * n + cj)
     bi = np.concatenate([x[partial], a[out]])
     bj = np.concatenate([y[partial], b[out]])
     if bi.size:
@@ -294,4 +294,4 @@ def containment_pairs(points, pc, offsets, layer, ids, q, area, chunk_boxes=None
         if not sure.all():
             m[~sure] = rings_meet(points, pc, offsets, bi[~sure], bj[~sure])
         bi, bj = bi[m], bj[m]
-    return ci, cj, np.unique(layer[bi]), np.union1d(bi, bj), (lo, hi)
+    return ci, cj, unique_ints(layer[bi]), unique_ints(bi, bj), (lo, hi)

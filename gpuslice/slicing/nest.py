@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ParameterError
-from ..ragged import expand_ranges
+from ..ragged import expand_ranges, isin_ints, unique_ints
 from .chain import Loops
 from .contain import containment_pairs
 from .rings import (
@@ -94,24 +94,24 @@ def _containment_pairs(points, pc, offsets, layer, closed, q, area, chunk_boxes=
     bi, bj = bi[partial], bj[partial]
     # containment: the query point of loop i strictly inside loop j (GEOS point-in-polygon, in C), polygons made
     # only for the loops j tested
-    involved = np.unique(pj)
+    involved = unique_ints(pj)
     polys = _polygons(points, offsets, involved, pc)
     held, counts = polys[np.searchsorted(involved, pj)], np.diff(offsets)
     inside = in_halves(shapely.contains_xy, counts[pj], held, q.real[pi], q.imag[pi])
     n = offsets.size - 1
-    out = ~np.isin(a * n + b, pi[inside] * n + pj[inside])  # box within b's, query point not inside b
+    out = ~isin_ints(a * n + b, pi[inside] * n + pj[inside])  # box within b's, query point not inside b
     a, b = a[out], b[out]
     bi, bj = np.concatenate([bi, a]), np.concatenate([bj, b])
     if bi.size:  # exact test on the partial pairs and those: do their boundaries meet (a point on the other)?
-        both = np.unique(np.concatenate([bi, bj]))
-        have = np.isin(both, involved)  # the polygons made above serve; the others are made here
+        both = unique_ints(bi, bj)
+        have = isin_ints(both, involved)  # the polygons made above serve; the others are made here
         rings = np.empty(both.size, dtype=object)
         rings[have] = shapely.get_exterior_ring(polys[np.searchsorted(involved, both[have])])
         rings[~have] = shapely.get_exterior_ring(_polygons(points, offsets, both[~have], pc))
         meet = in_halves(shapely.intersects, counts[bi] + counts[bj], rings[np.searchsorted(both, bi)],
                          rings[np.searchsorted(both, bj)])
         bi, bj = bi[meet], bj[meet]
-    return pi[inside], pj[inside], np.unique(layer[bi]), np.union1d(bi, bj), (polys, involved), (lo, hi)
+    return pi[inside], pj[inside], unique_ints(layer[bi]), unique_ints(bi, bj), (polys, involved), (lo, hi)
 
 
 def nest_loops(loops: Loops, n_layers: int, fill_rule: str = "nonzero") -> Nested:
@@ -211,17 +211,17 @@ def nest_loops(loops: Loops, n_layers: int, fill_rule: str = "nonzero") -> Neste
         ring_of, sel = expand_ranges(offsets[:-1][u], cnt)
         u_rings = shapely.linearrings(points[sel].astype(np.float64), indices=ring_of)
         if polys is None:  # (numpy made the containment tests: the containing loops' polygons made here)
-            involved = np.unique(c)
+            involved = unique_ints(c)
             polys = _polygons(points, offsets, involved, pc)
         meet = shapely.intersects(u_rings, shapely.get_exterior_ring(polys[np.searchsorted(involved, c)]))
-        suspect = np.union1d(suspect, layer[u[meet]])
-        seeds = np.union1d(seeds, np.concatenate([u[meet], c[meet]]))
+        suspect = unique_ints(suspect, layer[u[meet]])
+        seeds = unique_ints(seeds, np.concatenate([u[meet], c[meet]]))
     # and layers with a loop that crosses itself (cut through self-intersecting facets): its signed area is not the
     # area it bounds
     # (a loop whose lobes cancel, net area 0, included: it is not degenerate, it bounds both lobes)
     crossing = crossing_of() if crossing_f is None else crossing_f.result()
-    suspect = np.union1d(suspect, layer[crossing])
-    seeds = np.union1d(seeds, crossing)
+    suspect = unique_ints(suspect, layer[crossing])
+    seeds = unique_ints(seeds, crossing)
     if suspect.size:
         rings = closed & (s != 0)
         rings[crossing] = True

@@ -11,7 +11,7 @@ import numpy as np
 
 from ..mesh.graph import connected_labels
 from ..prefetch import beside as _beside
-from ..ragged import expand_ranges
+from ..ragged import expand_ranges, isin_ints, unique_ints
 
 __all__ = ["Nested", "signed_areas", "filled", "cycle_labels", "beside", "in_halves", "node_lines", "node_groups",
            "move_chains"]
@@ -230,8 +230,8 @@ def _affected_all(g, lo, hi, seed, size, with_label=False):
     ii, jj = _meeting_pairs(g, first, size, lo, hi)
     while True:
         label = connected_labels(n, ii, jj)
-        groups = np.unique(label[seed])
-        member = np.isin(label, groups)
+        groups = unique_ints(label[seed])
+        member = isin_ints(label, groups)
         g_lo = np.full((n, 2), np.inf)  # hull box of each group (by its label)
         g_hi = np.full((n, 2), -np.inf)
         np.minimum.at(g_lo, label[member], lo[member])

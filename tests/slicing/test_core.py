@@ -370,6 +370,30 @@ def test_expand_ranges_matches_a_loop():
     assert [a.size for a in expand_ranges(np.zeros(0), np.zeros(0))] == [0, 0]
 
 
+def test_set_helpers_match_numpy():
+    """``ragged.unique_ints`` and ``isin_ints`` (numpy's ``unique``/``union1d``/``isin`` import ``numpy.ma`` at their
+    first call, which the slicing path now avoids) give numpy's results, dtypes included."""
+    import subprocess
+    import sys
+
+    from gpuslice.ragged import isin_ints, unique_ints
+
+    rng = np.random.default_rng(11)
+    for n, m in ((0, 0), (1, 0), (0, 3), (1, 1), (7, 3), (300, 50), (2000, 2000)):
+        for dt in (np.int32, np.int64):
+            a, b = rng.integers(-40, 40, n).astype(dt), rng.integers(-40, 40, m).astype(np.int64)
+            for got, want in ((unique_ints(a), np.unique(a)), (unique_ints(a, b), np.union1d(a, b)),
+                              (isin_ints(a, b), np.isin(a, b))):
+                assert got.dtype == want.dtype and np.array_equal(got, want), (n, m, dt)
+    # a command's slicing of a layer with several loops (containment, a rebuilt overlap) imports no numpy.ma
+    code = ("import sys; from gpuslice import mesh_from_triangles, slice_mesh; from gpuslice.mesh import shapes as S;"
+            "import numpy as np; t = np.concatenate([S.box((0, 0, 0), (10, 10, 10)), S.box((5, 5, 0), (15, 15, 10)),"
+            "S.box((30, 0, 0), (40, 10, 10))]); r = slice_mesh(mesh_from_triangles(t), thickness=1.0);"
+            "assert r.repairs['overlaps_resolved'].sum() > 0; print('numpy.ma' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"
+
+
 def test_open_chains_kept_in_layers_whose_overlaps_are_rebuilt(backend):
     """A layer whose loops cross is rebuilt (overlaps resolved), and the open chains of the same layer stay in the
     result: two overlapping closed boxes plus an open box (one side wall missing, its gap wider than --max-gap, and
