@@ -54,8 +54,7 @@ class Device:
     _lanes: dict = field(default_factory=dict, repr=False)
     _lock: threading.RLock = field(default_factory=threading.RLock, repr=False)
     _pid: int = field(default_factory=os.getpid, repr=False)  # the process that made the context
-    # read once here: a forked child may not ask the driver anything (NVIDIA's answers INVALID_DEVICE)
-    _name: str = field(init=False, repr=False)
+    _name: str = field(init=False, repr=False)  # read once: a forked child may not ask NVIDIA's driver anything
 
     def __post_init__(self) -> None:
         self._name = f"{self.device.platform.name.strip()} / {self.device.name.strip()}"
