@@ -32,7 +32,7 @@ import numpy as np
 
 from .errors import DeviceError
 
-__all__ = ["Device", "KernelDriver", "aligned_empty", "drained", "input_buffer", "get_device", "list_devices",
+__all__ = ["Device", "KernelDriver", "aligned_empty", "get_device", "list_devices",
            "release_scratch", "ENV_VAR"]
 
 ENV_VAR = "GPUSLICE_DEVICE"
@@ -255,29 +255,6 @@ class KernelDriver:
         """(global size, local size) covering ``n`` work-items with the device's explicit local size."""
         ls = self.device.local_size
         return (max(ls, ((n + ls - 1) // ls) * ls),), (ls,)
-
-
-def input_buffer(device: Device, array: np.ndarray):
-    """A read-only buffer holding the contiguous ``array`` for one call's kernels: on a CPU device the array's own
-    memory (``USE_HOST_PTR``: no copy into fresh pages; pyopencl holds the array with the buffer), on others (a GPU)
-    a copy (``COPY_HOST_PTR``). ``array`` must not change, and the buffer must be held, until the kernels that read it
-    are done (the array is freed with the buffer: on an exception, wait for the queue first, :func:`drained`)."""
-    import pyopencl as cl
-
-    share = cl.mem_flags.USE_HOST_PTR if device.is_cpu else cl.mem_flags.COPY_HOST_PTR
-    return cl.Buffer(device.context, cl.mem_flags.READ_ONLY | share, hostbuf=array)
-
-
-@contextlib.contextmanager
-def drained(q):
-    """On an exception, wait for the queue ``q`` before it propagates: buffers over host arrays (``USE_HOST_PTR``:
-    the inputs on a CPU device, the outputs) must outlive the commands that use them, and unwinding frees them."""
-    try:
-        yield
-    except BaseException:
-        with contextlib.suppress(Exception):
-            q.finish()
-        raise
 
 
 def aligned_empty(n: int, dtype) -> np.ndarray:

@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
                 d = diff_results(ra, rb)
                 row[f"slice_{t:g}"] = d
                 row[f"points_{t:g}"] = int(ra.points.shape[0])
-                first = first or ra
+                first = ra if first is None else first
             spec_kw = dict(resolution=(3840, 2400), pixel=0.05)
             for g in (1.0, 0.0):
                 spec = RasterSpec(gamma=g, **spec_kw)

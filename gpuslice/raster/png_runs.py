@@ -16,7 +16,7 @@ import zlib
 
 import numpy as np
 
-from ..device import drained, input_buffer
+from ..buffers import drained, input_buffer
 from . import deflate_runs as _d
 from .png import png_chunk
 from .run_encoder import RunKernels

@@ -21,8 +21,8 @@ from abc import ABC, abstractmethod
 
 import numpy as np
 
-from ..device import KernelDriver, aligned_empty, drained, input_buffer
-from ..readback import OutputBuffers
+from ..buffers import OutputBuffers, drained, input_buffer
+from ..device import KernelDriver, aligned_empty
 
 __all__ = ["RunKernels", "RunImageEncoder", "RUN_DTYPES"]
 
@@ -57,7 +57,7 @@ class RunKernels(KernelDriver):
 
     def _inputs(self, runs, a: int, b: int) -> tuple | None:
         """``(m, n_img, img_off, its buffer, the run arrays' buffers)`` of entries ``a`` … ``b`` − 1 of ``runs`` (the
-        group's runs for the device: :func:`~gpuslice.device.input_buffer`), or None when the arrays are not typed
+        group's runs for the device: :func:`~gpuslice.buffers.input_buffer`), or None when the arrays are not typed
         as the runs kernel types them."""
         lo, hi = int(runs.layer_offsets[a]), int(runs.layer_offsets[b])
         arrays = (runs.row, runs.x, runs.length, runs.grey)

@@ -37,11 +37,11 @@ from collections.abc import Iterable, Iterator, Sequence
 
 import numpy as np
 
+from ..buffers import OutputBuffers
 from ..device import KernelDriver, aligned_empty, get_device
 from ..errors import ParameterError
 from ..prefetch import Workers, current_name, prefetch
 from ..ragged import expand_ranges, group_ranks
-from ..readback import OutputBuffers
 from .edges import LayerEdges, check_fits, check_raster_args, iter_layer_edges
 from .runs_twin import Runs, _cells_to_runs, _piece_records, _rows, _sum_cells, runs_numpy, runs_to_mask
 from .spec import RasterSpec, gamma_lut
@@ -222,7 +222,7 @@ class RunsKernel(KernelDriver):
         n_runs = int(run_off[-1])
         b_ro = self._put("run_off", run_off[:-1])
         # the outputs: new host arrays, written in place on a CPU device, copied into from a GPU's own buffers
-        # (gpuslice.readback); the reused scratch buffers never leave this call
+        # (gpuslice.buffers); the reused scratch buffers never leave this call
         arrs = [aligned_empty(n_runs, d) for d in (np.int32, np.int32, np.int32, np.uint8)]
         if n_runs:
             outs = OutputBuffers(self.device, arrs)

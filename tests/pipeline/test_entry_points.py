@@ -294,9 +294,9 @@ def test_release_scratch_waits_for_a_kernel_left_running(device):
 
 
 def test_drained_waits_for_the_queue_only_on_an_exception():
-    """``device.drained``: the queue is finished before an exception leaves the block (the host arrays its
+    """``buffers.drained``: the queue is finished before an exception leaves the block (the host arrays its
     commands use in place are freed as it unwinds), and not on the normal path (the block waits itself)."""
-    from gpuslice.device import drained
+    from gpuslice.buffers import drained
 
     class Queue:
         finished = 0

@@ -113,7 +113,7 @@ def test_input_buffer_shares_a_cpu_devices_memory_and_copies_for_a_gpu(device):
     device reads the array's values either way (an odd, unaligned slice too, as the encoders pass)."""
     import pyopencl as cl
 
-    from gpuslice.device import input_buffer
+    from gpuslice.buffers import input_buffer
 
     data = np.arange(1_000_003, dtype=np.int32)[3:]
     buf = input_buffer(device, data)

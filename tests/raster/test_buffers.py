@@ -1,4 +1,4 @@
-"""Kernel outputs read back by a copy (``gpuslice.readback.OutputBuffers``, a GPU's way) give what the outputs
+"""Kernel outputs read back by a copy (``gpuslice.buffers.OutputBuffers``, a GPU's way) give what the outputs
 written in the host's arrays give (a CPU device's way): runs and layer images, forced here on any device."""
 
 from __future__ import annotations
@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 
 from gpuslice import mesh_from_triangles, slice_mesh
+from gpuslice.buffers import OutputBuffers
 from gpuslice.cli import main
 from gpuslice.mesh import shapes
 from gpuslice.raster import RasterSpec
 from gpuslice.raster.runs import layer_runs
-from gpuslice.readback import OutputBuffers
 
 
 @pytest.fixture

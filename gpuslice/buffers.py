@@ -1,26 +1,52 @@
-"""Output buffers: what a call's kernels write and the host then reads, placed where each kind of device reads
-back fastest.
+"""One call's kernel buffers for host arrays, placed where each kind of device reads and writes them fastest: the
+inputs (:func:`input_buffer`), the outputs (:class:`OutputBuffers`), and :func:`drained` for their lifetime.
 
-On a CPU device (PoCL) the buffers are the host arrays' own memory (``USE_HOST_PTR``): the kernels write the
+On a CPU device (PoCL) both are the host arrays' own memory (``USE_HOST_PTR``): the kernels read and write the
 arrays in place, and a map only waits for them. On other devices (a GPU, Oclgrind) they are the device's own
-memory, copied into the arrays after the kernels: there, a ``USE_HOST_PTR`` buffer is a device copy that the
-driver fills from the array when it is made (OpenCL: the array's contents are the buffer's initial contents), an
-upload of bytes the kernels then overwrite, and its map copies back through the driver's staging (measured on an
-NVIDIA H200: docs/BENCHMARKS.md, "On a GPU").
+memory: inputs copied in when made (``COPY_HOST_PTR``), outputs copied into the arrays after the kernels. There,
+an output buffer over its array (``USE_HOST_PTR``) would be a device copy that the driver fills from the array when
+it is made (OpenCL: the array's contents are the buffer's initial contents), an upload of bytes the kernels then
+overwrite, and its map copies back through the driver's staging (measured on an NVIDIA H200: docs/BENCHMARKS.md,
+"On a GPU").
 """
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 
-__all__ = ["OutputBuffers"]
+__all__ = ["input_buffer", "OutputBuffers", "drained"]
+
+
+def input_buffer(device, array: np.ndarray):
+    """A read-only buffer holding the contiguous ``array`` for one call's kernels: on a CPU device the array's own
+    memory (``USE_HOST_PTR``: no copy into fresh pages; pyopencl holds the array with the buffer), on others (a GPU)
+    a copy (``COPY_HOST_PTR``). ``array`` must not change, and the buffer must be held, until the kernels that read it
+    are done (the array is freed with the buffer: on an exception, wait for the queue first, :func:`drained`)."""
+    import pyopencl as cl
+
+    share = cl.mem_flags.USE_HOST_PTR if device.is_cpu else cl.mem_flags.COPY_HOST_PTR
+    return cl.Buffer(device.context, cl.mem_flags.READ_ONLY | share, hostbuf=array)
+
+
+@contextlib.contextmanager
+def drained(q):
+    """On an exception, wait for the queue ``q`` before it propagates: buffers over host arrays (``USE_HOST_PTR``:
+    the inputs on a CPU device, the outputs) must outlive the commands that use them, and unwinding frees them."""
+    try:
+        yield
+    except BaseException:
+        with contextlib.suppress(Exception):
+            q.finish()
+        raise
 
 
 class OutputBuffers:
     """Write-only buffers for ``arrays`` (contiguous, each at least one byte's worth or empty) on ``device``:
     :attr:`buffers` go to the kernels; :meth:`fetch` returns the arrays as the kernels left them (read and written
     by the host until :meth:`release`). The arrays and this object must be held until then (on an exception, wait
-    for the queue first: :func:`gpuslice.device.drained`)."""
+    for the queue first: :func:`drained`)."""
 
     IN_PLACE: bool | None = None  #: None: in the arrays on a CPU device only (tests: False, the copies on any)
 
