@@ -1,10 +1,11 @@
 """Where a whole `gpuslice` command's time goes, function by function, in every thread: a wall-clock profile.
 
-    python scripts/profile_stages.py [--modules gpuslice.raster,gpuslice.slicing] [--top 40] -- raster job.stl ...
+    python scripts/profile_stages.py [--modules gpuslice.raster,gpuslice.slicing] [--top 40] [--cold] -- raster x.stl
 
 Runs the CLI command (after ``--``) in this process twice, the first as a warm-up (kernel builds), and times the
-second: every function and method defined in the named packages' modules is wrapped by a timer, also where other
-modules imported it by name, so calls on the writers' encoder threads and the prefetch threads count too (cProfile
+second (``--cold``: runs it once and times that, kernel loads, first imports and first page faults included): every
+function and method defined in the named packages' modules is wrapped by a timer, also where other modules imported
+it by name, so calls on the writers' encoder threads and the prefetch threads count too (cProfile
 sees one thread). Prints, per function: calls, total wall seconds (inclusive: nested and concurrent calls each
 count theirs, so the column adds up to more than the run) and the thread count. A tool for finding the next step
 (used on a lent GPU: docs/GPU.md), not a benchmark: the timers' own cost is ~1 µs a call.
@@ -81,13 +82,14 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--modules", default="gpuslice.raster,gpuslice.slicing,gpuslice.mesh,gpuslice.io")
     ap.add_argument("--top", type=int, default=40)
+    ap.add_argument("--cold", action="store_true", help="time the first run (no warm-up): imports, builds, first touch")
     args = ap.parse_args(argv[:cut])
     command = argv[cut + 1 :]
     os.environ["GPUSLICE_SLOW_EXIT"] = "1"  # (the CLI's fast exit would end this process)
     from gpuslice.cli import main as cli
 
     n = instrument(args.modules.split(","))
-    for run in ("warm-up", "timed"):
+    for run in ("timed",) if args.cold else ("warm-up", "timed"):
         STATS.clear()
         t = time.perf_counter()
         try:

@@ -66,9 +66,13 @@ def _facet_areas(mesh: Mesh, which: np.ndarray) -> np.ndarray:
     """(len(which),) float64 areas (mm²) of the facets ``which``, :data:`AREA_CHUNK` at a time (each value as one
     float64 pass over the whole gives it: the chunks only bound the temporaries, 30 bytes a facet less fresh memory)."""
     area = np.empty(which.size)
+    cols = [np.ascontiguousarray(mesh.vertices[:, k]) for k in range(3)]  # 1-D gathers: 2-D fancy indexing is slow
     for a in range(0, which.size, AREA_CHUNK):
-        tri = mesh.vertices[mesh.faces[which[a : a + AREA_CHUNK]]].astype(np.float64)
-        area[a : a + AREA_CHUNK] = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        f = mesh.faces[which[a : a + AREA_CHUNK]]
+        (x0, y0, z0), (x1, y1, z1), (x2, y2, z2) = ([c[f[:, j]].astype(np.float64) for c in cols] for j in range(3))
+        ux, uy, uz, vx, vy, vz = x1 - x0, y1 - y0, z1 - z0, x2 - x0, y2 - y0, z2 - z0
+        cx, cy, cz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx  # (np.cross's terms, in its order)
+        area[a : a + AREA_CHUNK] = 0.5 * np.sqrt(cx * cx + cy * cy + cz * cz)
     return area
 
 

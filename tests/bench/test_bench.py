@@ -70,6 +70,20 @@ def test_mean_cusp_in_chunks_and_on_the_device_is_the_whole_pass(sphere, monkeyp
     assert mean_cusp(sphere, res, device=dev) == whole
 
 
+
+
+def test_facet_areas_are_the_textbook_formula_bit_for_bit(sphere):
+    # the areas are made from 1-D gathers and written-out cross products (2x faster on 1.6M facets): each must be
+    # the very float of 0.5 * |(b - a) x (c - a)| in float64 with numpy's cross and norm, on any subset of facets
+    from gpuslice.bench.quality import _facet_areas
+
+    rng = np.random.default_rng(3)
+    mesh = mesh_from_triangles(rng.normal(0.0, 20.0, (500, 3, 3)).astype(np.float32))
+    for m in (sphere, mesh):
+        which = np.flatnonzero(rng.random(m.n_faces) < 0.7)
+        tri = m.vertices[m.faces[which]].astype(np.float64)
+        want = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        assert np.array_equal(_facet_areas(m, which), want)
 def test_volume_deviation_of_a_sphere_matches_the_staircase_formula(sphere, sphere_ref):
     # mid-plane sections of a sphere: per slab the XOR is |A'(z)|·|z - z_mid| integrated, t²/4·|A'|, in all
     # t/4 · 2πR² (A(z) rises from 0 to πR² and falls back)

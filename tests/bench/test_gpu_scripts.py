@@ -44,3 +44,16 @@ def test_profile_stages_counts_the_calls_of_a_command(tmp_path):
     assert "warm-up: exit 0" in proc.stdout and "timed: exit 0" in proc.stdout
     lines = [ln.split() for ln in proc.stdout.splitlines() if ln.strip().endswith("slicer.slice_mesh")]
     assert lines and lines[0][0] == "1"  # one slice_mesh call in the timed run, counted once
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+def test_profile_stages_cold_times_the_first_run(tmp_path):
+    stl = tmp_path / "torus.stl"
+    assert main(["shape", "torus", "-o", str(stl)]) == 0
+    proc = subprocess.run([sys.executable, str(SCRIPTS / "profile_stages.py"), "--cold", "--modules",
+                           "gpuslice.slicing", "--", "slice", str(stl), "-t", "0.5", "-o", str(tmp_path / "t.npz")],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "warm-up" not in proc.stdout and "timed: exit 0" in proc.stdout
+    lines = [ln.split() for ln in proc.stdout.splitlines() if ln.strip().endswith("slicer.slice_mesh")]
+    assert lines and lines[0][0] == "1"
