@@ -145,6 +145,20 @@ def slab_max_nz_numpy(zmin: np.ndarray, zmax: np.ndarray, nz: np.ndarray, edges:
     return _range_max(n, first.astype(np.int64), last.astype(np.int64), nz[slanted].astype(np.float32))
 
 
+def _search_guide(edges32: np.ndarray) -> tuple[int, np.float32, np.float32, np.ndarray]:
+    """The guesses ``adaptive_slab_blocks`` starts its searches of ``edges32`` from (``kernels/adaptive.cl``):
+    ``(n_guide, e0, inv_w, guide)``, guide[b] (int32, n_guide + 1 of them) the first edge at or above e0 + b / inv_w.
+    Any guess gives the same answer; a good one saves the steps: two buckets a slab."""
+    n_guide = 2 * max(edges32.size - 1, 1)
+    e0, span = float(edges32[0]), float(edges32[-1]) - float(edges32[0])
+    inv_w = np.float32(n_guide / span) if span > 0 else np.float32(0.0)
+    if not np.isfinite(inv_w):
+        inv_w = np.float32(0.0)  # (edges closer than float32 resolves: every guess from bucket 0)
+    starts = e0 + np.arange(n_guide + 1) * (span / n_guide)
+    guide = np.searchsorted(edges32, starts.astype(np.float32), side="left").astype(np.int32)
+    return n_guide, np.float32(e0), inv_w, guide
+
+
 class AdaptiveKernel(KernelDriver):
     """Driver of ``kernels/adaptive.cl``: per-facet slopes and per-slab max |n_z| on one device."""
 
@@ -186,9 +200,11 @@ class AdaptiveKernel(KernelDriver):
             return out.view(np.float32)
         levels = int(n_l).bit_length()  # a run of at most n_l slabs: level floor(log2(n_l)) at most
         d_e = self._put("edges", e32)
+        n_guide, e0, inv_w, guide = _search_guide(e32)
+        d_g = self._put("guide", guide)
         d_t = self._fill("table", 4 * n_l * levels, np.uint32(0))
         self._blocks(q, *self._grid(mesh.n_faces), self.buffer("zmin"), self.buffer("zmax"), self.buffer("nz"),
-                     np.int32(mesh.n_faces), d_e, np.int32(n_l), d_t)
+                     np.int32(mesh.n_faces), d_e, np.int32(n_l), d_g, np.int32(n_guide), e0, inv_w, d_t)
         for level in range(levels - 1, 0, -1):
             self._push(q, *self._grid(n_l), d_t, np.int32(n_l), np.int32(level))
         cl.enqueue_copy(q, out, d_t)  # row 0: the first n_l values

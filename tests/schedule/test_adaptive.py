@@ -92,6 +92,28 @@ def test_slab_kernel_matches_numpy_twin(device, sphere):
         got = slab_max_nz(sphere, edges, device)
         want = slab_max_nz_numpy(*facet_slopes_numpy(sphere), edges)
         np.testing.assert_array_equal(got, want)
+    # edges bunched together (most slabs in one millimetre, the guide's buckets all but empty elsewhere), edges equal
+    # once in float32, edges reaching far below and above the mesh
+    bunched = np.concatenate(([-50.0], np.linspace(7.0, 8.0, 2000), 8.0 + np.zeros(5), [8.0 + 1e-7, 9.0, 500.0]))
+    for edges in (bunched, np.array([0.0, sphere.height]), np.array([3.0, 3.0 + 1e-6])):
+        want = slab_max_nz_numpy(*facet_slopes_numpy(sphere), edges)
+        np.testing.assert_array_equal(slab_max_nz(sphere, edges, device), want)
+    # the searches start from the guide's guesses, but any guess must give the same slabs: random ones here
+    import gpuslice.schedule.adaptive as adaptive
+
+    real = adaptive._search_guide
+    for seed in range(3):
+        def random_guide(e32, seed=seed):
+            n_guide, e0, inv_w, guide = real(e32)
+            return n_guide, e0, inv_w, np.random.default_rng(seed).integers(0, e32.size + 1, guide.size, np.int32)
+
+        adaptive._search_guide = random_guide
+        try:
+            for edges in (irregular, bunched):
+                want = slab_max_nz_numpy(*facet_slopes_numpy(sphere), edges)
+                np.testing.assert_array_equal(slab_max_nz(sphere, edges, device), want)
+        finally:
+            adaptive._search_guide = real
     # against a plain loop: every slab's max |n_z| over the facets overlapping it (touching ones may add)
     zmin, zmax, nz = _facets64(sphere)
     got = slab_max_nz(sphere, irregular, device)
