@@ -122,6 +122,9 @@ class BatchOptions:
     preset_files: tuple = field(default=(), compare=False)
 
     def __post_init__(self) -> None:
+        from ..schedule.validate import check_schedule_params
+
+        check_schedule_params(self.params)  # layer settings refused now, not once per model
         if self.fmt not in CONTOUR_FORMATS:
             raise ParameterError(f"unknown output format '{self.fmt}' (use {', '.join(format_names())})", param="fmt")
         if self.raster is not None:

@@ -43,8 +43,8 @@ import numpy as np
 from ..device import KernelDriver, locked
 from ..errors import ParameterError
 from ..mesh.mesh import Mesh, need_mesh
-from ..options import is_real
 from .uniform import Schedule, from_z
+from .validate import check_error_bounded, check_roi
 
 __all__ = [
     "AdaptiveSchedule",
@@ -244,14 +244,6 @@ def slope_limit(nz: np.ndarray, mode: str, max_cusp: float = 0.05, max_area: flo
     raise ParameterError(f"unknown adaptive mode '{mode}' (use {', '.join(ADAPTIVE_MODES)})")
 
 
-def _check_heights(min_height: float, max_height: float) -> None:
-    if not (np.isfinite(min_height) and min_height > 0):
-        raise ParameterError(f"min_height must be a positive number of mm, got {min_height}", param="min_height")
-    if not (np.isfinite(max_height) and max_height >= min_height):
-        raise ParameterError(f"max_height must be >= min_height ({min_height} mm), got {max_height}",
-                             param=("max_height", "min_height"))
-
-
 def cusp_schedule(
     mesh: Mesh,
     *,
@@ -277,25 +269,11 @@ def cusp_schedule(
     device : an OpenCL :class:`~gpuslice.device.Device` for the per-facet work, or None for numpy.
     """
     need_mesh(mesh, "cusp_schedule")
-    if mode not in ("cusp", "area"):
-        raise ParameterError(f"unknown error-bounded mode '{mode}' (use cusp or area)")
+    check_error_bounded(mode, max_cusp, max_area, min_height, max_height, smooth, resolution)
     if device is not None:  # (a Device, or a spec such as "0:0")
         from ..device import get_device
 
         device = get_device(device)
-    for name, v in (("max_cusp", max_cusp), ("max_area", max_area), ("min_height", min_height),
-                    ("max_height", max_height), ("smooth", smooth)):
-        if not is_real(v):  # (text or a bool: named here, not a numpy TypeError below)
-            raise ParameterError(f"{name} must be a number, got {v!r}", param=name)
-    if resolution is not None and not (is_real(resolution) and resolution > 0):
-        raise ParameterError(f"resolution must be a positive number of mm, got {resolution!r}", param="resolution")
-    if mode == "cusp" and not (np.isfinite(max_cusp) and max_cusp > 0):
-        raise ParameterError(f"max_cusp must be a positive number of mm, got {max_cusp}", param="max_cusp")
-    if mode == "area" and not (np.isfinite(max_area) and max_area > 0):
-        raise ParameterError(f"max_area must be a positive number of mm², got {max_area}", param="max_area")
-    _check_heights(min_height, max_height)
-    if not (np.isfinite(smooth) and smooth >= 0):
-        raise ParameterError(f"smooth must be >= 0 (mm per mm), got {smooth}", param="smooth")
     height = mesh.height
     info = {"mode": mode, "max_cusp_mm": max_cusp if mode == "cusp" else None,
             "max_area_mm2": max_area if mode == "area" else None, "min_height_mm": min_height,
@@ -419,41 +397,10 @@ def roi_schedule(
     threshold and the windows chosen (layer indices within the region and z ranges in mm).
     """
     need_mesh(mesh, "roi_schedule")
-    if not (isinstance(ladder, tuple | list | np.ndarray) and all(is_real(t) for t in ladder)):
-        raise ParameterError(f"roi_ladder must be positive thicknesses in mm, got {ladder!r}", param="roi_ladder")
-    ladder = tuple(float(t) for t in ladder)
-    if not ladder or not all(np.isfinite(t) and t > 0 for t in ladder):
-        raise ParameterError(f"roi_ladder must be positive thicknesses in mm, got {ladder}", param="roi_ladder")
-    for name, v, whole, least in (("roi_quantile", quantile, False, None), ("roi_min_layers", min_layers, True, 1),
-                                  ("roi_windows", max_windows, True, 0)):
-        if not is_real(v) or (whole and float(v) != int(v)) or (least is not None and v < least):
-            kind = f"a whole number >= {least}" if whole else "a number"
-            raise ParameterError(f"{name} must be {kind}, got {v!r}", param=name)
     if not callable(slicer):
         raise ParameterError("roi_schedule needs slicer= (gpuslice.roi_schedule and slice_mesh(..., adaptive='roi') "
                              "pass the slicer themselves)", param="slicer")
-    if any(b >= a for a, b in zip(ladder[:-1], ladder[1:], strict=True)):
-        raise ParameterError(f"roi_ladder must go from coarse to fine (decreasing), got {ladder}", param="roi_ladder")
-    if threshold is not None:
-        thr = (threshold,) if np.isscalar(threshold) else tuple(threshold) if isinstance(
-            threshold, tuple | list | np.ndarray) else (threshold,)
-        if not all(is_real(v) for v in thr):
-            raise ParameterError(f"roi_threshold must be points per layer >= 0, got {threshold!r}",
-                                 param="roi_threshold")
-        if len(thr) == 1:
-            thr = thr * max(len(ladder) - 1, 1)
-        if len(thr) != max(len(ladder) - 1, 1):
-            raise ParameterError(f"roi_threshold needs 1 or {len(ladder) - 1} values, got {len(thr)}",
-                                 param="roi_threshold")
-        if not all(np.isfinite(v) and v >= 0 for v in thr):
-            raise ParameterError(f"roi_threshold must be points per layer >= 0, got {threshold}",
-                                 param="roi_threshold")
-    else:
-        thr = None
-        if not (0.0 <= quantile <= 1.0):
-            raise ParameterError(f"roi_quantile must be in [0, 1], got {quantile}", param="roi_quantile")
-    if max_windows < 0:
-        raise ParameterError(f"roi_windows must be >= 0 (0: all), got {max_windows}", param="roi_windows")
+    ladder, thr = check_roi(ladder, threshold, quantile, min_layers, max_windows)
     height = mesh.height
     if height / ladder[-1] > 5e7:  # as uniform schedules: the finest level may cover the whole height
         raise ParameterError(f"roi_ladder's finest step: {height:g} mm at {ladder[-1]:g} mm would make more than 5e7 "

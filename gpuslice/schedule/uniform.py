@@ -126,11 +126,13 @@ def uniform(
     array([0.25, 0.5 , 0.75])
     """
     if not (is_real(thickness) and np.isfinite(thickness) and thickness > 0):
-        raise ParameterError(f"layer thickness must be a positive number of mm, got {shown(thickness)}")
+        raise ParameterError(f"thickness must be a positive number of mm (the layers'), got {shown(thickness)}",
+                             param="thickness")
     if not (is_real(height) and np.isfinite(height) and height >= 0):
         raise ParameterError(f"object height must be finite and non-negative, got {shown(height)}")
     if not (first_layer is None or (is_real(first_layer) and np.isfinite(first_layer) and first_layer > 0)):
-        raise ParameterError(f"first layer thickness must be a positive number of mm, got {shown(first_layer)}")
+        raise ParameterError(f"first_layer must be a positive number of mm (its thickness), got {shown(first_layer)}",
+                             param="first_layer")
     thickness = float(thickness)  # (an int gave an int array below, which cut a first layer of 1.5 mm to 1)
     h0 = thickness if first_layer is None else float(first_layer)
     if height / thickness > 5e7:

@@ -708,6 +708,33 @@ def test_cli_raster_option_errors_name_raster_opt(tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+
+@pytest.mark.parametrize(("args", "flag"), [
+    (["-t", "0"], "--thickness"), (["-t", "-1"], "--thickness"), (["--first-layer", "-1"], "--first-layer"),
+    (["--z-mode", "paper", "--first-layer", "0.2"], "--first-layer"),
+    (["--adaptive", "cusp", "--min-height", "0"], "--min-height"),
+    (["--adaptive", "area", "--max-area", "0"], "--max-area"),
+    (["--adaptive", "roi", "--roi-ladder", "0.1,0.5"], "--roi-ladder")])
+def test_cli_bad_layer_settings_are_refused_before_any_model(tmp_path, capsys, args, flag):
+    # each used to fail every model on its own line (exit 1, the folder's journal left behind); `slice` refuses them
+    from gpuslice.cli import main
+
+    shapes.write_stl(shapes.box(), tmp_path / "cube.stl")
+    assert main(["batch", str(tmp_path / "cube.stl"), "-o", str(tmp_path / "o"), "-j", "0", *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("gpuslice: error: ") and flag in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "o").exists()
+
+
+def test_batch_options_refuse_bad_layer_settings():
+    from gpuslice.errors import ParameterError
+
+    for params in (SliceParams(thickness=0), SliceParams(adaptive="cusp", max_cusp=-1.0),
+                   SliceParams(adaptive="roi", roi_quantile=2.0)):
+        with pytest.raises(ParameterError):
+            BatchOptions(params)
+    BatchOptions(SliceParams(adaptive="cusp", thickness=-1.0))  # (adaptive layers have no uniform thickness)
+
 def test_cli_raster_batch_writes_what_raster_writes(tmp_path, monkeypatch):
     """`batch --raster goo --raster-opt printer=…` without -t gives each model the file `gpuslice raster --printer …
     -o part.goo` writes: the same layer height (raster's 0.05 mm, not slice's 0.1), the same bytes; -t still wins."""
