@@ -230,8 +230,11 @@ def _stop_on_terminate():
     """While the command runs, SIGTERM and SIGHUP raise :class:`Terminated` in the main thread instead of killing
     the process on the spot, which would leave an output's hidden temporary file (``.part.goo.tmp-…``) behind.
     Only signals left at their default action are taken (``nohup`` keeps SIGHUP ignored); a second one while the
-    command unwinds ends the process at once, as without this handler; the previous handlers come back afterwards.
-    Nothing is done outside the main thread (``signal.signal`` is refused there)."""
+    command unwinds ends the process at once, as without this handler. Ctrl-C (SIGINT, when at Python's default)
+    raises KeyboardInterrupt as always, but a second one while the first unwinds is let go (it used to interrupt the
+    clean-up: a traceback from a thread's wait, or an output's empty temporary file left), and a third ends the
+    process at once. The previous handlers come back afterwards. Nothing is done outside the main thread
+    (``signal.signal`` is refused there)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -247,11 +250,28 @@ def _stop_on_terminate():
         signal.signal(signum, signal.SIG_DFL)
         os.kill(os.getpid(), signum)
 
+    interrupts: list[int] = []
+
+    def on_interrupt(signum, frame):
+        if os.getpid() != pid:  # a forked child that inherited the handler: as Python's own
+            raise KeyboardInterrupt
+        interrupts.append(signum)
+        _INTERRUPTED.set()  # (before anything unwinds: see _unraisable)
+        if len(interrupts) == 1:
+            raise KeyboardInterrupt
+        if len(interrupts) > 2:  # a third: end at once, as Python's default would not
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+        # the second is let go while the first unwinds (removing a temporary file, stopping threads): `timeout -s INT`
+        # sends one to the process and one to its group, and a user may press twice
+
     previous = {}
     for name in ("SIGTERM", "SIGHUP"):
         signum = getattr(signal, name, None)
         if signum is not None and signal.getsignal(signum) == signal.SIG_DFL:
             previous[signum] = signal.signal(signum, handler)
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # (not when the caller ignores Ctrl-C)
+        previous[signal.SIGINT] = signal.signal(signal.SIGINT, on_interrupt)
     try:
         yield
     finally:

@@ -334,6 +334,32 @@ def test_a_second_terminate_while_unwinding_ends_the_process():
     assert proc.returncode == -signal.SIGTERM and proc.stdout.split() == ["first"], (proc.returncode, proc.stdout)
 
 
+def test_a_second_ctrl_c_lets_the_clean_up_finish_and_a_third_ends_the_process():
+    """Two SIGINTs a few ms apart (``timeout -s INT`` sends one to the process and one to its group; a user presses
+    twice): the second interrupted the first's clean-up (a traceback from a thread's wait after "gpuslice:
+    interrupted", 6 runs of 28; an empty temporary file left, 2 of 60). It is let go now; a third ends the process."""
+    code = textwrap.dedent("""
+        import importlib, os, signal, time
+        cli_main = importlib.import_module("gpuslice.cli.main")
+        with cli_main._stop_on_terminate():
+            try:
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(5)
+            except KeyboardInterrupt:
+                print("first", cli_main._INTERRUPTED.is_set(), flush=True)
+                os.kill(os.getpid(), signal.SIGINT)
+                for _ in range(50):
+                    time.sleep(0.002)
+                print("cleaned", flush=True)
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(5)
+                print("survived", flush=True)
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == -signal.SIGINT, (proc.returncode, proc.stdout, proc.stderr)
+    assert proc.stdout.split() == ["first", "True", "cleaned"], proc.stdout
+
+
 def test_batch_terminated_exits_with_the_signal(cube, tmp_path, capsys, monkeypatch):
     """`batch` caught the Terminated interrupt as Ctrl-C's and exited 130 "interrupted"; now 143 / "terminated"."""
     import gpuslice.batch
