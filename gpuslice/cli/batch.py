@@ -137,7 +137,7 @@ class _Progress:
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar and no summary table (failures are still said).")
 def batch(inputs, out_dir, pattern, raster_opt, workers, threads, scheduler, transfer, force, report, quiet,
           **kw) -> None:
-    """Slice every model in INPUTS (folders, searched recursively; list files of paths, .txt/.list; model files)
+    """Slice every model in INPUTS (folders, searched recursively; list files of paths, .txt/.list/.lst; model files)
     with the same options (those of `slice`, adaptive layers included) into OUT, on local workers or a Dask
     cluster. Models whose output exists are skipped. With --raster, layers are 0.05 mm unless -t is given (as
     `gpuslice raster`), and each model's resin file is the one `raster` writes with the same options."""

@@ -148,7 +148,8 @@ def _make_dir(path: str, create: bool = True) -> None:
 @click.option("--repeat", type=int, default=3, show_default=True, help="Runs per setting; the table shows medians.")
 @click.option("--no-quality", is_flag=True, help="Skip the volume deviation (cusp heights are always given).")
 @click.option("--ref-thickness", type=float, default=None,
-              help="Reference thickness for the volume deviation, mm (default: thinnest layer / 5).")
+              help="Reference thickness for the volume deviation, mm (default: the thinnest layer / 5, at least "
+                   "the model's height / 20000).")
 @click.option("--json", "as_json", is_flag=True, help="Print the table as JSON.")
 @click.option("--csv", "as_csv", is_flag=True, help="Print the table as CSV.")
 @click.option("--plots", "plots_dir", type=click.Path(path_type=str), default=None,

@@ -67,7 +67,8 @@ def build_report(result) -> dict:
 @click.option("-o", "--output", type=click.Path(path_type=str), default=None,
               help=f"Write the layers; the suffix picks the format ({_formats_help()}).")
 @click.option("--format", "fmt_name", type=click.Choice(format_names()), default=None,
-              help="The output format, whatever -o's suffix (default: -o's suffix picks it).")
+              help="The output format (default: -o's suffix picks it); with -o, for a suffix that no format "
+                   "owns (--format svg -o part.txt; -o part.npz stays NPZ).")
 @click.option("--report", type=click.Path(path_type=str), default=None, help="Write the run report as JSON.")
 @click.option("-q", "--quiet", is_flag=True, help="No summary on stdout.")
 def slice_cmd(model: str, output: str | None, fmt_name: str | None, report: str | None, quiet: bool, **kw) -> None:
@@ -77,12 +78,12 @@ def slice_cmd(model: str, output: str | None, fmt_name: str | None, report: str 
     from ..io.report import write_report
     from ..pipeline import Job, run_job
 
+    refuse_model_as_output(model, output, report)  # (first: a write-protected model is the model, not a permission)
     check_output_file(output, report)  # a folder that is missing: refused now, not after the slicing ("out/": a folder)
     if output is not None:
         format_for(output, fmt_name)  # an unknown suffix fails before any work
     elif fmt_name is not None:
         fail(f"--format {fmt_name} needs -o, the file to write")
-    refuse_model_as_output(model, output, report)
     check_distinct_outputs(output, report)
     params, placement = slicing_values(kw)
     with committed_together():  # the layers and the report renamed into place together, or neither

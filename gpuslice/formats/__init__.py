@@ -104,6 +104,8 @@ def format_for(path: str | os.PathLike, name: str | None = None) -> ContourForma
     for f in CONTOUR_FORMATS.values():
         if kind in f.suffixes:
             return f
+    if not kind:  # (-o o: "unknown output format ''" said nothing)
+        raise ParameterError(f"{p}: no suffix to say the output format (use {_choices()}, or --format)")
     raise ParameterError(f"{p}: unknown output format '{p.suffix}' (use {_choices()})")
 
 

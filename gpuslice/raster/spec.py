@@ -193,8 +193,8 @@ class ResinOptions:
     """How a resin job is rasterised and encoded, besides the display (:class:`RasterSpec`); times in s."""
 
     printer: str | None = option(None, "Printer preset: a name `gpuslice printers` lists, or a .toml/.json preset "
-                                 "file; the print options given override it, and so do display options for a PNG "
-                                 "stack (an archive naming the printer is written at its display only)")
+                                 "file; options given override its values (raster: an archive naming the printer "
+                                 "is written at its display only; a PNG stack takes display options too)")
     raster_backend: str = option("auto", "Rasteriser: auto is opencl (run-length runs); gl is the optional "
                                  "moderngl pass", choices=BACKENDS)
     supersample: int = option(8, "GL backend: samples per pixel side (1-16)")

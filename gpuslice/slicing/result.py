@@ -275,6 +275,8 @@ class SliceResult:
         if not isinstance(path, str | os.PathLike):
             raise ParameterError(f"path must be a file path, got {type(path).__name__}")
         p = Path(path)
+        if not p.exists():  # (as every reader says it, not "not a gpuslice result ([Errno 2] ...)")
+            raise MeshFileError(f"{p}: no such file")
         try:
             with open(p, "rb") as f:  # (numpy reads any other bytes as a pickle and suggests allow_pickle)
                 head = f.read(6)

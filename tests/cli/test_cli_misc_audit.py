@@ -85,3 +85,23 @@ def test_an_unwritable_output_folder_is_refused_before_the_work(tmp_path, capsys
         err = capsys.readouterr().err
         assert f"directory {ro} is not writable" in err, err
     assert not list(ro.iterdir())
+
+
+def test_review_wording_of_three_errors(tmp_path, capsys):
+    """A review's wording (thirty-first session): a missing result named "not a gpuslice result ([Errno 2] ...)",
+    a read-only model given as the output was told to be made writable, and `-o o` was "unknown output format ''"."""
+    stl = tmp_path / "cube.stl"
+    shapes.write_stl(shapes.box(), stl)
+    assert main(["view", str(tmp_path / "missing.npz"), "-o", str(tmp_path / "v.html")]) == 2
+    assert capsys.readouterr().err.strip() == f"gpuslice: error: {tmp_path / 'missing.npz'}: no such file"
+    stl.chmod(0o444)
+    try:
+        assert main(["slice", str(stl), "--format", "svg", "-o", str(stl)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "is the model" in err and "itself" in err and "write-protected" not in err, err
+    finally:
+        stl.chmod(0o644)
+    assert main(["slice", str(stl), "-t", "1", "-o", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no suffix to say the output format" in err and len(err.splitlines()) == 1, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cube.stl"]
