@@ -1,5 +1,6 @@
 """One malloc arena for the processes that slice and then write resin layers (``gpuslice.allocator``): the layers'
-threads then reuse what the slicer freed, and ``release_scratch`` leaves that memory in the process. Process-wide
+threads then reuse what the slicer freed, and ``release_scratch`` leaves that memory in the process; for ``slice``,
+also every block from the heap and kept there (``keep_freed_memory``). Process-wide
 settings are changed only in child processes here."""
 
 from __future__ import annotations
@@ -91,14 +92,16 @@ def test_release_scratch_trims_the_heap_unless_one_arena(monkeypatch):
     assert calls == [0]  # (left in the process: the next stage's threads reuse it)
 
 
-@pytest.mark.parametrize("args, one", [(["raster", "m.stl", "-o", "x.goo"], True), (["--debug", "raster"], True),
-                                       (["slice", "m.stl"], False), (["check", "raster.stl"], False), ([], False)])
-def test_the_command_line_asks_for_one_arena_for_raster_only(monkeypatch, args, one):
+@pytest.mark.parametrize("args, asks", [(["raster", "m.stl", "-o", "x.goo"], "resin"), (["--debug", "raster"], "resin"),
+                                        (["slice", "m.stl"], "slice"), (["check", "raster.stl"], None), ([], None)])
+def test_the_command_line_asks_for_its_malloc_settings(monkeypatch, args, asks):
+    """One arena for raster; for slice also the freed memory kept (``keep_freed_memory``); nothing for the others."""
     import gpuslice.cli.main  # noqa: F401  (the package exports a function of the same name)
 
     cli_main = sys.modules["gpuslice.cli.main"]
     asked = []
-    monkeypatch.setattr(allocator, "one_malloc_arena", lambda: asked.append(True) or True)
+    monkeypatch.setattr(allocator, "one_malloc_arena", lambda: asked.append("resin") or True)
+    monkeypatch.setattr(allocator, "keep_freed_memory", lambda: asked.append("slice") or True)
     monkeypatch.setattr(cli_main, "main", lambda: 0)
     monkeypatch.setattr(cli_main, "exit_now", lambda code: None)
     monkeypatch.setattr(sys, "argv", ["gpuslice", *args])
@@ -106,7 +109,41 @@ def test_the_command_line_asks_for_one_arena_for_raster_only(monkeypatch, args, 
     for name in ("GPUSLICE_PLAIN_MALLOC", "GLIBC_TUNABLES", *allocator._MALLOC_VARIABLES):
         monkeypatch.delenv(name, raising=False)
     cli_main.entry()
-    assert bool(asked) is one
+    assert asked == ([asks] if asks else [])
+
+
+# a 100 MB array, made and freed twice: where its memory came from ([heap] or a mapping of its own) and what stays
+BIG = textwrap.dedent("""
+    import sys
+    import numpy as np
+    import gpuslice.allocator as a
+    if sys.argv[1] == "keep":
+        assert a.keep_freed_memory() is True and a.one_arena()
+    def heap():  # (numpy's madvise of its big arrays splits the heap's mapping: every piece counts)
+        size = 0
+        for line in open("/proc/self/maps"):
+            if line.rstrip().endswith("[heap]"):
+                lo, hi = (int(x, 16) for x in line.split()[0].split("-"))
+                size += hi - lo
+        return size
+    before = heap()
+    for _ in range(2):
+        x = np.ones(100 << 20, np.uint8)
+        del x
+    print(heap() - before)
+""")
+
+
+@needs_glibc
+def test_keep_freed_memory_serves_big_arrays_from_the_heap_and_keeps_it(tmp_path):
+    grown = {}
+    for mode in ("default", "keep"):
+        out = subprocess.run([sys.executable, "-c", BIG, mode], capture_output=True, text=True, timeout=120,
+                             env=_child_env())
+        assert out.returncode == 0, out.stderr
+        grown[mode] = int(out.stdout.split()[-1])
+    assert grown["default"] < 50 << 20  # (mapped on its own and handed back: the heap never held it)
+    assert grown["keep"] >= 100 << 20  # from the heap, and still there after it was freed
 
 
 @pytest.mark.parametrize("env", [("GPUSLICE_PLAIN_MALLOC", "1"), ("MALLOC_ARENA_MAX", "4"),
