@@ -381,9 +381,25 @@ def _platforms():
     except ImportError as exc:  # pragma: no cover
         raise DeviceError(f"pyopencl is not installed ({exc})") from None
     try:
-        return cl.get_platforms()
+        platforms = cl.get_platforms()
     except cl.Error as exc:
         raise DeviceError(f"no OpenCL platform found ({exc}); pip install pocl-binary-distribution") from None
+    _reclaim_signal_handlers()
+    return platforms
+
+
+def _reclaim_signal_handlers() -> None:
+    """Put back the handlers Python installed for SIGINT, SIGTERM and SIGHUP (Ctrl-C's KeyboardInterrupt, a program's
+    own), in the main thread: PoCL loads LLVM, whose handlers (``SA_RESETHAND``) pass a signal on once and leave the
+    default action meanwhile, so two Ctrl-C a few ms apart (``timeout -s INT`` sends two) killed the process with no
+    word and an output's temporary file left (4 runs in 16)."""
+    import signal
+    import threading
+
+    for name in ("SIGINT", "SIGTERM", "SIGHUP") if threading.current_thread() is threading.main_thread() else ():
+        handler = signal.getsignal(getattr(signal, name, 0)) if hasattr(signal, name) else None
+        if callable(handler):  # (not SIG_DFL, SIG_IGN, or None: a handler Python did not install)
+            signal.signal(getattr(signal, name), handler)
 
 
 def list_devices() -> list[dict]:

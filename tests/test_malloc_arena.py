@@ -143,7 +143,7 @@ def test_keep_freed_memory_serves_big_arrays_from_the_heap_and_keeps_it(tmp_path
         assert out.returncode == 0, out.stderr
         grown[mode] = int(out.stdout.split()[-1])
     assert grown["default"] < 50 << 20  # (mapped on its own and handed back: the heap never held it)
-    assert grown["keep"] >= 100 << 20  # from the heap, and still there after it was freed
+    assert grown["keep"] >= 90 << 20  # from the heap (less what it had free already), still there after it was freed
 
 
 @pytest.mark.parametrize("env", [("GPUSLICE_PLAIN_MALLOC", "1"), ("MALLOC_ARENA_MAX", "4"),

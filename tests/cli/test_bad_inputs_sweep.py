@@ -428,3 +428,29 @@ def test_a_non_utf8_name_in_reports_views_and_job_names(cube, tmp_path):
     for suffix in (".goo", ".sl1"):
         assert main(["raster", str(cube), "-o", str(tmp_path / f"j{suffix}"), "-q", "--no-progress",
                      "--resolution", "600x600", "--job-name", os.fsdecode(b"x\xffy")]) == 0
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's struct sigaction")
+def test_ctrl_c_stays_python_s_after_the_opencl_driver_loaded():
+    """PoCL's LLVM put its own SIGINT handler over Python's (SA_RESETHAND: the default action while it passes a signal
+    on), so two SIGINTs a few ms apart killed the process by the signal, with no word and an output's temporary file
+    left (a review: `timeout -s INT` on `raster`, 2 runs in 60; killpg twice, 4 in 16). The device module puts
+    Python's handlers back: no handler with SA_RESETHAND for SIGINT, SIGTERM or SIGHUP once a device is made."""
+    code = textwrap.dedent("""
+        import ctypes, signal
+        class Sigaction(ctypes.Structure):  # glibc's struct sigaction on Linux
+            _fields_ = [("handler", ctypes.c_void_p), ("mask", ctypes.c_ulong * 16), ("flags", ctypes.c_int),
+                        ("restorer", ctypes.c_void_p)]
+        libc = ctypes.CDLL(None, use_errno=True)
+        def flags(sig):
+            old = Sigaction()
+            assert libc.sigaction(sig, None, ctypes.byref(old)) == 0
+            return old.flags & 0xFFFFFFFF
+        signal.signal(signal.SIGTERM, lambda *a: None)  # (a program's own: put back too)
+        from gpuslice.device import get_device
+        get_device()
+        print(*(flags(s) & 0x80000000 for s in (signal.SIGINT, signal.SIGTERM)))
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["0", "0"], proc.stdout
