@@ -63,9 +63,10 @@ def keep_freed_memory() -> bool:
     when glibc refused).
 
     For ``gpuslice slice`` (:func:`slice_heap`): nefertiti after 2 Loop subdivisions (1.6M facets) at 0.02 mm spent
-    18 % of its CPU samples in the kernel's ``clear_page`` (perf); with this, its whole process ran in 0.93× the time
-    with 0.3 s less system time and a peak 37 MiB lower (``docs/BENCHMARKS.md``, thirty-first session); benchy, the
-    plate of 12 benchies and the resin job alike within noise. The process keeps its peak's memory until it ends."""
+    18 % of its CPU samples in the kernel's ``clear_page`` (perf); with this, its whole process ran in 0.93–0.95× the
+    time with ~0.2 s less system time and a median peak 15–37 MiB lower (``docs/BENCHMARKS.md``, thirty-first
+    session); benchy, the plate of 12 benchies and the resin job alike within noise. The process keeps its peak's
+    memory until it ends."""
     if not one_malloc_arena():
         return False
     try:

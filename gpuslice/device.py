@@ -396,10 +396,12 @@ def _reclaim_signal_handlers() -> None:
     import signal
     import threading
 
-    for name in ("SIGINT", "SIGTERM", "SIGHUP") if threading.current_thread() is threading.main_thread() else ():
-        handler = signal.getsignal(getattr(signal, name, 0)) if hasattr(signal, name) else None
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for signum in (getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name)):
+        handler = signal.getsignal(signum)
         if callable(handler):  # (not SIG_DFL, SIG_IGN, or None: a handler Python did not install)
-            signal.signal(getattr(signal, name), handler)
+            signal.signal(signum, handler)
 
 
 def list_devices() -> list[dict]:
