@@ -560,7 +560,9 @@ def test_cli_ctrl_c_stops_cleanly(tmp_path, device, sig, code, said):
     out, rep = tmp_path / "out", tmp_path / "rep.json"
     cmd = [sys.executable, "-m", "gpuslice.cli", "batch", str(models), "-o", str(out), "-t", "0.02", "-j", "2",
            "--backend", "numpy", "--report", str(rep)]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    # (SIGHUP at its default action, as under a terminal: a test run under nohup passes it on ignored)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_DFL))
     deadline = time.monotonic() + 60
     def finished():  # (not the hidden temporaries ".t00.npz.tmp-...npz", which the glob also matches)
         return sorted(p for p in out.glob("*.npz") if not p.name.startswith("."))

@@ -225,6 +225,12 @@ SLOW_WRITE = textwrap.dedent("""
 """)
 
 
+def _hangup_as_a_terminal_has_it() -> None:
+    """(In the child, before its program starts) SIGHUP at its default action: a test run under ``nohup`` passes it
+    on ignored, and gpuslice then keeps it ignored, as it should."""
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)
+
+
 @pytest.mark.skipif(not hasattr(signal, "SIGHUP"), reason="POSIX signals")
 @pytest.mark.parametrize("signame", ["SIGTERM", "SIGHUP"])
 def test_terminate_while_writing_leaves_nothing(tmp_path, signame):
@@ -237,7 +243,7 @@ def test_terminate_while_writing_leaves_nothing(tmp_path, signame):
     assert main(["shape", "torus", "-o", str(stl)]) == 0
     proc = subprocess.Popen([sys.executable, "-c", SLOW_WRITE, "slice", str(stl), "-t", "0.005", "--backend", "numpy",
                              "-o", str(tmp_path / "t.svg"), "-q"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+                            text=True, preexec_fn=_hangup_as_a_terminal_has_it)
     deadline = time.monotonic() + 120
     while not [p for p in os.listdir(tmp_path) if ".tmp-" in p]:
         assert proc.poll() is None, f"finished before writing started: {proc.communicate()}"
@@ -446,6 +452,7 @@ def test_ctrl_c_stays_python_s_after_the_opencl_driver_loaded():
             old = Sigaction()
             assert libc.sigaction(sig, None, ctypes.byref(old)) == 0
             return old.flags & 0xFFFFFFFF
+        signal.signal(signal.SIGINT, signal.default_int_handler)  # (as Python has it, whatever the test runner's)
         signal.signal(signal.SIGTERM, lambda *a: None)  # (a program's own: put back too)
         from gpuslice.device import get_device
         get_device()
