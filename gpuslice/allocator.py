@@ -62,11 +62,11 @@ def keep_freed_memory() -> bool:
     ``mallopt(M_TRIM_THRESHOLD, 2**31 - 1)`` (the heap's free top kept). Whether it was done (False off glibc, or
     when glibc refused).
 
-    For ``gpuslice slice`` (:func:`slice_heap`): nefertiti after 2 Loop subdivisions (1.6M facets) at 0.02 mm spent
-    18 % of its CPU samples in the kernel's ``clear_page`` (perf); with this, its whole process ran in 0.93–0.95× the
-    time with ~0.2 s less system time and a median peak 15–37 MiB lower (``docs/BENCHMARKS.md``, thirty-first
-    session); benchy, the plate of 12 benchies and the resin job alike within noise. The process keeps its peak's
-    memory until it ends."""
+    For ``gpuslice slice`` and ``view`` (:func:`slice_heap`): nefertiti after 2 Loop subdivisions (1.6M facets) at
+    0.02 mm spent 18 % of its CPU samples in the kernel's ``clear_page`` (perf); with this, its whole process ran
+    in 0.93–0.95× the time with ~0.2 s less system time and a median peak 15–37 MiB lower (``docs/BENCHMARKS.md``,
+    thirty-first session; its ``view`` at 0.05 mm 0.86×); benchy, the plate of 12 benchies and the resin job alike
+    within noise. The process keeps its peak's memory until it ends."""
     if not one_malloc_arena():
         return False
     try:
@@ -79,8 +79,8 @@ def keep_freed_memory() -> bool:
 
 
 def slice_heap() -> bool:
-    """:func:`keep_freed_memory` for ``gpuslice slice``, unless the user tunes malloc (:func:`user_tuned_malloc`);
-    whether it was done."""
+    """:func:`keep_freed_memory` for ``gpuslice slice`` and ``view``, unless the user tunes malloc
+    (:func:`user_tuned_malloc`); whether it was done."""
     return not user_tuned_malloc() and keep_freed_memory()
 
 

@@ -93,9 +93,10 @@ def test_release_scratch_trims_the_heap_unless_one_arena(monkeypatch):
 
 
 @pytest.mark.parametrize("args, asks", [(["raster", "m.stl", "-o", "x.goo"], "resin"), (["--debug", "raster"], "resin"),
-                                        (["slice", "m.stl"], "slice"), (["check", "raster.stl"], None), ([], None)])
+                                        (["slice", "m.stl"], "slice"), (["view", "m.stl"], "slice"),
+                                        (["check", "raster.stl"], None), ([], None)])
 def test_the_command_line_asks_for_its_malloc_settings(monkeypatch, args, asks):
-    """One arena for raster; for slice also the freed memory kept (``keep_freed_memory``); nothing for the others."""
+    """One arena for raster; for slice and view also the freed memory kept (``keep_freed_memory``); else nothing."""
     import gpuslice.cli.main  # noqa: F401  (the package exports a function of the same name)
 
     cli_main = sys.modules["gpuslice.cli.main"]

@@ -192,8 +192,8 @@ def entry() -> None:
     the user set it: nothing here runs a threaded BLAS call, and numpy's OpenBLAS otherwise starts a thread per core
     at import that spins for ≈ 0.1 s waiting for work, taking a core from start-up (measured: a 0.05 mm nefertiti
     slice 7 % slower on 2 cores). The variable is inherited by the PNG and batch worker processes. For ``raster``,
-    the process's threads share one malloc arena (:func:`gpuslice.allocator.one_malloc_arena`), for ``slice`` they
-    also keep what they free (:func:`gpuslice.allocator.keep_freed_memory`), unless the user tunes malloc
+    the process's threads share one malloc arena (:func:`gpuslice.allocator.one_malloc_arena`), for ``slice`` and
+    ``view`` they also keep what they free (:func:`gpuslice.allocator.keep_freed_memory`), unless the user tunes malloc
     (``MALLOC_*``, ``GLIBC_TUNABLES``) or sets ``GPUSLICE_PLAIN_MALLOC`` (any non-empty value)."""
     if "numpy" not in sys.modules:
         os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -203,7 +203,7 @@ def entry() -> None:
         from ..allocator import resin_arena
 
         resin_arena()
-    elif command == "slice":  # its big arrays, freed batch after batch, reused instead of mapped afresh
+    elif command in ("slice", "view"):  # their big arrays, freed batch after batch, reused instead of mapped afresh
         from ..allocator import slice_heap
 
         slice_heap()
