@@ -38,15 +38,18 @@ def one_malloc_arena() -> bool:
     process, nor by ``check``: GEOS's many small allocations on two threads contend for one arena (the nefertiti
     check 1.07× slower)."""
     global _ONE_ARENA
-    if not on_glibc():
-        return False
+    _ONE_ARENA = on_glibc() and _mallopt(-8, 1)  # M_ARENA_MAX (malloc.h)
+    return _ONE_ARENA
+
+
+def _mallopt(option: int, value: int) -> bool:
+    """glibc's ``mallopt(option, value)`` (options as numbered in malloc.h); whether glibc took it."""
     try:
         import ctypes
 
-        _ONE_ARENA = ctypes.CDLL(None).mallopt(-8, 1) == 1  # M_ARENA_MAX (malloc.h)
+        return ctypes.CDLL(None).mallopt(option, value) == 1
     except (OSError, AttributeError):  # no mallopt after all
         return False
-    return _ONE_ARENA
 
 
 def resin_arena() -> bool:
@@ -67,15 +70,7 @@ def keep_freed_memory() -> bool:
     in 0.93–0.95× the time with ~0.2 s less system time and a median peak 15–37 MiB lower (``docs/BENCHMARKS.md``,
     thirty-first session; its ``view`` at 0.05 mm 0.86×); benchy, the plate of 12 benchies and the resin job alike
     within noise. The process keeps its peak's memory until it ends."""
-    if not one_malloc_arena():
-        return False
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL(None)
-        return libc.mallopt(-4, 0) == 1 and libc.mallopt(-1, 2**31 - 1) == 1  # M_MMAP_MAX, M_TRIM_THRESHOLD
-    except (OSError, AttributeError):
-        return False
+    return one_malloc_arena() and _mallopt(-4, 0) and _mallopt(-1, 2**31 - 1)  # M_MMAP_MAX, M_TRIM_THRESHOLD
 
 
 def slice_heap() -> bool:

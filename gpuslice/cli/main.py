@@ -247,14 +247,16 @@ def _stop_on_terminate():
     pid = os.getpid()
     seen: list[int] = []
 
+    def die(signum) -> None:  # as the signal asks, as without these handlers
+        signal.signal(signum, signal.SIG_DFL)
+        os.kill(os.getpid(), signum)
+
     def handler(signum, frame):
         if os.getpid() == pid and not seen:
             seen.append(signum)
             _INTERRUPTED.set()
             raise Terminated(signum)
-        # a second one while the first unwinds, or a forked child that inherited the handler: die as the signal asks
-        signal.signal(signum, signal.SIG_DFL)
-        os.kill(os.getpid(), signum)
+        die(signum)  # a second one while the first unwinds, or a forked child that inherited the handler
 
     interrupts: list[int] = []
 
@@ -266,8 +268,7 @@ def _stop_on_terminate():
         if len(interrupts) == 1:
             raise KeyboardInterrupt
         if len(interrupts) > 2:  # a third: end at once, as Python's default would not
-            signal.signal(signum, signal.SIG_DFL)
-            os.kill(os.getpid(), signum)
+            die(signum)
         # the second is let go while the first unwinds (removing a temporary file, stopping threads): `timeout -s INT`
         # sends one to the process and one to its group, and a user may press twice
 

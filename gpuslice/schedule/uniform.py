@@ -21,6 +21,7 @@ import numpy as np
 
 from ..errors import ParameterError
 from ..options import is_real, shown
+from .validate import check_uniform
 
 __all__ = ["Schedule", "uniform", "from_z", "slab_bottoms"]
 
@@ -125,14 +126,9 @@ def uniform(
     >>> uniform(1.0, 0.25, z_mode="paper").z
     array([0.25, 0.5 , 0.75])
     """
-    if not (is_real(thickness) and np.isfinite(thickness) and thickness > 0):
-        raise ParameterError(f"thickness must be a positive number of mm (the layers'), got {shown(thickness)}",
-                             param="thickness")
+    check_uniform(thickness, first_layer, z_mode)
     if not (is_real(height) and np.isfinite(height) and height >= 0):
         raise ParameterError(f"object height must be finite and non-negative, got {shown(height)}")
-    if not (first_layer is None or (is_real(first_layer) and np.isfinite(first_layer) and first_layer > 0)):
-        raise ParameterError(f"first_layer must be a positive number of mm (its thickness), got {shown(first_layer)}",
-                             param="first_layer")
     thickness = float(thickness)  # (an int gave an int array below, which cut a first layer of 1.5 mm to 1)
     h0 = thickness if first_layer is None else float(first_layer)
     if height / thickness > 5e7:
@@ -142,14 +138,10 @@ def uniform(
         z = np.concatenate(([h0 / 2], h0 + (np.arange(1, n) - 0.5) * thickness))
         t = np.full(z.size, thickness)
         t[0] = h0
-    elif z_mode == "paper":
-        if first_layer is not None:
-            raise ParameterError("first_layer applies to z_mode 'mid' only", param=("first_layer", "z_mode"))
+    else:  # "paper" (check_uniform refused the others)
         n = int(np.ceil(height / thickness)) + 1
         z = np.arange(1, n + 1) * thickness
         t = np.full(z.size, thickness)
-    else:
-        raise ParameterError(f"unknown z mode '{z_mode}' (use 'mid' or 'paper')")
     # below the top as the kernels cut: the float32 plane against the float32 top (a mesh's height is float32);
     # in float64 a plane that rounds onto the top was kept or dropped by how i·h happened to round (paper mode:
     # a 0.4 and a 0.5 mm box both gave 4 layers)

@@ -8,9 +8,24 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ParameterError
-from ..options import is_real
+from ..options import is_real, shown
 
-__all__ = ["check_error_bounded", "check_heights", "check_roi", "check_schedule_params"]
+__all__ = ["check_error_bounded", "check_heights", "check_roi", "check_schedule_params", "check_uniform"]
+
+
+def check_uniform(thickness, first_layer, z_mode: str) -> None:
+    """The options of a uniform schedule (see :func:`~gpuslice.schedule.uniform.uniform`): a positive thickness and
+    first layer, mm, and a known ``z_mode`` (``paper`` without a first layer of its own)."""
+    if not (is_real(thickness) and np.isfinite(thickness) and thickness > 0):
+        raise ParameterError(f"thickness must be a positive number of mm (the layers'), got {shown(thickness)}",
+                             param="thickness")
+    if not (first_layer is None or (is_real(first_layer) and np.isfinite(first_layer) and first_layer > 0)):
+        raise ParameterError(f"first_layer must be a positive number of mm (its thickness), got {shown(first_layer)}",
+                             param="first_layer")
+    if z_mode not in ("mid", "paper"):
+        raise ParameterError(f"unknown z mode '{z_mode}' (use 'mid' or 'paper')")
+    if z_mode == "paper" and first_layer is not None:
+        raise ParameterError("first_layer applies to z_mode 'mid' only", param=("first_layer", "z_mode"))
 
 
 def check_heights(min_height: float, max_height: float) -> None:
@@ -80,9 +95,7 @@ def check_schedule_params(params) -> None:
     the mesh: the thickness, first layer and z mode of uniform layers, the options of an adaptive mode. (What
     depends on the model, such as more than 5e7 layers for its height, is left to the slicing.)"""
     if params.adaptive is None:
-        from .uniform import uniform
-
-        uniform(1.0, params.thickness, first_layer=params.first_layer, z_mode=params.z_mode)
+        check_uniform(params.thickness, params.first_layer, params.z_mode)
     elif params.adaptive == "roi":
         check_roi(params.roi_ladder, params.roi_threshold, params.roi_quantile, 2, params.roi_windows)
     else:

@@ -319,24 +319,28 @@ def test_the_library_refuses_a_job_name_that_leads_out_of_the_output(name):
     assert ResinOptions(job_name="part-1").job_name == "part-1"
 
 
+def _under_the_command_s_handlers(body: str) -> subprocess.CompletedProcess:
+    """``body`` (Python, indented as the block of a ``with``; ``os``, ``signal``, ``time`` and ``cli_main`` at hand)
+    run in a child process inside the command line's signal handling (``_stop_on_terminate``)."""
+    code = ("import importlib, os, signal, time\ncli_main = importlib.import_module('gpuslice.cli.main')\n"
+            "with cli_main._stop_on_terminate():\n" + textwrap.indent(textwrap.dedent(body), "    "))
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+
+
 @pytest.mark.skipif(not hasattr(signal, "SIGHUP"), reason="POSIX signals")
 def test_a_second_terminate_while_unwinding_ends_the_process():
     """The first SIGTERM unwinds the command (its clean-up runs); a second one does not wait for that clean-up (a
     thread stuck in a driver call would hold it forever): the process ends as the signal asks."""
-    code = textwrap.dedent("""
-        import importlib, os, signal, time
-        cli_main = importlib.import_module("gpuslice.cli.main")
-        with cli_main._stop_on_terminate():
-            try:
-                os.kill(os.getpid(), signal.SIGTERM)
-                time.sleep(5)
-            except cli_main.Terminated:
-                print("first", flush=True)
-                os.kill(os.getpid(), signal.SIGTERM)
-                time.sleep(5)
-                print("survived", flush=True)
+    proc = _under_the_command_s_handlers("""
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)
+        except cli_main.Terminated:
+            print("first", flush=True)
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)
+            print("survived", flush=True)
     """)
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert proc.returncode == -signal.SIGTERM and proc.stdout.split() == ["first"], (proc.returncode, proc.stdout)
 
 
@@ -344,24 +348,20 @@ def test_a_second_ctrl_c_lets_the_clean_up_finish_and_a_third_ends_the_process()
     """Two SIGINTs a few ms apart (``timeout -s INT`` sends one to the process and one to its group; a user presses
     twice): the second interrupted the first's clean-up (a traceback from a thread's wait after "gpuslice:
     interrupted", 6 runs of 28; an empty temporary file left, 2 of 60). It is let go now; a third ends the process."""
-    code = textwrap.dedent("""
-        import importlib, os, signal, time
-        cli_main = importlib.import_module("gpuslice.cli.main")
-        with cli_main._stop_on_terminate():
-            try:
-                os.kill(os.getpid(), signal.SIGINT)
-                time.sleep(5)
-            except KeyboardInterrupt:
-                print("first", cli_main._INTERRUPTED.is_set(), flush=True)
-                os.kill(os.getpid(), signal.SIGINT)
-                for _ in range(50):
-                    time.sleep(0.002)
-                print("cleaned", flush=True)
-                os.kill(os.getpid(), signal.SIGINT)
-                time.sleep(5)
-                print("survived", flush=True)
+    proc = _under_the_command_s_handlers("""
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(5)
+        except KeyboardInterrupt:
+            print("first", cli_main._INTERRUPTED.is_set(), flush=True)
+            os.kill(os.getpid(), signal.SIGINT)
+            for _ in range(50):
+                time.sleep(0.002)
+            print("cleaned", flush=True)
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(5)
+            print("survived", flush=True)
     """)
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert proc.returncode == -signal.SIGINT, (proc.returncode, proc.stdout, proc.stderr)
     assert proc.stdout.split() == ["first", "True", "cleaned"], proc.stdout
 
