@@ -197,8 +197,8 @@ def need_mesh(mesh: object, fn: str) -> None:
 
 def stored_normal_mismatch(stored: np.ndarray, computed: np.ndarray) -> np.ndarray:
     """(F,) bool: stored normals that are missing (zero, NaN, inf) or more than 45° away from the winding's."""
-    s = stored.astype(np.float64)
-    with np.errstate(invalid="ignore", over="ignore"):
+    with np.errstate(invalid="ignore", over="ignore"):  # (a signalling NaN, as a file may hold, warns when cast)
+        s = stored.astype(np.float64)
         length = np.sqrt(np.einsum("ij,ij->i", s, s))
         cos = np.einsum("ij,ij->i", s, computed.astype(np.float64)) / length
     bad = ~np.isfinite(cos) | (cos < np.sqrt(0.5))

@@ -141,3 +141,23 @@ def test_an_inside_out_mesh_has_a_positive_volume_and_says_so():
     flipped_one = tri.copy()
     flipped_one[0] = flipped_one[0, ::-1]
     assert mesh_from_triangles(flipped_one).info()["volume"] is None
+
+
+def test_a_signalling_nan_normal_is_a_mismatch_without_a_warning():
+    """An STL's stored normal may hold any bits: a signalling NaN (0x7fa00000) raised numpy's "invalid value
+    encountered in cast" when widened, which `gpuslice info` printed (an internal error under -W error)."""
+    import warnings
+
+    from gpuslice.mesh.mesh import stored_normal_mismatch
+
+    tri = np.asarray(S.box(), np.float32)
+    computed = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    computed /= np.linalg.norm(computed, axis=1, keepdims=True)
+    stored = computed.copy()
+    stored.view(np.uint32)[0, 0] = 0x7FA00000  # a signalling NaN
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        bad = stored_normal_mismatch(stored, computed)
+        info = mesh_from_triangles(tri, stored).info()
+    assert bad[0] and not bad[1:].any()
+    assert info["stored_normal_mismatch"] == 1
