@@ -292,12 +292,55 @@ def _saved(res, tmp_path, **change) -> str:
     ({"repairs__": lambda r: r[:1]}, ["repairs__", "must be 4 integers"]),                # silently loaded
     ({"meta_json": np.frombuffer(b"[1,2]", np.uint8)}, ["meta_json must hold an object"]),
     ({"z": np.float64(1.0)}, ["z must be 1-D"]),                                          # IndexError
+    # values no slice makes (a helper's fuzzing with warnings as errors): each ended in a numpy warning, an internal
+    # error or a silently wrong page or mask (the display fit check overflowed) in view, view --raster or --check
+    ({"points": lambda p: np.where(p == p.max(), np.float32(np.inf), p)}, ["points must be finite"]),
+    ({"points": lambda p: np.where(p == p.max(), np.float32(3.4e38), p)}, ["within 1e18 mm"]),
+    ({"points": lambda p: np.where(p == p.max(), np.frombuffer(b"\x00\x00\xa0\x7f", np.float32)[0], p)},
+     ["points must be finite"]),                                                          # a signalling NaN
+    ({"thickness": lambda t: np.full_like(t, 1e308)}, ["thickness must be more than 0"]),  # cumsum overflowed
+    ({"thickness": lambda t: -t}, ["thickness must be more than 0"]),
+    ({"z": lambda z: z * 1e300}, ["z must lie within 1e18 mm"]),
+    ({"area": lambda a: np.full_like(a, 1e308)}, ["area beyond"]),                        # resin volume overflowed
+    ({"loop_offsets": lambda o: o.astype(np.uint64) + np.uint64(2**63)}, ["loop_offsets holds values beyond int64"]),
+    ({"meta_json": np.frombuffer(b'{"facets": 1e999}', np.uint8)}, ["facets must be a whole number"]),  # inf
+    ({"meta_json": np.frombuffer(b'{"facets": "12"}', np.uint8)}, ["facets must be a whole number"]),
+    ({"meta_json": np.frombuffer(b'{"scale": NaN}', np.uint8)}, ["scale must be a positive number"]),
+    ({"meta_json": np.frombuffer(b'{"params": []}', np.uint8)}, ["params must be an object"]),    # AttributeError
+    ({"meta_json": np.frombuffer(b'{"params": {"fill_rule": "x"}}', np.uint8)}, ["fill rule must be"]),
+    ({"meta_json": np.frombuffer(b'{"repairs": {"filled_holes": -1}}', np.uint8)}, ["repairs must be counts"]),
+    ({"meta_json": np.frombuffer(b'{"file": 3}', np.uint8)}, ["file must be text"]),
 ])
 def test_loading_a_corrupted_result_names_the_file(res, tmp_path, change, words):
     path = _saved(res, tmp_path, **change)
     with pytest.raises(MeshFileError) as exc:
         SliceResult.load(path)
     _one_line(exc, path, "not a gpuslice result", *words)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint32, np.uint64, np.int32])
+def test_a_result_saved_with_other_integer_widths_loads_as_the_slicer_makes_it(res, tmp_path, dtype):
+    """Offsets and indices of any integer width whose values fit load as int64 offsets and int32 indices (uint64
+    offsets were a TypeError in the layer check; uint8 ones an IndexError when rasterised)."""
+    names = ["loop_offsets", "layer_offsets", "loop_layer"] + (["loop_parent"] if np.iinfo(dtype).min < 0 else [])
+    assert res.n_loops and int(res.loop_offsets[-1]) <= np.iinfo(dtype).max  # (the 4-layer cube's fit any width)
+    back = SliceResult.load(_saved(res, tmp_path, **{k: (lambda a: a.astype(dtype)) for k in names}))
+    assert back.loop_offsets.dtype == np.int64 and back.layer_offsets.dtype == np.int64
+    assert back.loop_layer.dtype == np.int32 and back.loop_parent.dtype == np.int32
+    for k in ("loop_offsets", "layer_offsets", "loop_layer", "loop_parent"):
+        np.testing.assert_array_equal(getattr(back, k), getattr(res, k))
+    assert [p.area for p in back.to_shapely()] == [p.area for p in res.to_shapely()]
+
+
+def test_a_saved_result_given_to_a_mesh_command_says_what_it_is(res, tmp_path):
+    """`check part.npz` said the file looked like a ZIP archive and to name it .3mf."""
+    from gpuslice.io.meshfile import read_mesh_file
+
+    path = tmp_path / "part.npz"
+    res.save(path)
+    with pytest.raises(MeshFileError) as exc:
+        read_mesh_file(path)
+    _one_line(exc, "part.npz", "a saved slice result (.npz), not a mesh", "gpuslice view")
 
 
 def test_loading_what_is_no_npz_names_the_file(res, tmp_path):

@@ -103,6 +103,9 @@ def read_stl_bytes(data: bytes, name: str = "<bytes>") -> RawMesh:
     if size == 0:
         raise MeshFileError(f"{name}: not an STL file: the file is empty (0 bytes)")
     kind = _sniff(data)
+    if kind is not None and kind.startswith("ZIP") and str(name).lower().endswith(".npz"):
+        raise MeshFileError(f"{name}: a saved slice result (.npz), not a mesh: this command reads the model (STL, OBJ, "
+                            "PLY, OFF, 3MF); gpuslice view shows a saved result")
     if kind is not None:
         raise MeshFileError(f"{name}: not an STL file (looks like a {kind})")
     if size < _HEADER_BYTES:

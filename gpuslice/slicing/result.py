@@ -294,8 +294,17 @@ class SliceResult:
         problem = _layout_problem(arrays, repairs, meta)
         if problem:
             raise MeshFileError(f"{p}: not a gpuslice result ({problem})")
+        for name, dtype in _INDEX_DTYPES.items():  # (as the slicer makes them: values checked to fit above)
+            arrays[name] = arrays[name].astype(dtype, copy=False)
+        repairs = {k: v.astype(np.int32, copy=False) for k, v in repairs.items()}
         return cls(**arrays, repairs=repairs, meta=meta)
 
+
+#: the index arrays' dtypes as the slicer makes them (a loaded file's integers of any width are checked and cast)
+_INDEX_DTYPES = {"loop_offsets": np.int64, "layer_offsets": np.int64, "loop_layer": np.int32, "loop_parent": np.int32}
+#: the most a saved result's coordinates and thicknesses may be, mm: what a mesh may hold
+#: (:data:`gpuslice.io.rawmesh.MAX_COORDINATE`), so that the raster's and the viewer's float64 arithmetic stays finite
+_MAX_MM = 1e18
 
 #: the dtype kinds of the 1-D arrays of the layout (numpy's ``dtype.kind``)
 _KINDS = {"loop_offsets": "iu", "layer_offsets": "iu", "loop_layer": "iu", "loop_is_hole": "b", "loop_parent": "iu",
@@ -304,8 +313,8 @@ _KINDS = {"loop_offsets": "iu", "layer_offsets": "iu", "loop_layer": "iu", "loop
 
 def _layout_problem(arrays: dict[str, np.ndarray], repairs: dict[str, np.ndarray], meta: Any) -> str | None:
     """What does not fit the layout (module docstring) in a loaded result's arrays, or None: shapes, dtypes,
-    lengths, offsets' ends and order, index ranges, finite z/thickness/area. Passes over the per-loop and per-layer
-    arrays only, never the points."""
+    lengths, offsets' ends and order, index ranges, coordinates within :data:`_MAX_MM` (points and z, finite),
+    thicknesses in (0, _MAX_MM], finite areas, and the metadata gpuslice reads back (:func:`_meta_problem`)."""
     pts = arrays["points"]
     if pts.ndim != 2 or pts.shape[1] != 2 or pts.dtype != np.float32:
         return f"points must be (P, 2) float32, got shape {pts.shape} dtype {pts.dtype}"
@@ -313,6 +322,11 @@ def _layout_problem(arrays: dict[str, np.ndarray], repairs: dict[str, np.ndarray
         a = arrays[name]
         if a.ndim != 1 or a.dtype.kind not in kind:
             return f"{name} must be 1-D of dtype kind {kind!r}, got shape {a.shape} dtype {a.dtype}"
+    for name in _INDEX_DTYPES:  # (uint64 beyond int64 would wrap when cast; numpy refuses to mix them)
+        a = arrays[name]
+        if a.dtype.kind == "u" and a.size and int(a.max()) > np.iinfo(np.int64).max:
+            return f"{name} holds values beyond int64"
+        arrays[name] = a.astype(np.int64, copy=False)
     n_loops, n_layers = arrays["loop_layer"].size, arrays["z"].size
     sizes = {"loop_offsets": n_loops + 1, "layer_offsets": n_layers + 1, "loop_is_hole": n_loops,
              "loop_parent": n_loops, "loop_closed": n_loops, "thickness": n_layers, "area": n_layers}
@@ -336,6 +350,38 @@ def _layout_problem(arrays: dict[str, np.ndarray], repairs: dict[str, np.ndarray
         return "z, thickness or area not finite"
     if np.any(np.diff(arrays["z"]) <= 0):
         return "z must be strictly increasing"
+    z, th = arrays["z"], arrays["thickness"]
+    if n_layers and not (-_MAX_MM <= float(z.min()) and float(z.max()) <= _MAX_MM):
+        return "z must lie within 1e18 mm of the bed"
+    if n_layers and not (float(th.min()) > 0 and float(th.max()) <= _MAX_MM):
+        return "thickness must be more than 0 and at most 1e18 mm"
+    if pts.size and not (-_MAX_MM <= float(pts.min()) and float(pts.max()) <= _MAX_MM):  # (False for a NaN)
+        return "points must be finite, within 1e18 mm of the origin"
+    if not (np.abs(arrays["area"]) <= (2 * _MAX_MM) ** 2).all():
+        return "area beyond what points within 1e18 mm bound"
+    return _meta_problem(meta)
+
+
+def _meta_problem(meta: Any) -> str | None:
+    """What is wrong with a loaded result's metadata, or None: it must be an object, and the entries gpuslice reads
+    back (the viewer's summary, the fill rule, the checks' count of filled holes) must have their types."""
     if not isinstance(meta, dict):
         return f"meta_json must hold an object, got {type(meta).__name__}"
+    facets, scale = meta.get("facets", 0), meta.get("scale", 1.0)
+    if isinstance(facets, bool) or not isinstance(facets, int) or facets < 0:
+        return f"meta_json's facets must be a whole number, got {facets!r:.40}"
+    if isinstance(scale, bool) or not isinstance(scale, int | float) or not 0 < scale < float("inf"):
+        return f"meta_json's scale must be a positive number, got {scale!r:.40}"
+    for key in ("file", "schedule_mode", "device"):
+        if not isinstance(meta.get(key, ""), str | type(None)):
+            return f"meta_json's {key} must be text, got {type(meta[key]).__name__}"
+    for key in ("params", "repairs"):
+        if not isinstance(meta.get(key, {}), dict):
+            return f"meta_json's {key} must be an object, got {type(meta[key]).__name__}"
+    rule = meta.get("params", {}).get("fill_rule", "nonzero")
+    if rule not in ("nonzero", "evenodd", "positive"):
+        return f"meta_json's fill rule must be nonzero, evenodd or positive, got {rule!r:.40}"
+    counts = meta.get("repairs", {}).values()
+    if not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in counts):
+        return "meta_json's repairs must be counts (whole numbers)"
     return None
