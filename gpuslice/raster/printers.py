@@ -44,6 +44,15 @@ from ..errors import ParameterError
 __all__ = ["Printer", "PRINTERS", "find_printer", "printer_names", "load_printer_file", "printer_from_dict",
            "ANY_PRINTER_FORMATS"]
 
+#: the largest pixel a display may have, mm (a resin display's are 0.01-0.1 mm; larger ones only overflow the
+#: formats' float32 header fields)
+MAX_PIXEL_MM = 1000.0
+#: the smallest, mm (1 nm: a denormal pitch such as 5e-324 made the placement's 1 / pixel infinite, and a model
+#: 'fitted' a display of no width)
+MIN_PIXEL_MM = 1e-6
+#: the largest Z travel a printer preset may give, mm (1e308 overflowed the archives' float32 fields)
+MAX_BUILD_MM = 10_000.0
+
 #: formats every preset may write: they are not printer archives (a folder of PNGs to look at)
 ANY_PRINTER_FORMATS = ("png",)
 
@@ -89,8 +98,10 @@ class Printer:
             if v is None and k == "pixel_y":
                 continue
             ok = isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
-            if not (ok and (v > 0 if k != "build_height" else v >= 0)):
-                raise ParameterError(f"printer {self.name}: {k} must be a positive number of mm, got {v}")
+            lo, hi = (MIN_PIXEL_MM, MAX_PIXEL_MM) if k != "build_height" else (0.0, MAX_BUILD_MM)
+            if not (ok and lo <= v <= hi):
+                what = "a positive number of mm" if k != "build_height" else "a number of mm (0: not given)"
+                raise ParameterError(f"printer {self.name}: {k} must be {what} from {lo:g} up to {hi:g}, got {v}")
         for k in ("mirror_x", "mirror_y", "portrait"):
             if not isinstance(getattr(self, k), bool):
                 raise ParameterError(f"printer {self.name}: {k} must be true or false, got {getattr(self, k)}")

@@ -55,6 +55,9 @@ BOTTOM_TWINS = ("lift_height", "lift_speed", "lift_height2", "lift_speed2", "ret
 MAX_SECONDS = 3600.0
 MAX_HEIGHT_MM = 1000.0
 MAX_SPEED = 60000.0
+#: the slowest a stage may move, mm/min: every estimate stays finite (a denormal speed, 5e-324, made the moves'
+#: times infinite: a numpy warning, and an internal error in `check`); slower ones are refused by the print time
+MIN_SPEED = 1e-6
 #: the longest print time an archive's 32-bit field holds, s (136 years)
 MAX_PRINT_TIME_S = 2**32 - 1
 
@@ -139,6 +142,8 @@ class PrintSettings:
                     v = getattr(self, n, None)
                     if v is not None and v > top:
                         raise ParameterError(f"{n} must be at most {top:g} {unit}, got {shown(v)}", param=n)
+                    if unit == "mm/min" and v is not None and 0 < v < MIN_SPEED:  # (0: a second stage not used)
+                        raise ParameterError(f"{n} must be at least {MIN_SPEED:g} mm/min, got {shown(v)}", param=n)
         for name in ("light_pwm", "bottom_light_pwm"):
             v = getattr(self, name)
             if not (_is_int(v) and 1 <= v <= 255):

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..errors import ParameterError
 from ..options import check_flag, is_real, option, parse_resolution, python_number
-from .printers import PRINTERS, Printer, find_printer
+from .printers import MAX_PIXEL_MM, MIN_PIXEL_MM, PRINTERS, Printer, find_printer
 from .settings import PrintSettings
 
 __all__ = ["RasterSpec", "ResinOptions", "PRINTERS", "BACKENDS", "gamma_lut", "with_printer"]
@@ -22,9 +22,6 @@ __all__ = ["RasterSpec", "ResinOptions", "PRINTERS", "BACKENDS", "gamma_lut", "w
 #: rasterisers: ``auto`` (= ``opencl``), ``opencl`` (runs), ``numpy`` (the runs' numpy twin: the same bytes), ``gl``
 #: (moderngl), ``opencl-bitmap`` (the bitmap kernel runs replaced) and ``numpy-bitmap`` (its float64 twin)
 BACKENDS = ("auto", "opencl", "numpy", "gl", "opencl-bitmap", "numpy-bitmap")
-#: the largest pixel a display may have, mm (a resin display's are 0.01-0.1 mm; larger ones only overflow the
-#: formats' float32 header fields)
-MAX_PIXEL_MM = 1000.0
 
 
 @dataclass(frozen=True)
@@ -64,9 +61,9 @@ class RasterSpec:
             v = getattr(self, name)
             if v is None and name == "pixel_y":
                 continue
-            if not (is_real(v) and math.isfinite(v) and 0 < v <= MAX_PIXEL_MM):
-                raise ParameterError(f"{name} must be a positive number of mm up to {MAX_PIXEL_MM:g}, got {v!r}",
-                                     param=name)
+            if not (is_real(v) and math.isfinite(v) and MIN_PIXEL_MM <= v <= MAX_PIXEL_MM):
+                raise ParameterError(f"{name} must be a positive number of mm from {MIN_PIXEL_MM:g} up to "
+                                     f"{MAX_PIXEL_MM:g}, got {v!r}", param=name)
             object.__setattr__(self, name, python_number(v))
         if not (is_real(self.gamma) and math.isfinite(self.gamma) and self.gamma >= 0):
             raise ParameterError(f"gamma must be a number >= 0, got {self.gamma!r}", param="gamma")

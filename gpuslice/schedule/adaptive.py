@@ -308,10 +308,14 @@ def cusp_schedule(
             break
         allowed += ok
     if smooth > 0:
+        # a rate of n_max or more bounds nothing (one bin's step lets a layer change by its largest size): taken as
+        # n_max, so that t - rate·k keeps t's digits (a rate of 1e12 lost them: 714 layers where 702 was right,
+        # and 1e308 overflowed)
+        rate = min(float(smooth), float(n_max))
         t = allowed * delta
         k = np.arange(n_bins) * delta
-        fwd = np.minimum.accumulate(t - smooth * k) + smooth * k
-        bwd = (np.minimum.accumulate((t + smooth * k)[::-1]))[::-1] - smooth * k
+        fwd = np.minimum.accumulate(t - rate * k) + rate * k
+        bwd = (np.minimum.accumulate((t + rate * k)[::-1]))[::-1] - rate * k
         allowed = np.floor(np.minimum(fwd, bwd) / delta + 1e-9).astype(np.int64)
     violated = allowed < n_min
     allowed = np.maximum(allowed, n_min)

@@ -145,7 +145,8 @@ def uniform(
     # below the top as the kernels cut: the float32 plane against the float32 top (a mesh's height is float32);
     # in float64 a plane that rounds onto the top was kept or dropped by how i·h happened to round (paper mode:
     # a 0.4 and a 0.5 mm box both gave 4 layers)
-    keep = z.astype(np.float32) < np.float32(height)
+    with np.errstate(over="ignore"):  # (a plane beyond float32, -t 1e300's, is inf there: above any top)
+        keep = z.astype(np.float32) < np.float32(height)
     return Schedule(z[keep], t[keep], mode=f"uniform-{z_mode}")
 
 

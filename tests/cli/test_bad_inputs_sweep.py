@@ -308,6 +308,14 @@ def test_a_pixel_too_large_for_any_display_is_refused(cube, tmp_path, capsys, no
     _one_line_error(capsys, "--pixel", "up to 1000")
 
 
+@pytest.mark.parametrize("pixel", ["5e-324", "1e-9"])
+def test_a_pixel_too_small_for_arithmetic_is_refused(cube, tmp_path, capsys, no_work, pixel):
+    """--pixel 5e-324 (a denormal) made 1 / pixel infinite: numpy's 'invalid value' warning, and with a preset of
+    that pitch the archive was written for a display of no width."""
+    assert main(["raster", str(cube), "-o", str(tmp_path / "o.goo"), "--pixel", pixel]) == 2
+    _one_line_error(capsys, "--pixel", "from 1e-06")
+
+
 @pytest.mark.parametrize("name", ["../evil", "a\\b", "x/y", ""])
 def test_the_library_refuses_a_job_name_that_leads_out_of_the_output(name):
     """The rule lives in ResinOptions, so library callers get it too (the command line maps it to --job-name)."""

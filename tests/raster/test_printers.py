@@ -148,6 +148,11 @@ def test_a_preset_file_rewritten_with_as_many_bytes_at_the_same_time_is_read_aga
     ("keys.toml", 'resolution = [10, 10]\npixel = 0.05\ncolour = "red"\n', "unknown printer preset key 'colour'"),
     ("need.toml", "pixel = 0.05\n", "printer preset needs 'resolution'"),
     ("px.toml", "resolution = [10, 10]\npixel = -1\n", "pixel must be a positive number of mm"),
+    # a denormal pitch made the placement's 1 / pixel infinite: a model 'fitted' a display of no width, and the
+    # archive was written (a helper's fuzzing); 1e308 of Z travel overflowed GOO's float32 field (internal error)
+    ("tiny.json", '{"inherits": "generic-4k", "pixel": 5e-324}', "pixel must be a positive number of mm from 1e-06"),
+    ("tinyy.json", '{"inherits": "generic-4k", "pixel_y": 1e-9}', "pixel_y must be a positive number of mm"),
+    ("tall.json", '{"inherits": "generic-4k", "build_height": 1e308}', "build_height must be a number of mm"),
     ("exp.toml", "resolution = [10, 10]\npixel = 0.05\n[settings]\nexposure = 0\n", "exposure must be > 0"),
     ("set.toml", "resolution = [10, 10]\npixel = 0.05\n[settings]\nexposur = 2\n", "unknown print setting"),
     ("inh.toml", 'inherits = "elegoo-saturn-99"\n', "inherits unknown printer 'elegoo-saturn-99'"),

@@ -223,6 +223,25 @@ def test_a_print_time_no_archive_holds_is_refused_before_writing(tmp_path, capsy
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cube.stl"]
 
 
+@pytest.mark.parametrize("flag", ["--lift-speed", "--retract-speed", "--bottom-lift-speed"])
+@pytest.mark.parametrize("command", ["raster", "check"])
+def test_a_speed_too_slow_for_any_estimate_is_refused(tmp_path, capsys, flag, command):
+    """A denormal speed (5e-324 mm/min) made a move's time infinite: numpy's overflow warning, then "inf years"
+    (raster) or an internal error (check)."""
+    import warnings
+
+    stl = _cube_stl(tmp_path)
+    out = ["-o", str(tmp_path / "cube.goo")] if command == "raster" else []
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fast = FAST if command == "raster" else ["--backend", "numpy"]
+        assert main([command, str(stl), "-t", "1", "--printer", "elegoo-saturn-3-ultra", *fast, flag, "5e-324",
+                     *out]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"{flag} must be at least 1e-06 mm/min" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cube.stl"]
+
+
 def test_model_taller_than_the_printer_is_refused_before_slicing(tmp_path, capsys):
     """A model taller than the preset's build height: one line naming the file, exit 2, nothing written."""
     from gpuslice.cli import main

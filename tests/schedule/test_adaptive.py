@@ -192,6 +192,21 @@ def test_smoothing_keeps_the_bound_and_limits_jumps(sphere):
     assert len(smooth) >= len(rough)
 
 
+@pytest.mark.parametrize("rate", [1e3, 1e12, 1e308])
+def test_a_smoothing_rate_too_large_to_bound_anything_is_no_smoothing(sphere, rate):
+    """A rate at or above the most bins a layer holds lets every layer be what its slab allows: the schedule without
+    smoothing. Taken literally, t - rate·height lost t's digits (nefertiti: 714 layers where 702 was right at 1e12)
+    and 1e308 overflowed (a numpy warning, then min-height layers)."""
+    import warnings
+
+    rough = cusp_schedule(sphere, max_cusp=C, min_height=A, max_height=B)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        huge = cusp_schedule(sphere, max_cusp=C, min_height=A, max_height=B, smooth=rate)
+    np.testing.assert_array_equal(huge.z, rough.z)
+    np.testing.assert_array_equal(huge.thickness, rough.thickness)
+
+
 def test_horizontal_facets_make_no_staircase():
     cube = mesh_from_triangles(box((10, 10, 10)))  # only vertical and horizontal facets
     sched = cusp_schedule(cube, max_cusp=C, min_height=A, max_height=B)

@@ -90,3 +90,16 @@ def test_a_plane_on_the_float32_top_is_dropped_whatever_the_rounding():
         assert len(uniform(top, 0.1, z_mode="paper")) == k - 1, k
         top = float(np.float32((2 * k + 1) * 0.05))  # mid mode: the plane (k + 0.5)·0.1 lands on the top
         assert len(uniform(top, 0.1)) == k, k
+
+
+@pytest.mark.parametrize("kw", [{"thickness": 1e300}, {"thickness": 0.1, "first_layer": 1e300},
+                                {"thickness": 1e300, "z_mode": "paper"}])
+def test_a_layer_thicker_than_float32_holds_makes_no_plane_and_no_warning(kw):
+    """-t 1e300 (or --first-layer 1e300) printed numpy's "overflow encountered in cast" before the clean "no layers"
+    error: its plane is beyond float32, so above any model's top."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sched = uniform(5.0, **kw)
+    assert len(sched.z) == 0  # (every plane lies above the 5 mm top: the command says there are no layers)
