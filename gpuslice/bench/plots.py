@@ -217,6 +217,9 @@ def plot_stack(results: dict[str, SliceResult], stem: str | Path, max_layers: in
             ax.add_collection3d(Line3DCollection(segs, linewidths=0.5, colors="tab:blue", rasterized=True))
             allp = np.vstack(segs)
             lo, hi = allp.min(axis=0), allp.max(axis=0)
+            flat = hi <= lo  # (one layer: its z alone, which matplotlib warned of and widened by itself)
+            pad = 0.5 * float(np.max(r.thickness)) if r.n_layers else 0.5
+            lo, hi = np.where(flat, lo - pad, lo), np.where(flat, hi + pad, hi)
             ax.set_xlim(lo[0], hi[0])
             ax.set_ylim(lo[1], hi[1])
             ax.set_zlim(lo[2], hi[2])

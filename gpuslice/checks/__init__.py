@@ -20,6 +20,7 @@ import numpy as np
 
 from ..errors import ParameterError
 from ..options import is_real, option
+from ..raster.printers import MAX_PIXEL_MM, MIN_PIXEL_MM
 from .cavities import DEFAULT_GRID_MM, KINDS, SUCTION_CUP, TRAP, Cavities, CavityFinder, enclosed_in_outlines
 from .islands import Islands, PixelIslands, contour_islands
 from .summary import CheckReport, peel_and_time
@@ -29,7 +30,7 @@ __all__ = ["CheckOptions", "CheckReport", "Islands", "Cavities", "run_checks", "
 
 
 #: the coarsest trap grid, mm (the grid is a display of such cells: a display's largest pixel)
-MAX_TRAP_GRID_MM = 1000.0
+MAX_TRAP_GRID_MM = MAX_PIXEL_MM
 
 
 @dataclass(frozen=True)
@@ -53,6 +54,13 @@ class CheckOptions:
                 raise ParameterError(f"{name} must be >= 0 mm, got {value}", param=name)
             if name == "trap_grid" and value > MAX_TRAP_GRID_MM:  # (its cells are a display's pixels: their bound)
                 raise ParameterError(f"trap_grid must be at most {MAX_TRAP_GRID_MM:g} mm, got {value:g}", param=name)
+            # a pixel's bounds: a trap grid of 5e-324 mm made the grid's width infinite (an internal error); an
+            # overhang tolerance of 1e308 an infinite least contact (refused as "support", a name of no flag)
+            if name == "overhang_tolerance" and value > MAX_PIXEL_MM:
+                raise ParameterError(f"overhang_tolerance must be at most {MAX_PIXEL_MM:g} mm, got {value:g}",
+                                     param=name)
+            if name == "trap_grid" and 0 < value < MIN_PIXEL_MM:
+                raise ParameterError(f"trap_grid must be 0 or at least {MIN_PIXEL_MM:g} mm, got {value:g}", param=name)
 
 
 def _check_arguments(result, spec, settings, options, bounds, backend: str, workers) -> None:

@@ -58,6 +58,8 @@ MAX_SPEED = 60000.0
 #: the slowest a stage may move, mm/min: every estimate stays finite (a denormal speed, 5e-324, made the moves'
 #: times infinite: a numpy warning, and an internal error in `check`); slower ones are refused by the print time
 MIN_SPEED = 1e-6
+#: the densest resin, g/ml (osmium is 22.6; 1e308 overflowed the archives' float32 mass fields: an internal error)
+MAX_DENSITY = 100.0
 #: the longest print time an archive's 32-bit field holds, s (136 years)
 MAX_PRINT_TIME_S = 2**32 - 1
 
@@ -121,6 +123,9 @@ class PrintSettings:
             v = getattr(self, name)
             if not (_is_number(v) and v > 0):
                 raise ParameterError(f"{name} must be > 0, got {shown(v)}", param=name)
+        if self.resin_density > MAX_DENSITY:
+            raise ParameterError(f"resin_density must be at most {MAX_DENSITY:g} g/ml, got {shown(self.resin_density)}",
+                                 param="resin_density")
         for name in ("lift_height", "lift_height2", "retract_height2", "wait_before_cure", "wait_after_cure",
                      "wait_after_lift", "lift_speed2", "retract_speed2"):
             for n in (name, f"bottom_{name}"):

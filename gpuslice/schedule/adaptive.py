@@ -289,12 +289,13 @@ def cusp_schedule(
     if height / delta > MAX_BINS + 1e-6:  # (the bins' arrays: 1e-7 mm bins of a 40 mm model would take 36 GiB)
         raise ParameterError(f"resolution must be at least {height / MAX_BINS:g} mm for a {height:g} mm tall model "
                              f"(its height / {MAX_BINS}), got {delta:g}", param="resolution")
-    n_bins = int(np.ceil(height / delta - 1e-9))
-    n_min = max(1, int(np.ceil(min_height / delta - 1e-9)))  # (never under min_height: bins of height / 400000)
+    n_bins = max(1, int(np.ceil(height / delta - 1e-9)))  # (a model thinner than a bin is one: min_height 1e30)
+    n_min = max(1, int(min(np.ceil(min_height / delta - 1e-9), n_bins)))  # (never under min_height, never above
+    # the model; min in floats first: a height of 1e308 mm over 1e-3 mm bins is inf, which no int holds)
     # (no layer is taller than the model: a max_height of 1e6 mm does not make a million-bin loop below)
-    n_max = max(n_min, min(int(np.floor(max_height / delta + 1e-9)), n_bins))
+    n_max = max(n_min, int(min(np.floor(max_height / delta + 1e-9), n_bins)))
     edges = np.arange(n_bins + 1, dtype=np.float64) * delta
-    edges[-1] = max(edges[-1], height)
+    edges[-1] = max(min(edges[-1], 2 * height), height)  # (one bin wider than the model: its top, not 1e308)
     bin_nz = slab_max_nz(mesh, edges, device)
     limit = np.concatenate((slope_limit(bin_nz, mode, max_cusp, max_area), np.full(n_max, np.inf)))
     # allowed[s]: the most bins n (<= n_max) a layer starting at bin s may hold: n·δ <= min(limit[s .. s+n-1])

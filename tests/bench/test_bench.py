@@ -298,6 +298,20 @@ def test_plot_command(sphere_stl, tmp_path, capsys):
     assert main(["plot", str(sphere_stl), "-t", "0.5", "-o", str(tmp_path / "sphere_points.png")]) == 2
 
 
+def test_plot_of_one_layer_warns_of_nothing(tmp_path, capsys):
+    """A one-layer result's 3-D stack had equal z limits: matplotlib's "Attempting to set identical low and high
+    zlims" UserWarning on stderr (a helper's sweep with warnings as errors)."""
+    pytest.importorskip("matplotlib")
+    import warnings
+
+    stl = tmp_path / "plate.stl"
+    write_stl(box((0, 0, 0), (20, 10, 3)), stl)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert main(["plot", str(stl), "-t", "4", "-o", str(tmp_path / "p")]) == 0
+    _check_png(tmp_path / "p" / "plate_stack.png")
+
+
 def test_a_plot_set_that_fails_halfway_leaves_nothing(sphere_stl, tmp_path, monkeypatch, capsys):
     """A full disk at the third plot left the first two (and the folder plot made): the set is written together,
     or none of it (an audit of the outputs)."""

@@ -620,6 +620,13 @@ def test_bad_options():
         CheckOptions(trap_grid="0.2")
     with pytest.raises(ParameterError, match="trap_grid must be at most 1000 mm"):  # (it named --pixel)
         CheckOptions(trap_grid=1e9)
+    # a helper's fuzzing: a grid of 5e-324 mm had an infinite width (OverflowError), a tolerance of 1e308 an
+    # infinite least contact (refused as "support", no flag's name)
+    with pytest.raises(ParameterError, match="trap_grid must be 0 or at least 1e-06 mm"):
+        CheckOptions(trap_grid=5e-324)
+    with pytest.raises(ParameterError, match="overhang_tolerance must be at most 1000 mm"):
+        CheckOptions(overhang_tolerance=1e308)
+    assert CheckOptions(overhang_tolerance=1e-9).overhang_tolerance == 1e-9  # (a tiny tolerance is arithmetic's)
     with pytest.raises(ParameterError, match="does not fit"):
         _check(res, RasterSpec(resolution=(100, 100), pixel=0.05))
 

@@ -223,6 +223,13 @@ def test_a_print_time_no_archive_holds_is_refused_before_writing(tmp_path, capsy
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cube.stl"]
 
 
+def test_a_resin_denser_than_any_is_refused():
+    """--resin-density 1e308 overflowed the archives' float32 mass fields (an internal error after the slicing)."""
+    with pytest.raises(ParameterError, match="resin_density must be at most 100 g/ml"):
+        PrintSettings(resin_density=1e308)
+    assert PrintSettings(resin_density=22.6).resin_density == 22.6
+
+
 @pytest.mark.parametrize("flag", ["--lift-speed", "--retract-speed", "--bottom-lift-speed"])
 @pytest.mark.parametrize("command", ["raster", "check"])
 def test_a_speed_too_slow_for_any_estimate_is_refused(tmp_path, capsys, flag, command):

@@ -207,6 +207,25 @@ def test_a_smoothing_rate_too_large_to_bound_anything_is_no_smoothing(sphere, ra
     np.testing.assert_array_equal(huge.thickness, rough.thickness)
 
 
+@pytest.mark.parametrize("mode", ["cusp", "area"])
+@pytest.mark.parametrize("lo, hi", [(1e30, 1e30), (1e308, 1e308), (A, 1e308)])
+def test_layer_bounds_beyond_the_model_give_one_layer_of_its_height(sphere, mode, lo, hi):
+    """--max-height 1e308 was an OverflowError (an int of inf bins), --min-height 1e30 no layer at all (the model was
+    thinner than one bin: zero bins), 1e308 a float32 overflow: a max_height beyond the model is the model's height
+    (the schedule is the one that bound gives), a min_height beyond it one layer of the model's height."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sched = cusp_schedule(sphere, mode=mode, max_cusp=C, max_area=0.1, min_height=lo, max_height=hi)
+    if lo > sphere.height:
+        assert len(sched) == 1 and sched.thickness[0] == pytest.approx(sphere.height)
+    else:
+        same = cusp_schedule(sphere, mode=mode, max_cusp=C, max_area=0.1, min_height=lo, max_height=sphere.height)
+        assert len(sched) > 1
+        np.testing.assert_array_equal(sched.z, same.z)
+
+
 def test_horizontal_facets_make_no_staircase():
     cube = mesh_from_triangles(box((10, 10, 10)))  # only vertical and horizontal facets
     sched = cusp_schedule(cube, max_cusp=C, min_height=A, max_height=B)
