@@ -21,6 +21,7 @@ Metadata of a field (all optional but ``help``):
 from __future__ import annotations
 
 import dataclasses
+import math
 import numbers
 import types
 import typing
@@ -39,6 +40,17 @@ def is_real(v: object) -> bool:
     return isinstance(v, numbers.Real) and not isinstance(v, bool)
 
 
+def is_finite(v: object) -> bool:
+    """``v`` is a real number (:func:`is_real`) whose float is finite: False for NaN, ±inf and integers beyond a
+    float's range (``np.isfinite(2**1000)`` is a TypeError)."""
+    if not is_real(v):
+        return False
+    try:
+        return math.isfinite(float(v))
+    except OverflowError:
+        return False
+
+
 def check_flag(v: object, name: str) -> bool:
     """``v`` as a bool when it is True or False (a Python or numpy bool), else a one-line :class:`ParameterError`
     naming ``name`` (``"no"`` or 1 would otherwise read as a choice)."""
@@ -53,8 +65,14 @@ def python_number(v: object) -> object:
 
 
 def shown(v: object) -> str:
-    """``v`` as an error message shows it: a number as itself, anything else by its repr (a string: ``'2'``)."""
-    return str(v) if is_real(v) else repr(v)
+    """``v`` as an error message shows it: a number as itself (a whole number of more than 20 digits by its first
+    and its length: 2**1000 is 302 digits), anything else by its repr (a string: ``'2'``)."""
+    if not is_real(v):
+        return repr(v)
+    text = str(v)
+    if isinstance(v, numbers.Integral) and len(text) > 20:
+        return f"{text[:8]}… ({len(text.lstrip('-'))} digits)"
+    return text
 
 
 def option(

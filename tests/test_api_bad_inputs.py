@@ -597,3 +597,40 @@ def test_small_api_edges_from_the_audit(cube, res):
         with pytest.raises(ParameterError) as exc:
             call()
         _one_line(exc, "open_chains must be True or False")
+
+
+def test_values_a_second_helper_found_are_refused_or_handled(cube):
+    """A sweep of the Python API with warnings as errors: each of these gave a wrong result without a word, an
+    exception that was not gpuslice's, or a numpy warning."""
+    from gpuslice.raster.settings import PrintSettings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        # --fit 5e-324: the factor underflowed to 0, every vertex at the origin ("the model is 0 mm tall")
+        with pytest.raises(gpuslice.InvalidGeometryError) as exc:
+            gpuslice.mesh_from_triangles(TRI, fit=5e-324)
+        _one_line(exc, "fit 4.94e-324 mm shrinks the mesh")
+        # a first layer of 5e-324 or 1e-300 mm was cut on the bed in float32: a layer of no area
+        for h0 in (5e-324, 1e-300):
+            with pytest.raises(ParameterError) as exc:
+                gpuslice.slice_mesh(cube, thickness=2.5, first_layer=h0, backend="numpy")
+            _one_line(exc, "first_layer must be at least 1e-06 mm")
+        # integers beyond a float: np.isfinite's TypeError; and shown by their length, not 302 digits
+        assert gpuslice.slice_mesh(cube, thickness=2**1000, backend="numpy").n_layers == 0  # (above the top)
+        with pytest.raises(ParameterError) as exc:
+            gpuslice.slice_mesh(cube, adaptive="cusp", min_height=2**1000, backend="numpy")
+        _one_line(exc, "max_height must be >= min_height (10715086… (302 digits) mm)")
+        with pytest.raises(gpuslice.InvalidGeometryError) as exc:
+            gpuslice.mesh_from_triangles(TRI, fit=2**1000)
+        _one_line(exc, "overflow float32 arithmetic")
+        # planes and thicknesses beyond 1e18 mm: warnings in from_z; a result whose volume overflowed and whose .npz
+        # did not load
+        for kw in ({"z": [1.0, np.inf]}, {"z": [1.0, 1e308]}, {"z": [1.0, 2.0], "layer_thickness": 1e308}):
+            with pytest.raises(ParameterError) as exc:
+                gpuslice.slice_mesh(cube, backend="numpy", **kw)
+            _one_line(exc, "schedule:", "1e18" if "layer_thickness" not in kw else "at most 1e+18 mm")
+        # an exposure of 5e-324 s passed "> 0" and was written as 0.0 into the archives' float32 fields
+        for name in ("exposure", "bottom_exposure"):
+            with pytest.raises(ParameterError) as exc:
+                PrintSettings(**{name: 5e-324})
+            _one_line(exc, f"{name} must be at least 0.001 s")

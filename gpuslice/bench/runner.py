@@ -60,16 +60,21 @@ class BenchResult:
 
 def parse_settings(thicknesses: str | None, adaptive: str | None) -> list[Setting]:
     """Settings from ``-t 0.1,0.2,0.3`` and ``--adaptive roi,cusp`` (either may be empty, not both)."""
+    from ..schedule.validate import MIN_LAYER_MM
+
     out = []
     for part in (thicknesses or "").split(","):
         if not part.strip():
+            if thicknesses and thicknesses.strip():  # ("1,,2": an item left out, not dropped without a word)
+                raise ParameterError(f"-t: an empty item in '{thicknesses}'")
             continue
         try:
             t = float(part)
         except ValueError:
             raise ParameterError(f"-t: '{part}' is not a thickness in mm") from None
-        if not (np.isfinite(t) and t > 0):
-            raise ParameterError(f"-t: layer thickness must be a positive number of mm, got {part}")
+        if not (np.isfinite(t) and t >= MIN_LAYER_MM):
+            raise ParameterError(f"-t: layer thickness must be a positive number of mm (at least {MIN_LAYER_MM:g}), "
+                                 f"got {part}")
         out.append(Setting(f"{t:g} mm", {"thickness": t, "adaptive": None}))
     for part in (adaptive or "").split(","):
         mode = part.strip()
@@ -156,7 +161,13 @@ def run_bench(
         typical = min(float(np.percentile(results[r["setting"]].thickness, 1)) for r in rows)
         h_ref = ref_thickness or reference_thickness(mesh.height, typical)
         tick("reference", 0)
-        ref = slice_mesh(mesh, params, thickness=h_ref, adaptive=None, first_layer=None, z_mode="mid")  # (plain)
+        try:
+            ref = slice_mesh(mesh, params, thickness=h_ref, adaptive=None, first_layer=None, z_mode="mid")  # (plain)
+        except ParameterError as exc:  # (named as the reference's: "--thickness must be ..." named another flag)
+            if ref_thickness is None:
+                raise
+            raise ParameterError(f"ref_thickness {h_ref:g} mm: {exc}".replace("thickness must", "it must"),
+                                 param="ref_thickness") from None
         ref_geoms = layer_geometries(ref)
         context["reference_thickness_mm"] = h_ref
         context["reference_layers"] = ref.n_layers

@@ -7,13 +7,18 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 from pathlib import Path
 
 import click
 
 from ..mesh.mesh import Placement
+from ..schedule.validate import MIN_LAYER_MM
 from ..slicing.params import SliceParams
 from .options import build, click_options, fail, values, with_options
+
+#: the most runs per setting `bench --repeat` takes
+MAX_REPEAT = 1000
 
 __all__ = ["bench", "plot"]
 
@@ -59,16 +64,16 @@ def _setup(model, thicknesses, modes, kw):
     return settings, params, mesh, load_times
 
 
-def _refuse_no_layers(model: str, mesh, thicknesses) -> None:
-    """A one-line error naming ``model`` when it is flat, or when one of the uniform ``thicknesses`` (mm; None
-    entries skipped) cuts it nowhere: its first plane, at half a layer, lies above the top."""
+def _refuse_no_layers(model: str, mesh, thicknesses, flag: str = "-t") -> None:
+    """A one-line error naming ``model`` and ``flag`` when it is flat, or when one of the uniform ``thicknesses``
+    (mm; None entries skipped) cuts it nowhere: its first plane, at half a layer, lies above the top."""
     from ..schedule.uniform import uniform
 
     if mesh.height <= 0:
         fail(f"{model}: the model is flat (0 mm tall): no layers to slice")
     for t in thicknesses:
         if t is not None and len(uniform(mesh.height, t)) == 0:
-            fail(f"{model}: {t:g} mm layers give no layers: the model is only {mesh.height:g} mm tall")
+            fail(f"{model}: {flag} {t:g} mm gives no layers: the model is only {mesh.height:g} mm tall")
 
 
 def _fmt(v, digits=4):
@@ -163,17 +168,17 @@ def bench(model, thicknesses, modes, repeat, no_quality, ref_thickness, as_json,
 
     if as_json and as_csv:
         fail("--json and --csv exclude each other")
-    if repeat < 1:
-        fail(f"--repeat must be >= 1, got {repeat}")
-    if ref_thickness is not None and not ref_thickness > 0:  # (0 would silently mean the default)
-        fail(f"--ref-thickness must be a positive number of mm, got {ref_thickness}")
+    if not 1 <= repeat <= MAX_REPEAT:  # (99999999999 ran until it was killed)
+        fail(f"--repeat must be from 1 to {MAX_REPEAT}, got {repeat}")
+    if ref_thickness is not None and not (math.isfinite(ref_thickness) and ref_thickness >= MIN_LAYER_MM):
+        fail(f"--ref-thickness must be a positive number of mm (at least {MIN_LAYER_MM:g}), got {ref_thickness}")
     if ref_thickness is not None and no_quality:
         fail("--ref-thickness is the volume deviation's reference, which --no-quality skips: leave one out")
     if plots_dir is not None:
         _make_dir(plots_dir, create=False)
     settings, params, mesh, load_times = _setup(model, thicknesses, modes, kw)
     if not no_quality:
-        _refuse_no_layers(model, mesh, [ref_thickness])
+        _refuse_no_layers(model, mesh, [ref_thickness], "--ref-thickness")
     console = Console(stderr=True)
     steps = 1 + len(settings) * repeat + (0 if no_quality else len(settings))
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EmptyMeshError, InvalidGeometryError, ParameterError
-from ..options import is_real, option, shown
+from ..options import is_finite, option, shown
 from .sources import _arrays, real_array
 from .weld import EdgeSides, WeldKernel, edge_table_numpy, weld_numpy
 
@@ -257,10 +257,10 @@ def _check_scale_fit(scale, fit) -> None:
     """:class:`ParameterError` naming ``scale``/``fit`` unless each is None or a positive finite number, not both."""
     if scale is not None and fit is not None:
         raise ParameterError("give scale or fit, not both", param=("scale", "fit"))
-    if fit is not None and not (is_real(fit) and np.isfinite(fit) and fit > 0):
+    if fit is not None and not (is_finite(fit) and float(fit) > 0):
         raise ParameterError(f"fit must be a positive length in mm, got {shown(fit)}",
                              param="fit")
-    if scale is not None and not (is_real(scale) and np.isfinite(scale) and scale > 0):
+    if scale is not None and not (is_finite(scale) and float(scale) > 0):
         raise ParameterError(f"scale must be a positive factor, got {shown(scale)}",
                              param="scale")
 
@@ -336,15 +336,17 @@ def _placement(verts: np.ndarray, name: str, scale: float | None, fit: float | N
     if fit is not None:
         if longest <= 0:
             raise InvalidGeometryError(f"{name}: the mesh has no extent to fit")
-        factor = fit / longest
+        factor = float(fit) / longest
     elif scale is not None:
         factor = float(scale)
     extreme = float(np.abs(np.concatenate([lo, hi])).max())
     if extreme * factor > 1e18:
         raise InvalidGeometryError(f"{name}: coordinates up to {extreme * factor:.3g} overflow float32 arithmetic")
-    if 0 < longest * factor < np.finfo(np.float32).tiny:  # every coordinate would round to 0 (or a subnormal)
-        raise InvalidGeometryError(f"{name}: scale {factor:.3g} shrinks the mesh ({longest:.3g} units across) below "
-                                   "float32's smallest length")
+    if 0 < longest and longest * factor < np.finfo(np.float32).tiny:  # every coordinate would round to 0 (or a
+        # subnormal; --fit 5e-324 made the factor itself 0: a mesh of one point, "0 mm tall")
+        what = f"fit {float(fit):.3g} mm" if fit is not None else f"scale {factor:.3g}"
+        raise InvalidGeometryError(f"{name}: {what} shrinks the mesh ({longest:.3g} units across) below float32's "
+                                   "smallest length")
     if center is None:
         center = extreme_xy(lo, hi) * factor > FAR_XY_MM
     mid = 0.5 * (lo + hi) * factor if center else np.zeros(3)

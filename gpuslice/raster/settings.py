@@ -60,6 +60,9 @@ MAX_SPEED = 60000.0
 MIN_SPEED = 1e-6
 #: the densest resin, g/ml (osmium is 22.6; 1e308 overflowed the archives' float32 mass fields: an internal error)
 MAX_DENSITY = 100.0
+#: the shortest exposure, s (a millisecond: 5e-324 s passed '> 0' and was written as 0.0 into the archives'
+#: float32 fields: a layer lit for no time, without a word)
+MIN_EXPOSURE_S = 1e-3
 #: the longest print time an archive's 32-bit field holds, s (136 years)
 MAX_PRINT_TIME_S = 2**32 - 1
 
@@ -123,6 +126,10 @@ class PrintSettings:
             v = getattr(self, name)
             if not (_is_number(v) and v > 0):
                 raise ParameterError(f"{name} must be > 0, got {shown(v)}", param=name)
+        for name in ("bottom_exposure", "exposure"):
+            if getattr(self, name) < MIN_EXPOSURE_S:
+                raise ParameterError(f"{name} must be at least {MIN_EXPOSURE_S:g} s, got {shown(getattr(self, name))}",
+                                     param=name)
         if self.resin_density > MAX_DENSITY:
             raise ParameterError(f"resin_density must be at most {MAX_DENSITY:g} g/ml, got {shown(self.resin_density)}",
                                  param="resin_density")

@@ -43,6 +43,18 @@ def _reals(value, what: str) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=np.float64).reshape(-1)
 
 
+#: the farthest a plane may lie from the bed and the thickest a layer may be, mm: a mesh's coordinates' bound
+#: (:data:`gpuslice.io.rawmesh.MAX_COORDINATE`), which a saved result's loader holds too
+MAX_MM = 1e18
+
+
+def _check_finite(z: np.ndarray, what: str) -> None:
+    """:class:`ParameterError` unless every value of ``z`` is finite and within :data:`MAX_MM` (NaN fails)."""
+    if z.size and not (-MAX_MM <= float(z.min()) and float(z.max()) <= MAX_MM):
+        bad = float(z[~(np.abs(z) <= MAX_MM)][0])
+        raise ParameterError(f"schedule: cutting planes must lie within 1e18 mm of the bed, got {what} up to {bad:g}")
+
+
 @dataclass(frozen=True)
 class Schedule:
     """Cutting planes ``z`` (L,) and thicknesses ``thickness`` (L,), float64, mm; ``z`` strictly increasing."""
@@ -56,12 +68,15 @@ class Schedule:
         t = _reals(self.thickness, "thicknesses")
         if t.shape != z.shape:
             raise ParameterError(f"schedule: {z.size} z values but {t.size} thicknesses")
-        if not (np.all(np.isfinite(z)) and np.all(np.isfinite(t))):
+        _check_finite(z, "z values")
+        if not np.all(np.isfinite(t)):
             raise ParameterError("schedule: z values and thicknesses must be finite")
         if z.size > 1 and not np.all(np.diff(z) > 0):
             raise ParameterError("schedule: z values must be strictly increasing")
         if np.any(t <= 0):
             raise ParameterError("schedule: thicknesses must be positive")
+        if np.any(t > MAX_MM):  # (1e308 was sliced, and its result's volume overflowed and its .npz did not load)
+            raise ParameterError(f"schedule: thicknesses must be at most {MAX_MM:g} mm")
         object.__setattr__(self, "z", z)
         object.__setattr__(self, "thickness", t)
 
@@ -158,6 +173,7 @@ def from_z(z: np.ndarray, thickness: np.ndarray | float | None = None) -> Schedu
     (the last layer is as thick above its plane as below).
     """
     z = _reals(z, "z values")
+    _check_finite(z, "z values")  # (before the planes' midpoints: inf and 1e308 made numpy warn there)
     if thickness is None:
         if z.size == 0:
             t = np.zeros(0)

@@ -8,20 +8,28 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ParameterError
-from ..options import is_real, shown
+from ..options import is_finite, is_real, shown
 
-__all__ = ["check_error_bounded", "check_heights", "check_roi", "check_schedule_params", "check_uniform"]
+__all__ = ["check_error_bounded", "check_heights", "check_roi", "check_schedule_params", "check_uniform",
+           "MIN_LAYER_MM"]
+
+#: the thinnest uniform layer, mm (1 nm; float32 planes hold far thinner ones only near the bed, where a layer of
+#: 1e-300 mm was cut at z = 0)
+MIN_LAYER_MM = 1e-6
 
 
 def check_uniform(thickness, first_layer, z_mode: str) -> None:
     """The options of a uniform schedule (see :func:`~gpuslice.schedule.uniform.uniform`): a positive thickness and
     first layer, mm, and a known ``z_mode`` (``paper`` without a first layer of its own)."""
-    if not (is_real(thickness) and np.isfinite(thickness) and thickness > 0):
+    if not (is_finite(thickness) and float(thickness) > 0):
         raise ParameterError(f"thickness must be a positive number of mm (the layers'), got {shown(thickness)}",
                              param="thickness")
-    if not (first_layer is None or (is_real(first_layer) and np.isfinite(first_layer) and first_layer > 0)):
+    if not (first_layer is None or (is_finite(first_layer) and float(first_layer) > 0)):
         raise ParameterError(f"first_layer must be a positive number of mm (its thickness), got {shown(first_layer)}",
                              param="first_layer")
+    for name, v in (("thickness", thickness), ("first_layer", first_layer)):  # (a first layer of 5e-324 mm was cut
+        if v is not None and float(v) < MIN_LAYER_MM:  # on the bed in float32: a layer of no area, without a word)
+            raise ParameterError(f"{name} must be at least {MIN_LAYER_MM:g} mm, got {shown(v)}", param=name)
     if z_mode not in ("mid", "paper"):
         raise ParameterError(f"unknown z mode '{z_mode}' (use 'mid' or 'paper')")
     if z_mode == "paper" and first_layer is not None:
@@ -30,10 +38,11 @@ def check_uniform(thickness, first_layer, z_mode: str) -> None:
 
 def check_heights(min_height: float, max_height: float) -> None:
     """``min_height`` > 0 and ``max_height`` >= it, mm (the error-bounded modes' thickness clamp)."""
-    if not (np.isfinite(min_height) and min_height > 0):
-        raise ParameterError(f"min_height must be a positive number of mm, got {min_height}", param="min_height")
-    if not (np.isfinite(max_height) and max_height >= min_height):
-        raise ParameterError(f"max_height must be >= min_height ({min_height} mm), got {max_height}",
+    if not (is_finite(min_height) and float(min_height) > 0):
+        raise ParameterError(f"min_height must be a positive number of mm, got {shown(min_height)}",
+                             param="min_height")
+    if not (is_finite(max_height) and float(max_height) >= float(min_height)):
+        raise ParameterError(f"max_height must be >= min_height ({shown(min_height)} mm), got {shown(max_height)}",
                              param=("max_height", "min_height"))
 
 
@@ -48,12 +57,12 @@ def check_error_bounded(mode: str, max_cusp, max_area, min_height, max_height, s
             raise ParameterError(f"{name} must be a number, got {v!r}", param=name)
     if resolution is not None and not (is_real(resolution) and resolution > 0):
         raise ParameterError(f"resolution must be a positive number of mm, got {resolution!r}", param="resolution")
-    if mode == "cusp" and not (np.isfinite(max_cusp) and max_cusp > 0):
+    if mode == "cusp" and not (is_finite(max_cusp) and float(max_cusp) > 0):
         raise ParameterError(f"max_cusp must be a positive number of mm, got {max_cusp}", param="max_cusp")
-    if mode == "area" and not (np.isfinite(max_area) and max_area > 0):
+    if mode == "area" and not (is_finite(max_area) and float(max_area) > 0):
         raise ParameterError(f"max_area must be a positive number of mm², got {max_area}", param="max_area")
     check_heights(min_height, max_height)
-    if not (np.isfinite(smooth) and smooth >= 0):
+    if not (is_finite(smooth) and float(smooth) >= 0):
         raise ParameterError(f"smooth must be >= 0 (mm per mm), got {smooth}", param="smooth")
 
 

@@ -187,15 +187,22 @@ def test_bench_and_plot_refuse_settings_that_give_no_layers(cube, tmp_path, caps
     flat.write_bytes(bytes(80) + struct.pack("<I", 1) + struct.pack("<12fH", 0, 0, 1, *tri, 0))
     base = ["--backend", "numpy", "--repeat", "1"]
     assert main(["bench", str(cube), "-t", "0.5,100", *base]) == 2
-    _one_line_error(capsys, f"{cube}: 100 mm layers give no layers", "20 mm tall")
+    _one_line_error(capsys, f"{cube}: -t 100 mm gives no layers", "20 mm tall")
     assert main(["bench", str(cube), "-t", "0.5", "--ref-thickness", "100", *base]) == 2
-    _one_line_error(capsys, f"{cube}: 100 mm layers give no layers")
+    _one_line_error(capsys, f"{cube}: --ref-thickness 100 mm gives no layers")  # (it read as -t's)
     assert main(["bench", str(cube), "-t", "0.5", "--ref-thickness", "0", *base]) == 2  # 0 meant the default
     _one_line_error(capsys, "--ref-thickness must be a positive number of mm")
     assert main(["bench", str(flat), "--adaptive", "cusp", *base]) == 2
     _one_line_error(capsys, f"{flat}: the model is flat")
     assert main(["plot", str(cube), "-t", "100", "--backend", "numpy", "-o", str(tmp_path / "p")]) == 2
-    _one_line_error(capsys, "100 mm layers give no layers")
+    _one_line_error(capsys, "-t 100 mm gives no layers")
+    # a helper's sweep: named neither flag, or the wrong one; an item left out; a repeat that ran until killed
+    for args, words in ((["-t", "5e-324"], "-t: layer thickness must be a positive number of mm (at least 1e-06)"),
+                        (["-t", "1,,2"], "-t: an empty item in '1,,2'"),
+                        (["-t", "0.5", "--ref-thickness", "inf"], "--ref-thickness must be a positive number of mm"),
+                        (["-t", "0.5", "--repeat", "99999999999"], "--repeat must be from 1 to 1000")):
+        assert main(["bench", str(cube), *args, "--backend", "numpy"]) == 2
+        _one_line_error(capsys, words)
     assert not (tmp_path / "p").exists()  # not even an empty folder
 
 
