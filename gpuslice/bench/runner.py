@@ -163,11 +163,10 @@ def run_bench(
         tick("reference", 0)
         try:
             ref = slice_mesh(mesh, params, thickness=h_ref, adaptive=None, first_layer=None, z_mode="mid")  # (plain)
-        except ParameterError as exc:  # (named as the reference's: "--thickness must be ..." named another flag)
+        except ParameterError as exc:  # (said of the reference: alone, "thickness must be ..." named -t's field)
             if ref_thickness is None:
                 raise
-            raise ParameterError(f"ref_thickness {h_ref:g} mm: {exc}".replace("thickness must", "it must"),
-                                 param="ref_thickness") from None
+            raise ParameterError(f"ref_thickness {h_ref:g} mm: {exc}", param="ref_thickness") from None
         ref_geoms = layer_geometries(ref)
         context["reference_thickness_mm"] = h_ref
         context["reference_layers"] = ref.n_layers

@@ -342,8 +342,8 @@ def _placement(verts: np.ndarray, name: str, scale: float | None, fit: float | N
     extreme = float(np.abs(np.concatenate([lo, hi])).max())
     if extreme * factor > 1e18:
         raise InvalidGeometryError(f"{name}: coordinates up to {extreme * factor:.3g} overflow float32 arithmetic")
-    if 0 < longest and longest * factor < np.finfo(np.float32).tiny:  # every coordinate would round to 0 (or a
-        # subnormal; --fit 5e-324 made the factor itself 0: a mesh of one point, "0 mm tall")
+    # every coordinate would round to 0 or a subnormal (--fit 5e-324 made the factor itself 0: a mesh of one point)
+    if 0 < longest and longest * factor < np.finfo(np.float32).tiny:
         what = f"fit {float(fit):.3g} mm" if fit is not None else f"scale {factor:.3g}"
         raise InvalidGeometryError(f"{name}: {what} shrinks the mesh ({longest:.3g} units across) below float32's "
                                    "smallest length")

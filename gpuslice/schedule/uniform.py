@@ -48,7 +48,7 @@ def _reals(value, what: str) -> np.ndarray:
 MAX_MM = 1e18
 
 
-def _check_finite(z: np.ndarray, what: str) -> None:
+def _check_planes(z: np.ndarray, what: str) -> None:
     """:class:`ParameterError` unless every value of ``z`` is finite and within :data:`MAX_MM` (NaN fails)."""
     if z.size and not (-MAX_MM <= float(z.min()) and float(z.max()) <= MAX_MM):
         bad = float(z[~(np.abs(z) <= MAX_MM)][0])
@@ -68,7 +68,7 @@ class Schedule:
         t = _reals(self.thickness, "thicknesses")
         if t.shape != z.shape:
             raise ParameterError(f"schedule: {z.size} z values but {t.size} thicknesses")
-        _check_finite(z, "z values")
+        _check_planes(z, "z values")
         if not np.all(np.isfinite(t)):
             raise ParameterError("schedule: z values and thicknesses must be finite")
         if z.size > 1 and not np.all(np.diff(z) > 0):
@@ -173,7 +173,7 @@ def from_z(z: np.ndarray, thickness: np.ndarray | float | None = None) -> Schedu
     (the last layer is as thick above its plane as below).
     """
     z = _reals(z, "z values")
-    _check_finite(z, "z values")  # (before the planes' midpoints: inf and 1e308 made numpy warn there)
+    _check_planes(z, "z values")  # (before the planes' midpoints: inf and 1e308 made numpy warn there)
     if thickness is None:
         if z.size == 0:
             t = np.zeros(0)

@@ -13,8 +13,8 @@ from ..options import is_finite, is_real, shown
 __all__ = ["check_error_bounded", "check_heights", "check_roi", "check_schedule_params", "check_uniform",
            "MIN_LAYER_MM"]
 
-#: the thinnest uniform layer, mm (1 nm; float32 planes hold far thinner ones only near the bed, where a layer of
-#: 1e-300 mm was cut at z = 0)
+#: the thinnest uniform layer, mm (1 nm: a first layer of 1e-300 mm had its plane at z = 0 in float32, a layer of
+#: no area without a word)
 MIN_LAYER_MM = 1e-6
 
 
