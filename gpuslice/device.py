@@ -461,6 +461,8 @@ def resolve(spec: str | None) -> dict:
     spec = spec if spec not in (None, "") else os.environ.get(ENV_VAR) or None
     if spec is None:
         return _default_choice(devices)
+    if not isinstance(spec, str):  # (a number: an AttributeError on .split; cusp_schedule(device=0) passed it on)
+        raise DeviceError(f"device must be text such as '0:0' or a piece of its name, got {spec!r}")
     parts = spec.split(":")
     if all(x.isdigit() for x in parts) and 1 <= len(parts) <= 2:
         want = f"{parts[0]}:{parts[1] if len(parts) == 2 else 0}"

@@ -634,3 +634,36 @@ def test_values_a_second_helper_found_are_refused_or_handled(cube):
             with pytest.raises(ParameterError) as exc:
                 PrintSettings(**{name: 5e-324})
             _one_line(exc, f"{name} must be at least 0.001 s")
+
+
+def test_api_arguments_of_the_wrong_kind_name_their_parameter():
+    """The second sweep's Python-API findings mended: each was an exception of Python's or numpy's (an
+    AttributeError, a TypeError) or a warning, or was taken for something else ("no" as True)."""
+    from gpuslice.device import DeviceError
+    from gpuslice.mesh.shapes import icosphere
+    from gpuslice.raster.settings import PrintSettings
+    from gpuslice.raster.spec import gamma_lut, with_printer
+    from gpuslice.schedule.adaptive import cusp_schedule
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for gamma in (-1, float("nan"), "x"):
+            with pytest.raises(ParameterError) as exc:
+                gamma_lut(gamma)
+            _one_line(exc, "gamma must be a number >= 0")
+        for name in (5, np.array(["a"])):
+            with pytest.raises(ParameterError) as exc:
+                with_printer(name)
+            _one_line(exc, "printer must be a preset's name or a preset file")
+        with pytest.raises(ParameterError) as exc:
+            gpuslice.mesh_from_triangles(TRI, center="no")
+        _one_line(exc, "center must be True or False")
+        with pytest.raises(DeviceError) as exc:
+            cusp_schedule(gpuslice.mesh_from_triangles(icosphere(10.0)), max_cusp=0.05, min_height=0.05,
+                          max_height=0.3, device=0)
+        _one_line(exc, "device must be text")
+        for field_name in ("lift_height", "lift_speed", "retract_speed2", "wait_after_lift"):
+            with pytest.raises(ParameterError) as exc:
+                PrintSettings(**{field_name: None})
+            _one_line(exc, f"{field_name} must be", "got None")
+    assert PrintSettings(bottom_lift_speed=None).group(True)["lift_speed"] == PrintSettings().lift_speed

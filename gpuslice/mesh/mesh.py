@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import EmptyMeshError, InvalidGeometryError, ParameterError
-from ..options import is_finite, option, shown
+from ..options import check_flag, is_finite, option, shown
 from .sources import _arrays, real_array
 from .weld import EdgeSides, WeldKernel, edge_table_numpy, weld_numpy
 
@@ -329,6 +329,8 @@ def mesh_from_triangles(
 def _placement(verts: np.ndarray, name: str, scale: float | None, fit: float | None, center: bool | None = False):
     """The scale factor and the offset that put the (scaled) mesh on the bed (and its X/Y centre at the origin when
     ``center``; None: when it reaches beyond :data:`FAR_XY_MM`)."""
+    if center is not None:  # ("no" was taken as True)
+        center = check_flag(center, "center")
     lo = np.array([verts[:, k].min() for k in range(3)], dtype=np.float64)
     hi = np.array([verts[:, k].max() for k in range(3)], dtype=np.float64)
     factor = 1.0

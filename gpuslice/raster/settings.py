@@ -137,12 +137,12 @@ class PrintSettings:
                      "wait_after_lift", "lift_speed2", "retract_speed2"):
             for n in (name, f"bottom_{name}"):
                 v = getattr(self, n)
-                if v is not None and not (_is_number(v) and v >= 0):
-                    raise ParameterError(f"{n} must be >= 0, got {shown(v)}", param=n)
+                if (v is None and n == name) or (v is not None and not (_is_number(v) and v >= 0)):
+                    raise ParameterError(f"{n} must be >= 0, got {shown(v)}", param=n)  # (None: only bottom_ ones)
         for name in ("lift_speed", "retract_speed"):
             for n in (name, f"bottom_{name}"):
                 v = getattr(self, n)
-                if v is not None and not (_is_number(v) and v > 0):
+                if (v is None and n == name) or (v is not None and not (_is_number(v) and v > 0)):
                     raise ParameterError(f"{n} must be > 0 mm/min, got {shown(v)}", param=n)
         for names, top, unit in ((("bottom_exposure", "exposure", "wait_before_cure", "wait_after_cure",
                                    "wait_after_lift"), MAX_SECONDS, "s"),

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
@@ -157,6 +158,8 @@ class RasterSpec:
 
 def gamma_lut(gamma: float) -> np.ndarray:
     """(256,) uint8: grey for ``k = min(255, floor(256·coverage))``, as agg's ``gamma_power``/``gamma_threshold``."""
+    if not (is_real(gamma) and math.isfinite(gamma) and gamma >= 0):  # (RasterSpec's rule; -1 or NaN made numpy warn)
+        raise ParameterError(f"gamma must be a number >= 0, got {gamma!r}", param="gamma")
     k = np.arange(256, dtype=np.float64) / 255.0
     if gamma == 0:
         return np.where(k >= 0.5, 255, 0).astype(np.uint8)
@@ -182,7 +185,10 @@ def orientation_text(s: RasterSpec) -> str:
 
 def with_printer(name: str, **overrides) -> RasterSpec:
     """A :class:`RasterSpec` of the preset ``name`` (:data:`PRINTERS`, or a preset file) with ``overrides``."""
-    return replace(RasterSpec(**find_printer(name).display()), **overrides)
+    if not isinstance(name, str | os.PathLike):  # (5 was an AttributeError, an array "unhashable")
+        raise ParameterError(f"printer must be a preset's name or a preset file, got {type(name).__name__}",
+                             param="printer")
+    return replace(RasterSpec(**find_printer(os.fspath(name)).display()), **overrides)
 
 
 @dataclass(frozen=True)
