@@ -32,8 +32,7 @@ import numpy as np
 
 from .errors import DeviceError
 
-__all__ = ["Device", "KernelDriver", "aligned_empty", "get_device", "list_devices",
-           "release_scratch", "ENV_VAR"]
+__all__ = ["Device", "KernelDriver", "aligned_empty", "get_device", "list_devices", "release_scratch", "ENV_VAR"]
 
 ENV_VAR = "GPUSLICE_DEVICE"
 
@@ -455,14 +454,14 @@ def _default_choice(devices: list[dict]) -> dict:
 
 def resolve(spec: str | None) -> dict:
     """The device entry (from :func:`list_devices`) that ``spec`` (or the environment, or the default) names."""
+    if not isinstance(spec, str | None):  # (cusp_schedule(device=0): an AttributeError on .split below)
+        raise DeviceError(f"device must be text such as '0:0' or a piece of its name, got {spec!r}")
     devices = list_devices()
     if not devices:
         raise DeviceError("no OpenCL device found; pip install pocl-binary-distribution for the PoCL CPU device")
     spec = spec if spec not in (None, "") else os.environ.get(ENV_VAR) or None
     if spec is None:
         return _default_choice(devices)
-    if not isinstance(spec, str):  # (a number: an AttributeError on .split; cusp_schedule(device=0) passed it on)
-        raise DeviceError(f"device must be text such as '0:0' or a piece of its name, got {spec!r}")
     parts = spec.split(":")
     if all(x.isdigit() for x in parts) and 1 <= len(parts) <= 2:
         want = f"{parts[0]}:{parts[1] if len(parts) == 2 else 0}"
