@@ -667,3 +667,29 @@ def test_api_arguments_of_the_wrong_kind_name_their_parameter():
                 PrintSettings(**{field_name: None})
             _one_line(exc, f"{field_name} must be", "got None")
     assert PrintSettings(bottom_lift_speed=None).group(True)["lift_speed"] == PrintSettings().lift_speed
+
+
+def test_more_of_the_second_sweep_mended(tmp_path):
+    """max_cusp=1e308 (a divide overflow warning), a volume deviation against an empty reference (0 %, where no
+    percentage exists), run_batch's workers (-1, NaN, 1.5, True ran; "2" was a TypeError)."""
+    from gpuslice.batch.runner import run_batch
+    from gpuslice.bench.quality import volume_deviation
+    from gpuslice.errors import BatchError
+    from gpuslice.mesh.shapes import icosphere, write_stl
+    from gpuslice.schedule.adaptive import cusp_schedule
+
+    ball = gpuslice.mesh_from_triangles(icosphere(10.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        loose = cusp_schedule(ball, max_cusp=1e308, min_height=0.05, max_height=0.3)
+    assert np.allclose(loose.thickness[:-1], 0.3)  # (no cusp bound: every layer as thick as allowed)
+    r = gpuslice.slice_mesh(ball, thickness=0.5, backend="numpy")
+    empty = gpuslice.slice_mesh(ball, z=[100.0], backend="numpy")  # (one plane above the ball: no area)
+    vd = volume_deviation(r, empty)
+    assert vd["volume_deviation_pct"] is None and vd["volume_deviation_mm3"] == pytest.approx(r.volume, rel=1e-9)
+    stl = tmp_path / "ball.stl"
+    write_stl(icosphere(10.0), stl)
+    for workers in (-1, float("nan"), 1.5, True, "2", 2**63):
+        with pytest.raises(BatchError) as exc:
+            run_batch([str(stl)], tmp_path / "out", workers=workers)
+        _one_line(exc, "workers must be a whole number from 0 to 1024")

@@ -16,6 +16,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import json
+import numbers
 import os
 import time
 from collections.abc import Callable, Sequence
@@ -43,6 +44,9 @@ from .report import checks_summary
 from .task import _cores, _worker_device, default_workers, init_worker, pocl_thread_env, run_model
 
 __all__ = ["BatchRunner", "MANIFEST_NAME", "run_batch"]
+
+#: the most local worker processes (and PoCL threads per worker) a batch takes
+MAX_LOCAL = 1024
 
 #: the manifest in the output folder: the options that shape the outputs
 MANIFEST_NAME = ".gpuslice-batch.json"
@@ -366,6 +370,10 @@ class BatchRunner:
         """
         if transfer not in ("shared", "bytes"):
             raise BatchError(f"unknown transfer '{transfer}' (use shared or bytes)")
+        for name, v, least in (("workers", workers, 0), ("threads", threads, 1)):  # (-1, NaN, 1.5, True ran; "2"
+            if v is not None and not (isinstance(v, numbers.Integral) and not isinstance(v, bool)  # a TypeError)
+                                      and least <= v <= MAX_LOCAL):
+                raise BatchError(f"{name} must be a whole number from {least} to {MAX_LOCAL}, got {v!r}")
         t0 = time.perf_counter()
         started_ns = time.time_ns()
         tasks = self._prepare_output()

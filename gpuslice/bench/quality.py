@@ -160,7 +160,8 @@ def _intersection_areas(a, b, threads: int = 2) -> np.ndarray:
 def volume_deviation(result: SliceResult, reference: SliceResult, *, geoms=None, ref_geoms=None) -> dict:
     """Symmetric-difference volume between the stacked layers of ``result`` and of a fine ``reference``, mm³.
 
-    Returns ``{"volume_deviation_mm3", "volume_deviation_pct" (of the reference volume), "reference_thickness_mm"}``.
+    Returns ``{"volume_deviation_mm3", "volume_deviation_pct" (of the reference volume; None when the reference
+    holds none: an empty reference gave 0 %), "reference_thickness_mm"}``.
     """
     e_s, e_r = schedule_edges(result), schedule_edges(reference)
     a_s, a_r = np.asarray(result.area, np.float64), np.asarray(reference.area, np.float64)
@@ -169,7 +170,7 @@ def volume_deviation(result: SliceResult, reference: SliceResult, *, geoms=None,
     if result.n_layers == 0 or reference.n_layers == 0:
         dev = float(np.dot(a_s, np.diff(e_s))) + ref_volume
         return {**out, "volume_deviation_mm3": dev, "volume_deviation_pct": 100.0 * dev / ref_volume if ref_volume
-                else 0.0}
+                else None}
     # overlapping slab pairs (l, j): both edge lists are sorted, so each l meets a contiguous run of j
     j0 = np.searchsorted(e_r, e_s[:-1], side="right") - 1
     j1 = np.searchsorted(e_r, e_s[1:], side="left")
@@ -193,7 +194,7 @@ def volume_deviation(result: SliceResult, reference: SliceResult, *, geoms=None,
     dev += float(np.dot(np.maximum(np.diff(e_r) - covered_r, 0.0), a_r))  # reference material no layer covers
     dev += float(np.dot(np.maximum(np.diff(e_s) - covered_s, 0.0), a_s))  # layer material beyond the reference
     return {**out, "volume_deviation_mm3": dev,
-            "volume_deviation_pct": 100.0 * dev / ref_volume if ref_volume > 0 else 0.0}
+            "volume_deviation_pct": 100.0 * dev / ref_volume if ref_volume > 0 else None}
 
 
 def reference_thickness(height: float, thinnest: float) -> float:

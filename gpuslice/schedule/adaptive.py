@@ -235,7 +235,7 @@ def slope_limit(nz: np.ndarray, mode: str, max_cusp: float = 0.05, max_area: flo
     ``cusp``: t = C / |n_z| (cusp height t·|n_z| <= C). ``area``: t = sqrt(2·A_max·tan α), cos α = |n_z|.
     """
     a = np.clip(np.asarray(nz, dtype=np.float64) * _NZ_SAFETY, 0.0, 1.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # (max_cusp 1e308 over a small |n_z|: inf)
         if mode == "cusp":
             return np.where(a > 0, max_cusp / a, np.inf)
         if mode == "area":
