@@ -370,9 +370,9 @@ class BatchRunner:
         """
         if transfer not in ("shared", "bytes"):
             raise BatchError(f"unknown transfer '{transfer}' (use shared or bytes)")
-        for name, v, least in (("workers", workers, 0), ("threads", threads, 1)):  # (-1, NaN, 1.5, True ran; "2"
-            if v is not None and not (isinstance(v, numbers.Integral) and not isinstance(v, bool)  # a TypeError)
-                                      and least <= v <= MAX_LOCAL):
+        for name, v, least in (("workers", workers, 0), ("threads", threads, 1)):  # (-1, NaN, 1.5, True ran)
+            whole = isinstance(v, numbers.Integral) and not isinstance(v, bool)
+            if v is not None and not (whole and least <= v <= MAX_LOCAL):
                 raise BatchError(f"{name} must be a whole number from {least} to {MAX_LOCAL}, got {v!r}")
         t0 = time.perf_counter()
         started_ns = time.time_ns()

@@ -20,7 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ParameterError
-from ..options import is_real, shown
+from ..io.rawmesh import MAX_COORDINATE
+from ..options import is_finite, shown
 from .validate import check_uniform
 
 __all__ = ["Schedule", "uniform", "from_z", "slab_bottoms"]
@@ -43,15 +44,11 @@ def _reals(value, what: str) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=np.float64).reshape(-1)
 
 
-#: the farthest a plane may lie from the bed and the thickest a layer may be, mm: a mesh's coordinates' bound
-#: (:data:`gpuslice.io.rawmesh.MAX_COORDINATE`), which a saved result's loader holds too
-MAX_MM = 1e18
-
-
 def _check_planes(z: np.ndarray, what: str) -> None:
-    """:class:`ParameterError` unless every value of ``z`` is finite and within :data:`MAX_MM` (NaN fails)."""
-    if z.size and not (-MAX_MM <= float(z.min()) and float(z.max()) <= MAX_MM):
-        bad = float(z[~(np.abs(z) <= MAX_MM)][0])
+    """:class:`ParameterError` unless every value of ``z`` is finite and within a mesh's coordinates' bound
+    (:data:`~gpuslice.io.rawmesh.MAX_COORDINATE`, which a saved result's loader holds too; NaN fails)."""
+    if z.size and not (-MAX_COORDINATE <= float(z.min()) and float(z.max()) <= MAX_COORDINATE):
+        bad = float(z[~(np.abs(z) <= MAX_COORDINATE)][0])
         raise ParameterError(f"schedule: cutting planes must lie within 1e18 mm of the bed, got {what} up to {bad:g}")
 
 
@@ -75,8 +72,8 @@ class Schedule:
             raise ParameterError("schedule: z values must be strictly increasing")
         if np.any(t <= 0):
             raise ParameterError("schedule: thicknesses must be positive")
-        if np.any(t > MAX_MM):  # (1e308 was sliced, and its result's volume overflowed and its .npz did not load)
-            raise ParameterError(f"schedule: thicknesses must be at most {MAX_MM:g} mm")
+        if np.any(t > MAX_COORDINATE):  # (1e308 was sliced: its result's volume overflowed, its .npz did not load)
+            raise ParameterError(f"schedule: thicknesses must be at most {MAX_COORDINATE:g} mm")
         object.__setattr__(self, "z", z)
         object.__setattr__(self, "thickness", t)
 
@@ -142,7 +139,7 @@ def uniform(
     array([0.25, 0.5 , 0.75])
     """
     check_uniform(thickness, first_layer, z_mode)
-    if not (is_real(height) and np.isfinite(height) and height >= 0):
+    if not (is_finite(height) and float(height) >= 0):
         raise ParameterError(f"object height must be finite and non-negative, got {shown(height)}")
     thickness = float(thickness)  # (an int gave an int array below, which cut a first layer of 1.5 mm to 1)
     h0 = thickness if first_layer is None else float(first_layer)

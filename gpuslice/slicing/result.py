@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import MeshFileError, ParameterError
+from ..io.rawmesh import MAX_COORDINATE
 from ..options import check_flag
 
 __all__ = ["SliceResult", "LayerView", "LayerIndexError"]
@@ -302,9 +303,6 @@ class SliceResult:
 
 #: the index arrays' dtypes as the slicer makes them (a loaded file's integers of any width are checked and cast)
 _INDEX_DTYPES = {"loop_offsets": np.int64, "layer_offsets": np.int64, "loop_layer": np.int32, "loop_parent": np.int32}
-#: the most a saved result's coordinates and thicknesses may be, mm: what a mesh may hold
-#: (:data:`gpuslice.io.rawmesh.MAX_COORDINATE`), so that the raster's and the viewer's float64 arithmetic stays finite
-_MAX_MM = 1e18
 
 #: the dtype kinds of the 1-D arrays of the layout (numpy's ``dtype.kind``)
 _KINDS = {"loop_offsets": "iu", "layer_offsets": "iu", "loop_layer": "iu", "loop_is_hole": "b", "loop_parent": "iu",
@@ -313,8 +311,9 @@ _KINDS = {"loop_offsets": "iu", "layer_offsets": "iu", "loop_layer": "iu", "loop
 
 def _layout_problem(arrays: dict[str, np.ndarray], repairs: dict[str, np.ndarray], meta: Any) -> str | None:
     """What does not fit the layout (module docstring) in a loaded result's arrays, or None: shapes, dtypes,
-    lengths, offsets' ends and order, index ranges, coordinates within :data:`_MAX_MM` (points and z, finite),
-    thicknesses in (0, _MAX_MM], finite areas, and the metadata gpuslice reads back (:func:`_meta_problem`)."""
+    lengths, offsets' ends and order, index ranges, points and z finite and within a mesh's bound
+    (:data:`~gpuslice.io.rawmesh.MAX_COORDINATE`: the raster's and the viewer's float64 arithmetic stays finite),
+    thicknesses in (0, that], areas bounded, and the metadata gpuslice reads back (:func:`_meta_problem`)."""
     pts = arrays["points"]
     if pts.ndim != 2 or pts.shape[1] != 2 or pts.dtype != np.float32:
         return f"points must be (P, 2) float32, got shape {pts.shape} dtype {pts.dtype}"
@@ -351,13 +350,14 @@ def _layout_problem(arrays: dict[str, np.ndarray], repairs: dict[str, np.ndarray
     if np.any(np.diff(arrays["z"]) <= 0):
         return "z must be strictly increasing"
     z, th = arrays["z"], arrays["thickness"]
-    if n_layers and not (-_MAX_MM <= float(z.min()) and float(z.max()) <= _MAX_MM):
+    if n_layers and not (-MAX_COORDINATE <= float(z.min()) and float(z.max()) <= MAX_COORDINATE):
         return "z must lie within 1e18 mm of the bed"
-    if n_layers and not (float(th.min()) > 0 and float(th.max()) <= _MAX_MM):
+    if n_layers and not (float(th.min()) > 0 and float(th.max()) <= MAX_COORDINATE):
         return "thickness must be more than 0 and at most 1e18 mm"
-    if pts.size and not (-_MAX_MM <= float(pts.min()) and float(pts.max()) <= _MAX_MM):  # (False for a NaN)
+    lo, hi = (float(pts.min()), float(pts.max())) if pts.size else (0.0, 0.0)
+    if not (-MAX_COORDINATE <= lo and hi <= MAX_COORDINATE):  # (False for a NaN)
         return "points must be finite, within 1e18 mm of the origin"
-    if not (np.abs(arrays["area"]) <= (2 * _MAX_MM) ** 2).all():
+    if not (np.abs(arrays["area"]) <= (2 * MAX_COORDINATE) ** 2).all():
         return "area beyond what points within 1e18 mm bound"
     return _meta_problem(meta)
 
